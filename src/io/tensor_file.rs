@@ -1,0 +1,430 @@
+//! Named tensors with string metadata, stored as safetensors.
+//!
+//! This is the format of the oracle's case files, of deformation-field
+//! weights (PyTorch state_dict names) and of optimizer checkpoints. Tensors
+//! are kept in a `BTreeMap`, so files are written in a fixed order and the same
+//! content always gives the same bytes.
+
+use crate::error::{Error, Result};
+use crate::math::Real;
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+
+/// Element storage of a tensor.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TensorData {
+    F32(Vec<f32>),
+    F64(Vec<f64>),
+    I32(Vec<i32>),
+}
+
+impl TensorData {
+    pub fn dtype_name(&self) -> &'static str {
+        match self {
+            TensorData::F32(_) => "F32",
+            TensorData::F64(_) => "F64",
+            TensorData::I32(_) => "I32",
+        }
+    }
+    pub fn len(&self) -> usize {
+        match self {
+            TensorData::F32(v) => v.len(),
+            TensorData::F64(v) => v.len(),
+            TensorData::I32(v) => v.len(),
+        }
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// Every element widened to f64 (exact for all three types).
+    pub fn to_f64(&self) -> Vec<f64> {
+        match self {
+            TensorData::F32(v) => v.iter().map(|&x| x as f64).collect(),
+            TensorData::F64(v) => v.clone(),
+            TensorData::I32(v) => v.iter().map(|&x| x as f64).collect(),
+        }
+    }
+}
+
+/// A tensor: row-major data and its shape.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Tensor {
+    pub shape: Vec<usize>,
+    pub data: TensorData,
+}
+
+impl Tensor {
+    pub fn real<T: Real>(shape: Vec<usize>, values: &[T]) -> Self {
+        debug_assert_eq!(shape.iter().product::<usize>(), values.len());
+        let data = match T::PRECISION {
+            crate::math::Precision::F32 => {
+                TensorData::F32(values.iter().map(|v| v.to_f64() as f32).collect())
+            }
+            crate::math::Precision::F64 => {
+                TensorData::F64(values.iter().map(|v| v.to_f64()).collect())
+            }
+        };
+        Tensor { shape, data }
+    }
+    pub fn i32(shape: Vec<usize>, values: Vec<i32>) -> Self {
+        Tensor {
+            shape,
+            data: TensorData::I32(values),
+        }
+    }
+}
+
+fn shape_str(s: &[usize]) -> String {
+    format!(
+        "[{}]",
+        s.iter()
+            .map(|d| d.to_string())
+            .collect::<Vec<_>>()
+            .join(",")
+    )
+}
+
+/// A set of named tensors plus string metadata, tied to the path it came
+/// from (or will be written to) for error messages.
+#[derive(Clone, Debug, Default)]
+pub struct TensorFile {
+    pub path: PathBuf,
+    pub metadata: BTreeMap<String, String>,
+    pub tensors: BTreeMap<String, Tensor>,
+}
+
+impl TensorFile {
+    pub fn new(path: impl Into<PathBuf>) -> Self {
+        TensorFile {
+            path: path.into(),
+            ..Default::default()
+        }
+    }
+
+    fn ctx(&self) -> String {
+        self.path.display().to_string()
+    }
+
+    /// Read a safetensors file. Accepts F32, F64 and I32 tensors.
+    pub fn load(path: &Path) -> Result<Self> {
+        let bytes = super::read(path)?;
+        Self::from_bytes(path, &bytes)
+    }
+
+    pub fn from_bytes(path: &Path, bytes: &[u8]) -> Result<Self> {
+        let (_, meta) = SafeTensors::read_metadata(bytes)
+            .map_err(|e| Error::format(path, format!("not a valid safetensors file: {e}")))?;
+        let st = SafeTensors::deserialize(bytes)
+            .map_err(|e| Error::format(path, format!("not a valid safetensors file: {e}")))?;
+        let mut out = TensorFile::new(path);
+        if let Some(m) = meta.metadata() {
+            out.metadata = m.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
+        }
+        for (name, view) in st.tensors() {
+            let shape = view.shape().to_vec();
+            let raw = view.data();
+            let data = match view.dtype() {
+                Dtype::F32 => TensorData::F32(
+                    raw.chunks_exact(4)
+                        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+                        .collect(),
+                ),
+                Dtype::F64 => TensorData::F64(
+                    raw.chunks_exact(8)
+                        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
+                        .collect(),
+                ),
+                Dtype::I32 => TensorData::I32(
+                    raw.chunks_exact(4)
+                        .map(|c| i32::from_le_bytes(c.try_into().unwrap()))
+                        .collect(),
+                ),
+                other => {
+                    return Err(Error::Tensor {
+                        context: path.display().to_string(),
+                        name,
+                        expected: "dtype F32, F64 or I32".into(),
+                        found: format!("{other:?}"),
+                    })
+                }
+            };
+            out.tensors.insert(name, Tensor { shape, data });
+        }
+        Ok(out)
+    }
+
+    /// Serialise to safetensors bytes (deterministic: sorted names).
+    pub fn to_bytes(&self) -> Result<Vec<u8>> {
+        let bufs: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = self
+            .tensors
+            .iter()
+            .map(|(name, t)| {
+                let (dt, bytes) = match &t.data {
+                    TensorData::F32(v) => {
+                        (Dtype::F32, v.iter().flat_map(|x| x.to_le_bytes()).collect())
+                    }
+                    TensorData::F64(v) => {
+                        (Dtype::F64, v.iter().flat_map(|x| x.to_le_bytes()).collect())
+                    }
+                    TensorData::I32(v) => {
+                        (Dtype::I32, v.iter().flat_map(|x| x.to_le_bytes()).collect())
+                    }
+                };
+                (name.clone(), dt, t.shape.clone(), bytes)
+            })
+            .collect();
+        let mut views = Vec::with_capacity(bufs.len());
+        for (name, dt, shape, bytes) in &bufs {
+            let v = TensorView::new(*dt, shape.clone(), bytes).map_err(|e| Error::Tensor {
+                context: self.ctx(),
+                name: name.clone(),
+                expected: "data length matching its shape".into(),
+                found: format!("{e}"),
+            })?;
+            views.push((name.clone(), v));
+        }
+        let meta = if self.metadata.is_empty() {
+            None
+        } else {
+            Some(
+                self.metadata
+                    .iter()
+                    .map(|(k, v)| (k.clone(), v.clone()))
+                    .collect(),
+            )
+        };
+        safetensors::serialize(views, &meta)
+            .map_err(|e| Error::format(&self.path, format!("cannot serialise: {e}")))
+    }
+
+    /// Write atomically to `path`.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        super::write_atomic(path, &self.to_bytes()?)
+    }
+
+    // ---- metadata ----
+
+    pub fn set_meta(&mut self, key: &str, value: impl ToString) {
+        self.metadata.insert(key.to_string(), value.to_string());
+    }
+
+    /// A required metadata string.
+    pub fn meta(&self, key: &str) -> Result<&str> {
+        self.metadata
+            .get(key)
+            .map(|s| s.as_str())
+            .ok_or_else(|| Error::field(&self.path, format!("__metadata__.{key}"), "missing"))
+    }
+
+    /// A required metadata value parsed with `FromStr`.
+    pub fn meta_parse<F: std::str::FromStr>(&self, key: &str) -> Result<F> {
+        let s = self.meta(key)?;
+        s.trim().parse::<F>().map_err(|_| {
+            Error::field(
+                &self.path,
+                format!("__metadata__.{key}"),
+                format!("cannot parse {s:?} as {}", std::any::type_name::<F>()),
+            )
+        })
+    }
+
+    /// An optional metadata value parsed with `FromStr`, or `default`.
+    pub fn meta_or<F: std::str::FromStr>(&self, key: &str, default: F) -> Result<F> {
+        if self.metadata.contains_key(key) {
+            self.meta_parse(key)
+        } else {
+            Ok(default)
+        }
+    }
+
+    // ---- tensors ----
+
+    pub fn contains(&self, name: &str) -> bool {
+        self.tensors.contains_key(name)
+    }
+
+    pub fn shape(&self, name: &str) -> Result<&[usize]> {
+        self.tensors
+            .get(name)
+            .map(|t| t.shape.as_slice())
+            .ok_or_else(|| Error::MissingTensor {
+                context: self.ctx(),
+                name: name.to_string(),
+            })
+    }
+
+    /// The precision of the floating-point tensors: all must agree.
+    pub fn precision(&self) -> Result<crate::math::Precision> {
+        use crate::math::Precision;
+        let mut found: Option<(Precision, &str)> = None;
+        for (name, t) in &self.tensors {
+            let p = match t.data {
+                TensorData::F32(_) => Precision::F32,
+                TensorData::F64(_) => Precision::F64,
+                TensorData::I32(_) => continue,
+            };
+            match found {
+                None => found = Some((p, name)),
+                Some((q, first)) if q != p => {
+                    return Err(Error::Tensor {
+                        context: self.ctx(),
+                        name: name.clone(),
+                        expected: format!(
+                            "dtype {} like `{first}`",
+                            if q == Precision::F32 { "F32" } else { "F64" }
+                        ),
+                        found: t.data.dtype_name().into(),
+                    })
+                }
+                _ => {}
+            }
+        }
+        found
+            .map(|(p, _)| p)
+            .ok_or_else(|| Error::format(&self.path, "no floating-point tensors"))
+    }
+
+    /// A real tensor of element type `T` and any shape.
+    pub fn get_real_any<T: Real>(&self, name: &str) -> Result<(Vec<usize>, Vec<T>)> {
+        let t = self.tensors.get(name).ok_or_else(|| Error::MissingTensor {
+            context: self.ctx(),
+            name: name.to_string(),
+        })?;
+        let want = match T::PRECISION {
+            crate::math::Precision::F32 => "F32",
+            crate::math::Precision::F64 => "F64",
+        };
+        let v: Vec<T> = match (&t.data, T::PRECISION) {
+            (TensorData::F32(v), crate::math::Precision::F32) => {
+                v.iter().map(|&x| T::from_f32(x)).collect()
+            }
+            (TensorData::F64(v), crate::math::Precision::F64) => {
+                v.iter().map(|&x| T::from_f64(x)).collect()
+            }
+            (d, _) => {
+                return Err(Error::Tensor {
+                    context: self.ctx(),
+                    name: name.into(),
+                    expected: format!("dtype {want}"),
+                    found: format!("dtype {}", d.dtype_name()),
+                })
+            }
+        };
+        Ok((t.shape.clone(), v))
+    }
+
+    /// A real tensor of element type `T` whose shape must equal `expected`.
+    pub fn get_real<T: Real>(&self, name: &str, expected: &[usize]) -> Result<Vec<T>> {
+        let (shape, v) = self.get_real_any::<T>(name)?;
+        if shape != expected {
+            return Err(Error::Tensor {
+                context: self.ctx(),
+                name: name.into(),
+                expected: format!("shape {}", shape_str(expected)),
+                found: format!("shape {}", shape_str(&shape)),
+            });
+        }
+        Ok(v)
+    }
+
+    /// An I32 tensor of any shape.
+    pub fn get_i32(&self, name: &str) -> Result<(Vec<usize>, Vec<i32>)> {
+        let t = self.tensors.get(name).ok_or_else(|| Error::MissingTensor {
+            context: self.ctx(),
+            name: name.to_string(),
+        })?;
+        match &t.data {
+            TensorData::I32(v) => Ok((t.shape.clone(), v.clone())),
+            d => Err(Error::Tensor {
+                context: self.ctx(),
+                name: name.into(),
+                expected: "dtype I32".into(),
+                found: format!("dtype {}", d.dtype_name()),
+            }),
+        }
+    }
+
+    pub fn insert_real<T: Real>(&mut self, name: &str, shape: Vec<usize>, values: &[T]) {
+        self.tensors
+            .insert(name.to_string(), Tensor::real(shape, values));
+    }
+
+    pub fn insert_i32(&mut self, name: &str, shape: Vec<usize>, values: Vec<i32>) {
+        self.tensors
+            .insert(name.to_string(), Tensor::i32(shape, values));
+    }
+
+    /// Fail if the file holds tensors outside `known` (catches typos in
+    /// hand-written case files and state dicts).
+    pub fn reject_unknown<'a>(&self, known: impl IntoIterator<Item = &'a str>) -> Result<()> {
+        let known: BTreeSet<&str> = known.into_iter().collect();
+        let extra: Vec<&str> = self
+            .tensors
+            .keys()
+            .map(|s| s.as_str())
+            .filter(|k| !known.contains(k))
+            .collect();
+        if extra.is_empty() {
+            Ok(())
+        } else {
+            Err(Error::UnexpectedTensors {
+                context: self.ctx(),
+                names: extra.join(", "),
+            })
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trip_preserves_bits_and_metadata() {
+        let mut f = TensorFile::new("mem");
+        f.set_meta("stage", "rasterize");
+        f.insert_real::<f32>("a", vec![2, 2], &[1.0, -0.0, f32::MIN_POSITIVE, 3.5]);
+        f.insert_real::<f64>("b", vec![1], &[0.1]);
+        f.insert_i32("c", vec![3], vec![1, -2, 3]);
+        let bytes = f.to_bytes().unwrap();
+        let g = TensorFile::from_bytes(Path::new("mem"), &bytes).unwrap();
+        assert_eq!(g.metadata, f.metadata);
+        assert_eq!(g.tensors, f.tensors);
+        assert_eq!(g.to_bytes().unwrap(), bytes);
+    }
+
+    #[test]
+    fn wrong_shape_and_dtype_are_named() {
+        let mut f = TensorFile::new("case.safetensors");
+        f.insert_real::<f32>("means3D", vec![4, 2], &[0.0; 8]);
+        let e = f
+            .get_real::<f32>("means3D", &[4, 3])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("means3D") && e.contains("[4,3]") && e.contains("[4,2]"),
+            "{e}"
+        );
+        let e = f
+            .get_real::<f64>("means3D", &[4, 2])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("F64") && e.contains("F32"), "{e}");
+        let e = f
+            .get_real::<f32>("scales", &[4, 3])
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("missing tensor `scales`"), "{e}");
+    }
+
+    #[test]
+    fn truncated_file_is_an_error_not_a_panic() {
+        let mut f = TensorFile::new("x");
+        f.insert_real::<f64>("a", vec![8], &[1.0; 8]);
+        let bytes = f.to_bytes().unwrap();
+        for cut in [0, 4, 8, 20, bytes.len() - 1] {
+            assert!(TensorFile::from_bytes(Path::new("x"), &bytes[..cut]).is_err());
+        }
+    }
+}

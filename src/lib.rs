@@ -1,0 +1,33 @@
+//! # liquid-splat
+//!
+//! A deterministic, multithreaded CPU reference implementation of Deformable
+//! 3D Gaussian Splatting (D-3DGS) with a liquid deformation field: a stack of
+//! closed-form continuous-time (CfC) cells in place of the D-3DGS MLP. The MLP
+//! field is implemented as the baseline.
+//!
+//! ## The pipeline, in module order
+//!
+//! ```text
+//! dataset ──► camera + time ──► deform (field) ──► deformed Gaussians ──► render
+//!   (frames)    (camera)         (mlp | cfc)         (gaussians)          (rasterizer)
+//!                                                                            │
+//!        densify ◄── optim (Adam) ◄── backward (each stage's vjp) ◄── loss ◄─┘
+//! ```
+//!
+//! - [`math`]: the `Real` scalar trait (f32 / f64), the pinned math library,
+//!   the seeded generator and the finite-difference gradient checker.
+//! - [`camera`]: pinhole cameras and the matrices the rasterizer consumes.
+//! - [`io`]: atomic writes and named-tensor (safetensors) files.
+//!
+//! ## Determinism
+//! The same inputs give the same bits whatever the thread count, run or CPU:
+//! work is split into fixed pieces, every floating-point reduction has a fixed
+//! order, transcendental functions come from one pinned pure-Rust library, and
+//! all randomness comes from explicit seeds.
+
+pub mod camera;
+pub mod error;
+pub mod io;
+pub mod math;
+
+pub use error::{Error, Result};

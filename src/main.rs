@@ -1,0 +1,39 @@
+//! The `liquid-splat` command-line tool: a thin layer over the library. This
+//! is the only place errors become messages and exit codes.
+//!
+//! Exit codes: 0 success; 1 a check or comparison failed; 2 unusable input
+//! (bad arguments, missing or malformed files).
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "liquid-splat",
+    version,
+    about = "Deterministic CPU reference for deformable 3D Gaussian splatting with a liquid (CfC) deformation field"
+)]
+struct Cli {
+    /// Worker threads (default: all cores). Results are bit-identical for any value.
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    if let Some(n) = cli.threads {
+        if let Err(e) = rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build_global()
+        {
+            eprintln!("error: cannot start {n} threads: {e}");
+            return ExitCode::from(2);
+        }
+    }
+    match cli.command {}
+}

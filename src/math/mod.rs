@@ -1,0 +1,12 @@
+//! Math at the bottom of the crate: depends on nothing else in it.
+//!
+//! - [`real`]: the `Real` scalar trait (f32 / f64) over one pinned math library.
+//! - [`rng`]: the seeded, portable random number generator.
+//! - [`gradcheck`]: central finite differences in f64 for every hand-written backward.
+
+pub mod gradcheck;
+pub mod real;
+pub mod rng;
+
+pub use real::{Precision, Real, MATH_LIBRARY};
+pub use rng::Rng;
