@@ -27,6 +27,7 @@
 
 pub mod camera;
 pub mod error;
+pub mod gaussians;
 pub mod io;
 pub mod math;
 
