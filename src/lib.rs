@@ -32,3 +32,4 @@ pub mod io;
 pub mod math;
 
 pub use error::{Error, Result};
+pub mod train;

@@ -8,7 +8,7 @@
 //! [`Rng::stream`] from (seed, index), never from which thread runs it.
 
 /// SplitMix64 generator.
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Rng {
     state: u64,
 }
@@ -25,6 +25,12 @@ fn mix(mut z: u64) -> u64 {
 impl Rng {
     pub fn new(seed: u64) -> Self {
         Rng { state: seed }
+    }
+
+    /// The whole generator state: `Rng::new(r.state())` continues exactly where
+    /// `r` stands (used by checkpoints).
+    pub fn state(&self) -> u64 {
+        self.state
     }
 
     /// An independent stream for item `index` of a computation seeded by `seed`.

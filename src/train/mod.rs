@@ -1,0 +1,3 @@
+pub mod cameras;
+pub mod config;
+pub mod deformed;
