@@ -29,6 +29,8 @@ pub mod camera;
 pub mod error;
 pub mod gaussians;
 pub mod io;
+pub mod loss;
 pub mod math;
+pub mod optim;
 
 pub use error::{Error, Result};
