@@ -33,5 +33,6 @@ pub mod io;
 pub mod loss;
 pub mod math;
 pub mod optim;
+pub mod oracle;
 
 pub use error::{Error, Result};
