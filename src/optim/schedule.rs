@@ -26,13 +26,7 @@ pub fn linear_lr(step: i64, init: f64, fin: f64, max_steps: u64) -> f64 {
 }
 
 fn clip01(t: f64) -> f64 {
-    if t < 0.0 {
-        0.0
-    } else if t > 1.0 {
-        1.0
-    } else {
-        t
-    }
+    t.clamp(0.0, 1.0)
 }
 
 /// Learning rates of one Gaussian optimizer step, one per group.

@@ -91,13 +91,13 @@ mod tests {
         c.insert_real("extra", vec![1], &[0.0f32]);
         assert!(run(&c).is_err());
         let mut c = case(4, 4);
-        c.insert_real("gt", vec![3, 4, 5], &vec![0.0f32; 60]);
+        c.insert_real("gt", vec![3, 4, 5], &[0.0f32; 60]);
         assert!(run(&c).is_err());
         let mut c = case(4, 4);
-        c.insert_real("gt", vec![3, 4, 4], &vec![0.0f64; 48]);
+        c.insert_real("gt", vec![3, 4, 4], &[0.0f64; 48]);
         assert!(run(&c).is_err(), "mixed precision");
         let mut c = case(4, 4);
-        c.insert_real("image", vec![1, 4, 12], &vec![0.0f32; 48]);
+        c.insert_real("image", vec![1, 4, 12], &[0.0f32; 48]);
         assert!(run(&c).is_err());
         let mut c = case(4, 4);
         c.set_meta("lambda_dssim", "abc");
