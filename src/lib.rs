@@ -26,10 +26,14 @@
 //! all randomness comes from explicit seeds.
 
 pub mod camera;
+pub mod densify;
 pub mod error;
 pub mod gaussians;
 pub mod io;
+pub mod loss;
 pub mod math;
+pub mod optim;
+pub mod oracle;
 
 pub use error::{Error, Result};
 pub mod train;

@@ -1,0 +1,86 @@
+//! Mean absolute error over a `[3, H, W]` image, and its vjp.
+//!
+//! `L1(x, y) = mean |x - y|` over every element. The sum runs one row (W
+//! values) at a time in column order; row partial sums are combined in row
+//! order, so the result does not depend on the thread count. (PyTorch's
+//! `mean` uses its own cascade order, so the f32 value may differ from it in
+//! the last bits; it is deterministic here.)
+
+use crate::math::Real;
+use rayon::prelude::*;
+
+/// Sum of `|x - y|` per row of `w` values, in row order.
+pub(crate) fn row_abs_sums<T: Real>(x: &[T], y: &[T], w: usize) -> Vec<T> {
+    x.par_chunks(w.max(1))
+        .zip(y.par_chunks(w.max(1)))
+        .map(|(xr, yr)| {
+            let mut s = T::ZERO;
+            for (&a, &b) in xr.iter().zip(yr) {
+                s += (a - b).abs();
+            }
+            s
+        })
+        .collect()
+}
+
+/// Mean absolute error `mean |x - y|`; `w` is the row length used to split
+/// the work (any positive value gives a valid mean; use the image width).
+pub fn l1<T: Real>(x: &[T], y: &[T], w: usize) -> T {
+    let mut total = T::ZERO;
+    for s in row_abs_sums(x, y, w) {
+        total += s;
+    }
+    total / T::from_usize(x.len())
+}
+
+/// Backward of [`l1`]: `dL/dx_i = grad_out / n * sign(x_i - y_i)`.
+///
+/// The subgradient at `x_i == y_i` is 0, as PyTorch's `abs` backward
+/// (`sgn`) defines it. `grad_out / n` is rounded once, as PyTorch's `mean`
+/// backward does, and then multiplied by the sign (exact).
+pub fn l1_vjp<T: Real>(x: &[T], y: &[T], grad_out: T, grad_x: &mut [T]) {
+    let g = grad_out / T::from_usize(x.len());
+    grad_x
+        .par_iter_mut()
+        .zip(x.par_iter().zip(y.par_iter()))
+        .for_each(|(gx, (&a, &b))| {
+            let d = a - b;
+            *gx = if d > T::ZERO {
+                g
+            } else if d < T::ZERO {
+                -g
+            } else {
+                T::ZERO
+            };
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::gradcheck::{compare, cotangent, numeric_gradient};
+
+    #[test]
+    fn l1_value_and_gradient() {
+        let n = 3 * 5 * 4;
+        let x0 = cotangent(1, n);
+        let y = cotangent(2, n);
+        let direct: f64 = x0.iter().zip(&y).map(|(a, b)| (a - b).abs()).sum::<f64>() / n as f64;
+        assert!((l1(&x0, &y, 4) - direct).abs() < 1e-15);
+        let mut ga = vec![0.0; n];
+        l1_vjp(&x0, &y, 0.7, &mut ga);
+        let mut x = x0.clone();
+        let gn = numeric_gradient(&mut x, 1e-6, |x| 0.7 * l1(x, &y, 4));
+        let r = compare("l1", &ga, &gn, 1e-6);
+        assert!(r.passes(1e-6), "{r}");
+    }
+
+    #[test]
+    fn l1_subgradient_at_zero_is_zero() {
+        let x = [0.5f32, 0.25, 1.0];
+        let y = [0.5f32, 0.5, 0.0];
+        let mut g = [9.0f32; 3];
+        l1_vjp(&x, &y, 3.0, &mut g);
+        assert_eq!(g, [0.0, -1.0, 1.0]);
+    }
+}

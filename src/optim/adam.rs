@@ -1,0 +1,268 @@
+//! Adam with PyTorch 1.13 semantics (the single-tensor path of
+//! `torch.optim.Adam`, no weight decay, no amsgrad), element-wise.
+//!
+//! For step `t` (counted from 1), per element, in this order and with each
+//! operation rounded to `T`:
+//!
+//! ```text
+//! m ← m·β1 + g·(1−β1)                 (exp_avg.mul_(β1).add_(g, alpha=1−β1))
+//! v ← v·β2 + ((1−β2)·g)·g             (exp_avg_sq.mul_(β2).addcmul_(g, g, value=1−β2))
+//! denom = sqrt(v) / sqrt(bc2) + eps    (exp_avg_sq.sqrt() / bc2_sqrt).add_(eps)
+//! p ← p + (−step_size)·(m / denom)     (param.addcdiv_(m, denom, value=−step_size))
+//! ```
+//!
+//! The host scalars are computed in f64 as Python does: `bc1 = 1 − β1^t`,
+//! `bc2 = 1 − β2^t` (powers from the pinned `libm::pow`, as Python's `**`
+//! calls the C `pow`), `step_size = lr / bc1`, `bc2_sqrt = sqrt(bc2)`; each is
+//! then rounded to `T` once, as a CUDA kernel receiving a Python scalar does.
+//! `1 − β1`, `1 − β2` are likewise computed in f64 and rounded. The CUDA
+//! kernels may fuse some of these into FMAs; this reference never does.
+//!
+//! Every element's update depends only on that element, so the result is the
+//! same for any thread count; the work is split into fixed chunks.
+
+use crate::error::{Error, Result};
+use crate::math::Real;
+use rayon::prelude::*;
+
+/// Adam hyper-parameters (the learning rate is passed per step).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AdamConfig {
+    pub beta1: f64,
+    pub beta2: f64,
+    pub eps: f64,
+}
+
+impl Default for AdamConfig {
+    /// D-3DGS values: betas (0.9, 0.999), eps 1e-15.
+    fn default() -> Self {
+        AdamConfig {
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-15,
+        }
+    }
+}
+
+/// Elements per parallel work item (fixed, independent of the thread count).
+const CHUNK: usize = 1 << 14;
+
+/// Adam state of one parameter tensor (one PyTorch param group).
+#[derive(Clone, Debug, PartialEq)]
+pub struct AdamState<T> {
+    /// First moment (`exp_avg`).
+    pub m: Vec<T>,
+    /// Second moment (`exp_avg_sq`).
+    pub v: Vec<T>,
+    /// Number of steps taken (`state["step"]`).
+    pub step: u64,
+    pub config: AdamConfig,
+}
+
+impl<T: Real> AdamState<T> {
+    /// Zero moments for `len` elements, step 0, default hyper-parameters.
+    pub fn new(len: usize) -> Self {
+        Self::with_config(len, AdamConfig::default())
+    }
+
+    pub fn with_config(len: usize, config: AdamConfig) -> Self {
+        AdamState {
+            m: vec![T::ZERO; len],
+            v: vec![T::ZERO; len],
+            step: 0,
+            config,
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.m.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.m.is_empty()
+    }
+
+    /// One Adam step with learning rate `lr` for every element.
+    pub fn step(&mut self, params: &mut [T], grads: &[T], lr: f64) -> Result<()> {
+        self.step_periodic(params, grads, &[lr])
+    }
+
+    /// One Adam step where element `i` uses learning rate `lrs[i % lrs.len()]`.
+    ///
+    /// This is how one state serves several PyTorch param groups that are laid
+    /// out interleaved and always step together (the SH DC and rest
+    /// coefficients of `[N, K, 3]`: period `3K`, first 3 entries the DC rate).
+    pub fn step_periodic(&mut self, params: &mut [T], grads: &[T], lrs: &[f64]) -> Result<()> {
+        let n = self.m.len();
+        if params.len() != n || grads.len() != n {
+            return Err(Error::invalid(
+                "Adam step",
+                format!(
+                    "state has {n} elements, params {} and grads {}",
+                    params.len(),
+                    grads.len()
+                ),
+            ));
+        }
+        if lrs.is_empty() || n % lrs.len() != 0 {
+            return Err(Error::invalid(
+                "Adam step",
+                format!("{} learning rates do not tile {n} elements", lrs.len()),
+            ));
+        }
+        self.step += 1;
+        let c = self.config;
+        let t = self.step as f64;
+        let bc1 = 1.0 - libm::pow(c.beta1, t);
+        let bc2 = 1.0 - libm::pow(c.beta2, t);
+        let bc2_sqrt = T::from_f64(libm::sqrt(bc2));
+        let neg_step: Vec<T> = lrs.iter().map(|&lr| T::from_f64(-(lr / bc1))).collect();
+        let b1 = T::from_f64(c.beta1);
+        let b2 = T::from_f64(c.beta2);
+        let a1 = T::from_f64(1.0 - c.beta1);
+        let a2 = T::from_f64(1.0 - c.beta2);
+        let eps = T::from_f64(c.eps);
+        let period = lrs.len();
+        params
+            .par_chunks_mut(CHUNK)
+            .zip(grads.par_chunks(CHUNK))
+            .zip(
+                self.m
+                    .par_chunks_mut(CHUNK)
+                    .zip(self.v.par_chunks_mut(CHUNK)),
+            )
+            .enumerate()
+            .for_each(|(ci, ((p, g), (m, v)))| {
+                let base = ci * CHUNK;
+                for i in 0..p.len() {
+                    let gi = g[i];
+                    m[i] = m[i] * b1 + gi * a1;
+                    v[i] = v[i] * b2 + (a2 * gi) * gi;
+                    let denom = v[i].sqrt() / bc2_sqrt + eps;
+                    p[i] += neg_step[(base + i) % period] * (m[i] / denom);
+                }
+            });
+        Ok(())
+    }
+
+    /// Keep only the rows (of `width` elements) listed in `rows`, in that
+    /// order (pruning). The step counter is unchanged.
+    pub fn select_rows(&mut self, width: usize, rows: &[usize]) {
+        self.m = gather_rows(&self.m, width, rows);
+        self.v = gather_rows(&self.v, width, rows);
+    }
+
+    /// Append `count` rows of zero moments (new points). The step counter is
+    /// unchanged.
+    pub fn extend_zero(&mut self, width: usize, count: usize) {
+        let add = width * count;
+        self.m.extend(std::iter::repeat(T::ZERO).take(add));
+        self.v.extend(std::iter::repeat(T::ZERO).take(add));
+    }
+
+    /// Zero the moments of every element (opacity reset); step kept.
+    pub fn zero_moments(&mut self) {
+        self.m.iter_mut().for_each(|x| *x = T::ZERO);
+        self.v.iter_mut().for_each(|x| *x = T::ZERO);
+    }
+}
+
+/// The rows of `src` (each `width` long) listed in `rows`, concatenated.
+pub(crate) fn gather_rows<T: Copy>(src: &[T], width: usize, rows: &[usize]) -> Vec<T> {
+    let mut out = Vec::with_capacity(rows.len() * width);
+    for &r in rows {
+        out.extend_from_slice(&src[r * width..(r + 1) * width]);
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The torch 1.13 formula for one scalar, written out independently in f64.
+    fn reference(p: &mut f64, m: &mut f64, v: &mut f64, g: f64, t: u64, lr: f64) {
+        let (b1, b2, eps) = (0.9f64, 0.999f64, 1e-15f64);
+        *m = b1 * *m + (1.0 - b1) * g;
+        *v = b2 * *v + (1.0 - b2) * g * g;
+        let mut p1 = 1.0;
+        let mut p2 = 1.0;
+        for _ in 0..t {
+            p1 *= b1;
+            p2 *= b2;
+        }
+        let (bc1, bc2) = (1.0 - p1, 1.0 - p2);
+        *p -= (lr / bc1) * *m / (v.sqrt() / bc2.sqrt() + eps);
+    }
+
+    #[test]
+    fn adam_matches_scalar_reference() {
+        let n = 7;
+        let mut params: Vec<f64> = (0..n).map(|i| 0.1 * i as f64 - 0.3).collect();
+        let mut refp = params.clone();
+        let (mut rm, mut rv) = (vec![0.0; n], vec![0.0; n]);
+        let mut st = AdamState::<f64>::new(n);
+        for t in 1..=25u64 {
+            let grads: Vec<f64> = (0..n)
+                .map(|i| libm::sin(0.7 * t as f64 + i as f64) * (i as f64 - 2.0))
+                .collect();
+            let lr = 1e-3 * (1.0 + 0.01 * t as f64);
+            st.step(&mut params, &grads, lr).unwrap();
+            for i in 0..n {
+                reference(&mut refp[i], &mut rm[i], &mut rv[i], grads[i], t, lr);
+            }
+            for i in 0..n {
+                assert!((params[i] - refp[i]).abs() < 1e-14, "t={t} i={i}");
+                assert!((st.m[i] - rm[i]).abs() < 1e-15);
+            }
+        }
+        assert_eq!(st.step, 25);
+    }
+
+    #[test]
+    fn first_step_moves_by_lr_times_sign() {
+        // At t = 1, m/bc1 = g and sqrt(v/bc2) = |g|: the step is lr·sign(g)
+        // (up to eps and rounding).
+        let mut p = vec![1.0f32, 1.0, 1.0];
+        let mut st = AdamState::<f32>::new(3);
+        st.step(&mut p, &[0.5, -3.0, 0.0], 0.01).unwrap();
+        assert!((p[0] - 0.99).abs() < 1e-6);
+        assert!((p[1] - 1.01).abs() < 1e-6);
+        assert_eq!(p[2], 1.0);
+    }
+
+    #[test]
+    fn periodic_rates_and_errors() {
+        let mut p = vec![0.0f64; 6];
+        let mut st = AdamState::<f64>::new(6);
+        st.step_periodic(&mut p, &[1.0; 6], &[0.1, 0.2, 0.3])
+            .unwrap();
+        for (i, want) in [0.1, 0.2, 0.3, 0.1, 0.2, 0.3].iter().enumerate() {
+            assert!((p[i] + want).abs() < 1e-12, "{i}: {}", p[i]);
+        }
+        assert!(st.step_periodic(&mut p, &[1.0; 6], &[0.1; 4]).is_err());
+        assert!(st.step(&mut p, &[1.0; 5], 0.1).is_err());
+        assert_eq!(st.step, 1, "a rejected step must not advance the counter");
+    }
+
+    #[test]
+    fn identical_for_any_thread_count() {
+        let n = 3 * CHUNK + 18;
+        let grads: Vec<f32> = (0..n).map(|i| libm::sinf(i as f32 * 0.37)).collect();
+        let run = |threads| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let mut p = vec![0.5f32; n];
+                let mut st = AdamState::<f32>::new(n);
+                for _ in 0..3 {
+                    st.step_periodic(&mut p, &grads, &[1e-3, 2e-3]).unwrap();
+                }
+                p.iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+            })
+        };
+        assert_eq!(run(1), run(4));
+    }
+}

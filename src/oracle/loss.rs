@@ -1,0 +1,106 @@
+//! Oracle stage `loss`: the training loss and its gradient for one image pair.
+//!
+//! Inputs: `image` `[3, H, W]`, `gt` `[3, H, W]` (both F32 or both F64; the
+//! precision selects the computation), optional metadata `lambda_dssim`
+//! (default 0.2). Outputs, in the same precision: `l1`, `ssim`, `loss` as
+//! rank-0 tensors (shape `[]`), and `grad_image` `[3, H, W]` = dL/dimage.
+//! Metadata `lambda_dssim` is echoed into the output.
+
+use crate::error::{Error, Result};
+use crate::io::TensorFile;
+use crate::loss::{loss_and_grad, LAMBDA_DSSIM};
+use crate::math::{Precision, Real};
+
+/// Run the stage on a case file.
+pub fn run(case: &TensorFile) -> Result<TensorFile> {
+    case.reject_unknown(["image", "gt"])?;
+    match case.precision()? {
+        Precision::F32 => run_t::<f32>(case),
+        Precision::F64 => run_t::<f64>(case),
+    }
+}
+
+fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
+    let (shape, image) = case.get_real_any::<T>("image")?;
+    if shape.len() != 3 || shape[0] != 3 || shape[1] == 0 || shape[2] == 0 {
+        return Err(Error::Tensor {
+            context: case.path.display().to_string(),
+            name: "image".into(),
+            expected: "shape [3,H,W] with H, W > 0".into(),
+            found: format!("shape {shape:?}"),
+        });
+    }
+    let (h, w) = (shape[1], shape[2]);
+    let gt = case.get_real::<T>("gt", &shape)?;
+    let lambda: f64 = case.meta_or("lambda_dssim", LAMBDA_DSSIM)?;
+    if !lambda.is_finite() {
+        return Err(Error::field(
+            &case.path,
+            "__metadata__.lambda_dssim",
+            format!("{lambda} is not finite"),
+        ));
+    }
+    let (out, grad) = loss_and_grad(&image, &gt, h, w, lambda)?;
+    let mut res = TensorFile::new(&case.path);
+    res.set_meta("lambda_dssim", lambda);
+    res.insert_real("l1", vec![], &[out.l1]);
+    res.insert_real("ssim", vec![], &[out.ssim]);
+    res.insert_real("loss", vec![], &[out.loss]);
+    res.insert_real("grad_image", shape, &grad);
+    Ok(res)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::Rng;
+    use std::path::Path;
+
+    fn case(h: usize, w: usize) -> TensorFile {
+        let mut r = Rng::new(3);
+        let img: Vec<f32> = (0..3 * h * w).map(|_| r.uniform() as f32).collect();
+        let gt: Vec<f32> = (0..3 * h * w).map(|_| r.uniform() as f32).collect();
+        let mut c = TensorFile::new("case.safetensors");
+        c.insert_real("image", vec![3, h, w], &img);
+        c.insert_real("gt", vec![3, h, w], &gt);
+        c
+    }
+
+    #[test]
+    fn outputs_round_trip_and_match_the_library() {
+        let mut c = case(5, 6);
+        c.set_meta("lambda_dssim", 0.3);
+        let out = run(&c).unwrap();
+        let bytes = out.to_bytes().unwrap();
+        let back = TensorFile::from_bytes(Path::new("out"), &bytes).unwrap();
+        let loss = back.get_real::<f32>("loss", &[]).unwrap();
+        let img = c.get_real::<f32>("image", &[3, 5, 6]).unwrap();
+        let gt = c.get_real::<f32>("gt", &[3, 5, 6]).unwrap();
+        let (want, grad) = loss_and_grad(&img, &gt, 5, 6, 0.3).unwrap();
+        assert_eq!(loss, vec![want.loss]);
+        assert_eq!(back.get_real::<f32>("ssim", &[]).unwrap(), vec![want.ssim]);
+        assert_eq!(
+            back.get_real::<f32>("grad_image", &[3, 5, 6]).unwrap(),
+            grad
+        );
+    }
+
+    #[test]
+    fn bad_cases_are_errors() {
+        let mut c = case(4, 4);
+        c.insert_real("extra", vec![1], &[0.0f32]);
+        assert!(run(&c).is_err());
+        let mut c = case(4, 4);
+        c.insert_real("gt", vec![3, 4, 5], &[0.0f32; 60]);
+        assert!(run(&c).is_err());
+        let mut c = case(4, 4);
+        c.insert_real("gt", vec![3, 4, 4], &[0.0f64; 48]);
+        assert!(run(&c).is_err(), "mixed precision");
+        let mut c = case(4, 4);
+        c.insert_real("image", vec![1, 4, 12], &[0.0f32; 48]);
+        assert!(run(&c).is_err());
+        let mut c = case(4, 4);
+        c.set_meta("lambda_dssim", "abc");
+        assert!(run(&c).is_err());
+    }
+}
