@@ -1,6 +1,7 @@
 //! File plumbing shared by every stage: atomic writes and named-tensor files
 //! (safetensors with string metadata).
 
+pub mod image;
 pub mod tensor_file;
 
 pub use tensor_file::{Tensor, TensorData, TensorFile};
