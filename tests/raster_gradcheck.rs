@@ -10,6 +10,18 @@ fn every_gradient_matches_central_differences() {
         let report = run_case(&case)
             .unwrap()
             .unwrap_or_else(|| panic!("{}: no scene away from discontinuities", case.name));
+        println!(
+            "[{} seed {}] {:?}",
+            report.name, report.seed, report.features
+        );
+        let f = report.features;
+        assert!(f.visible >= 3, "{}: {f:?}", case.name);
+        match case.name.as_str() {
+            "tangent clamp" => assert!(f.tangent_clamped >= 1, "{f:?}"),
+            "dense/occlusion" => assert!(f.stopped_pixels >= 1 && f.alpha_clamped >= 1, "{f:?}"),
+            "sh3+scale/rot+depth" => assert!(f.color_clamped >= 1, "{f:?}"),
+            _ => {}
+        }
         for g in &report.groups {
             println!("[{} seed {}] {g}", report.name, report.seed);
             if !g.passes(REL_TOL) {

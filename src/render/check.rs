@@ -86,6 +86,22 @@ pub struct CaseReport {
     pub name: String,
     pub seed: u64,
     pub groups: Vec<GroupReport>,
+    pub features: Features,
+}
+
+/// What a checked scene exercises (so tests can require it).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Features {
+    /// Visible Gaussians with an active tangent clamp.
+    pub tangent_clamped: usize,
+    /// Pixels stopped by the transmittance rule.
+    pub stopped_pixels: usize,
+    /// (pixel, Gaussian) pairs blended with alpha clamped at 0.99.
+    pub alpha_clamped: usize,
+    /// Colour channels cut by the SH lower clamp (visible Gaussians).
+    pub color_clamped: usize,
+    /// Visible Gaussians.
+    pub visible: usize,
 }
 
 impl CaseReport {
@@ -103,11 +119,26 @@ pub fn check_scene(
     cov: CovSource,
     depth: bool,
     seed: u64,
-) -> Result<Option<Vec<GroupReport>>> {
+) -> Result<Option<(Vec<GroupReport>, Features)>> {
     let n = scene.len();
     let base = scene.input(colors, cov);
     let (out0, state) = render(&base)?;
     let sig0 = decisions(&base, None)?;
+    // The per-pixel codes are the tail of the signature after the per-Gaussian parts.
+    let head = out0.radii.len() * 3 + state.binning.list.len() + out0.n_contrib.len();
+    let visible: Vec<bool> = out0.radii.iter().map(|&r| r > 0).collect();
+    let features = Features {
+        tangent_clamped: (0..n)
+            .filter(|&i| visible[i] && (state.proj[i].clamped_x || state.proj[i].clamped_y))
+            .count(),
+        stopped_pixels: sig0[head..].iter().filter(|&&c| c == 3).count(),
+        alpha_clamped: sig0[head..].iter().filter(|&&c| c == 2).count(),
+        color_clamped: (0..n)
+            .filter(|&i| visible[i])
+            .map(|i| state.colors[i].clamped.iter().filter(|&&c| c).count())
+            .sum(),
+        visible: visible.iter().filter(|&&v| v).count(),
+    };
     let vc = cotangent(seed ^ 0xC0, out0.color.len());
     let vd: Vec<f64> = if depth {
         cotangent(seed ^ 0xD0, out0.depth.len())
@@ -258,7 +289,11 @@ pub fn check_scene(
             report("cov3D_precomp", &grads.scales_or_cov, &num);
         }
     }
-    Ok(if flipped { None } else { Some(reports) })
+    Ok(if flipped {
+        None
+    } else {
+        Some((reports, features))
+    })
 }
 
 /// Run one case, redrawing the scene (seed + 1000·k) until no perturbation
@@ -268,11 +303,14 @@ pub fn run_case(case: &CheckCase) -> Result<Option<CaseReport>> {
         let mut spec = case.spec.clone();
         spec.seed = case.spec.seed.wrapping_add(1000 * k);
         let scene = random_scene(&spec)?;
-        if let Some(groups) = check_scene(&scene, case.colors, case.cov, case.depth, spec.seed)? {
+        if let Some((groups, features)) =
+            check_scene(&scene, case.colors, case.cov, case.depth, spec.seed)?
+        {
             return Ok(Some(CaseReport {
                 name: case.name.clone(),
                 seed: spec.seed,
                 groups,
+                features,
             }));
         }
     }
@@ -286,8 +324,9 @@ pub fn builtin_cases(seed: u64) -> Vec<CheckCase> {
     let mut clamp = SceneSpec::small(5, seed.wrapping_add(1));
     clamp.off_axis = 2;
     let mut dense = SceneSpec::small(12, seed.wrapping_add(2));
-    dense.opacity_range = (0.6, 0.98);
-    dense.scale_range = (0.15, 0.4);
+    dense.opacity_range = (0.93, 1.0);
+    dense.scale_range = (0.2, 0.4);
+    dense.spread = 0.3;
     let mut low = SceneSpec::small(6, seed.wrapping_add(3));
     low.sh_degree = 1;
     vec![

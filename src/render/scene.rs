@@ -33,6 +33,8 @@ pub struct SceneSpec {
     /// tangent clamp (`|t.x/t.z| > 1.3·tanfovx`) is active but whose
     /// footprint reaches the image.
     pub off_axis: usize,
+    /// Half-extent of the in-view centres as a fraction of the half field of view.
+    pub spread: f64,
     /// Range of the scales (world units), drawn log-uniformly per axis.
     pub scale_range: (f64, f64),
     /// Range of opacities.
@@ -52,6 +54,7 @@ impl SceneSpec {
             height: 24,
             count,
             off_axis: 0,
+            spread: 0.95,
             scale_range: (0.06, 0.3),
             opacity_range: (0.3, 0.95),
             sh_degree: 3,
@@ -67,6 +70,7 @@ impl SceneSpec {
             height,
             count,
             off_axis: 0,
+            spread: 0.95,
             scale_range: (0.004, 0.03),
             opacity_range: (0.05, 0.95),
             sh_degree: 3,
@@ -145,8 +149,8 @@ pub fn random_scene(spec: &SceneSpec) -> Result<Scene<f64>> {
         let z = rng.uniform_range(3.0, 5.0);
         let (u, v, scale_mul) = if i < spec.count {
             (
-                rng.uniform_range(-0.95, 0.95),
-                rng.uniform_range(-0.95, 0.95),
+                rng.uniform_range(-spec.spread, spec.spread),
+                rng.uniform_range(-spec.spread, spec.spread),
                 1.0,
             )
         } else {
