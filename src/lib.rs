@@ -30,6 +30,7 @@ pub mod error;
 pub mod gaussians;
 pub mod io;
 pub mod math;
+pub mod oracle;
 pub mod render;
 
 pub use error::{Error, Result};

@@ -138,6 +138,19 @@ impl<T: Real> ForwardState<T> {
     pub fn num_rendered(&self) -> usize {
         self.binning.list.len()
     }
+    /// (pixel, Gaussian) pairs the tile lists put in front of pixels:
+    /// Σ over tiles of (pixels in the tile × entries in its list). Pixels that
+    /// stop early evaluate fewer; this is the work measure benchmarks report.
+    pub fn tile_pairs(&self) -> u64 {
+        let grid_x = self.intr.grid[0] as usize;
+        let mut total = 0u64;
+        for (tile, r) in self.binning.ranges.iter().enumerate() {
+            let [x0, x1, y0, y1] =
+                rasterize::tile_bounds(tile, grid_x, self.intr.width, self.intr.height);
+            total += ((x1 - x0) * (y1 - y0)) as u64 * (r[1] - r[0]) as u64;
+        }
+        total
+    }
     /// Gaussian index of each sorted entry (tile-major, then depth, then index).
     pub fn sorted_list(&self) -> &[u32] {
         &self.binning.list
