@@ -34,6 +34,7 @@ pub mod loss;
 pub mod math;
 pub mod optim;
 pub mod oracle;
+pub mod render;
 
 pub use error::{Error, Result};
 pub mod train;

@@ -2,11 +2,14 @@
 //!
 //! - [`real`]: the `Real` scalar trait (f32 / f64) over one pinned math library.
 //! - [`rng`]: the seeded, portable random number generator.
+//! - [`sh`], [`covariance`]: spherical-harmonics colour and 3D covariance, each with its vjp.
 //! - [`gradcheck`]: central finite differences in f64 for every hand-written backward.
 
+pub mod covariance;
 pub mod gradcheck;
 pub mod real;
 pub mod rng;
+pub mod sh;
 
 pub use real::{Precision, Real, MATH_LIBRARY};
 pub use rng::Rng;

@@ -1,0 +1,168 @@
+//! 3D covariance `Σ = R S² Rᵀ` from a scale and an **unnormalised** quaternion,
+//! and its vector-Jacobian product.
+//!
+//! Conventions (Inria `computeCov3D`):
+//! - `q = (r, x, y, z)`, real part first, used as given (no normalisation), so
+//!   `R(q)` is not orthogonal when `|q| ≠ 1`.
+//! - `S = diag(modifier · s)`; `M = S Rᵀ`; `Σ = Mᵀ M`, element `(i, j)` summed
+//!   over `k = 0, 1, 2` in order: `Σ_ij = Σ_k M_ki M_kj`.
+//! - Stored as the upper triangle, row-major: `[Σ00, Σ01, Σ02, Σ11, Σ12, Σ22]`.
+//! - Gradient convention for the stored slots: the gradient of an
+//!   off-diagonal slot is the derivative with respect to the one scalar that
+//!   fills both symmetric positions.
+//!
+//! Deviation from upstream, deliberate: the scale gradient is `d/ds` and
+//! includes the factor `modifier` (upstream returns `d/d(modifier·s)`).
+
+use crate::math::Real;
+
+/// `R(q)` (math, row-major) for `q = (r, x, y, z)`, not normalised.
+#[inline]
+pub fn quat_to_rotmat<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {
+    let [r, x, y, z] = q;
+    let one = T::ONE;
+    let two = T::from_f64(2.0);
+    [
+        [
+            one - two * (y * y + z * z),
+            two * (x * y - r * z),
+            two * (x * z + r * y),
+        ],
+        [
+            two * (x * y + r * z),
+            one - two * (x * x + z * z),
+            two * (y * z - r * x),
+        ],
+        [
+            two * (x * z - r * y),
+            two * (y * z + r * x),
+            one - two * (x * x + y * y),
+        ],
+    ]
+}
+
+/// Backward of [`quat_to_rotmat`]: `dL/dq` given `dL/dR` (math layout).
+#[inline]
+pub fn quat_to_rotmat_vjp<T: Real>(q: [T; 4], gr: [[T; 3]; 3]) -> [T; 4] {
+    let [r, x, y, z] = q;
+    let two = T::from_f64(2.0);
+    let four = T::from_f64(4.0);
+    let dr = two * z * (gr[1][0] - gr[0][1])
+        + two * y * (gr[0][2] - gr[2][0])
+        + two * x * (gr[2][1] - gr[1][2]);
+    let dx = two * y * (gr[0][1] + gr[1][0])
+        + two * z * (gr[0][2] + gr[2][0])
+        + two * r * (gr[2][1] - gr[1][2])
+        - four * x * (gr[1][1] + gr[2][2]);
+    let dy = two * x * (gr[0][1] + gr[1][0])
+        + two * r * (gr[0][2] - gr[2][0])
+        + two * z * (gr[1][2] + gr[2][1])
+        - four * y * (gr[0][0] + gr[2][2]);
+    let dz = two * r * (gr[1][0] - gr[0][1])
+        + two * x * (gr[0][2] + gr[2][0])
+        + two * y * (gr[1][2] + gr[2][1])
+        - four * z * (gr[0][0] + gr[1][1]);
+    [dr, dx, dy, dz]
+}
+
+/// `M = S Rᵀ` (math): `M_ij = s'_i R_ji`.
+#[inline]
+fn m_matrix<T: Real>(scale: [T; 3], modifier: T, rot: &[[T; 3]; 3]) -> ([T; 3], [[T; 3]; 3]) {
+    let s = [
+        modifier * scale[0],
+        modifier * scale[1],
+        modifier * scale[2],
+    ];
+    let mut m = [[T::ZERO; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            m[i][j] = s[i] * rot[j][i];
+        }
+    }
+    (s, m)
+}
+
+/// The 6 stored values of `Σ` for one Gaussian.
+pub fn cov3d<T: Real>(scale: [T; 3], modifier: T, q: [T; 4]) -> [T; 6] {
+    let rot = quat_to_rotmat(q);
+    let (_, m) = m_matrix(scale, modifier, &rot);
+    let e = |i: usize, j: usize| m[0][i] * m[0][j] + m[1][i] * m[1][j] + m[2][i] * m[2][j];
+    [e(0, 0), e(0, 1), e(0, 2), e(1, 1), e(1, 2), e(2, 2)]
+}
+
+/// The full symmetric 3×3 from the 6 stored values.
+#[inline]
+pub fn sym3<T: Real>(c: &[T; 6]) -> [[T; 3]; 3] {
+    [[c[0], c[1], c[2]], [c[1], c[3], c[4]], [c[2], c[4], c[5]]]
+}
+
+/// Backward of [`cov3d`]: `(dL/dscale, dL/dq)` given the gradient of the 6
+/// stored slots (off-diagonal slots: derivative w.r.t. the shared scalar).
+pub fn cov3d_vjp<T: Real>(
+    scale: [T; 3],
+    modifier: T,
+    q: [T; 4],
+    grad_cov: [T; 6],
+) -> ([T; 3], [T; 4]) {
+    let rot = quat_to_rotmat(q);
+    let (s, m) = m_matrix(scale, modifier, &rot);
+    // dΣ as a symmetric matrix whose entries are the per-position derivatives.
+    let half = T::from_f64(0.5);
+    let g = [
+        [grad_cov[0], half * grad_cov[1], half * grad_cov[2]],
+        [half * grad_cov[1], grad_cov[3], half * grad_cov[4]],
+        [half * grad_cov[2], half * grad_cov[4], grad_cov[5]],
+    ];
+    // Σ = MᵀM  =>  dL/dM = M (G + Gᵀ) = 2 M G for symmetric G.
+    let two = T::from_f64(2.0);
+    let mut gm = [[T::ZERO; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            gm[i][j] = two * (m[i][0] * g[0][j] + m[i][1] * g[1][j] + m[i][2] * g[2][j]);
+        }
+    }
+    // M_ij = s'_i R_ji
+    let mut gs = [T::ZERO; 3];
+    let mut gr = [[T::ZERO; 3]; 3];
+    for i in 0..3 {
+        gs[i] = modifier * (gm[i][0] * rot[0][i] + gm[i][1] * rot[1][i] + gm[i][2] * rot[2][i]);
+        for j in 0..3 {
+            gr[j][i] = s[i] * gm[i][j];
+        }
+    }
+    (gs, quat_to_rotmat_vjp(q, gr))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::gradcheck::{compare, cotangent, numeric_gradient};
+
+    #[test]
+    fn unit_quaternion_gives_r_s2_rt() {
+        // 90° about z: x -> y. Σ = diag(s1², s0², s2²).
+        let h = libm::sqrt(0.5);
+        let c = cov3d([0.5f64, 2.0, 3.0], 1.0, [h, 0.0, 0.0, h]);
+        assert!((c[0] - 4.0).abs() < 1e-12);
+        assert!((c[3] - 0.25).abs() < 1e-12);
+        assert!((c[5] - 9.0).abs() < 1e-12);
+        assert!(c[1].abs() < 1e-12 && c[2].abs() < 1e-12 && c[4].abs() < 1e-12);
+    }
+
+    #[test]
+    fn vjp_matches_finite_differences() {
+        let g = cotangent(5, 6);
+        let gc = [g[0], g[1], g[2], g[3], g[4], g[5]];
+        let loss = |p: &[f64]| {
+            let c = cov3d([p[0], p[1], p[2]], 1.7, [p[3], p[4], p[5], p[6]]);
+            (0..6).map(|i| c[i] * gc[i]).sum::<f64>()
+        };
+        // Non-unit quaternion on purpose.
+        let mut p = vec![0.3, 0.8, 0.05, 0.9, -0.4, 0.7, 0.2];
+        let (gs, gq) = cov3d_vjp([p[0], p[1], p[2]], 1.7, [p[3], p[4], p[5], p[6]], gc);
+        let num = numeric_gradient(&mut p, 1e-6, loss);
+        let ana: Vec<f64> = gs.iter().chain(gq.iter()).copied().collect();
+        let r = compare("cov3d", &ana, &num, 1e-6);
+        assert!(r.passes(1e-7), "{r}");
+    }
+}

@@ -1,0 +1,193 @@
+//! Oracle stage `rasterize`: one forward and backward of the rasterizer on a
+//! case file whose tensor names and layouts are the Inria Python API's.
+//!
+//! Inputs: `means3D [N,3]`, `shs [N,M,3]` or `colors_precomp [N,3]`,
+//! `opacities [N,1]`, `scales [N,3]` and `rotations [N,4]` or
+//! `cov3D_precomp [N,6]`, `viewmatrix [4,4]`, `projmatrix [4,4]` (Inria memory
+//! layout), `campos [3]`, `bg [3]`, `grad_out_color [3,H,W]`, optional
+//! `grad_out_depth [1,H,W]`. Metadata: `stage=rasterize`, `image_height`,
+//! `image_width`, `tanfovx`, `tanfovy`, `scale_modifier`, `sh_degree`
+//! (required with `shs`), optional `gradient` (`exact`, the default). The
+//! floating-point dtype of the tensors (all F32 or all F64) selects the precision.
+//!
+//! Outputs: `color`, `depth`, `radii` (I32), `final_T`, `n_contrib` (I32),
+//! `means2D [N,2]`, `grad_means3D`, `grad_means2D [N,3]`, `grad_shs` or
+//! `grad_colors_precomp`, `grad_opacities [N,1]`, `grad_scales` and
+//! `grad_rotations` or `grad_cov3D_precomp`.
+
+use crate::camera::RasterCamera;
+use crate::error::{Error, Result};
+use crate::io::TensorFile;
+use crate::math::{Precision, Real};
+use crate::render::{
+    rasterize, rasterize_backward, Colors, Covariances, GradientMode, RasterInput,
+};
+
+/// The stage name this entry handles.
+pub const STAGE: &str = "rasterize";
+
+/// Run the stage on a loaded case; the result holds the outputs (and the
+/// same metadata).
+pub fn run(case: &TensorFile) -> Result<TensorFile> {
+    match case.precision()? {
+        Precision::F32 => run_t::<f32>(case),
+        Precision::F64 => run_t::<f64>(case),
+    }
+}
+
+fn array<T: Real, const K: usize>(
+    case: &TensorFile,
+    name: &str,
+    shape: &[usize],
+) -> Result<[T; K]> {
+    let v = case.get_real::<T>(name, shape)?;
+    let mut a = [T::ZERO; K];
+    a.copy_from_slice(&v);
+    Ok(a)
+}
+
+fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
+    let stage = case.meta("stage")?;
+    if stage != STAGE {
+        return Err(Error::field(
+            &case.path,
+            "stage",
+            format!("`{stage}`, expected `{STAGE}`"),
+        ));
+    }
+    let mode = match case.meta_or::<String>("gradient", "exact".into())?.as_str() {
+        "exact" => GradientMode::Exact,
+        other => {
+            return Err(Error::field(
+                &case.path,
+                "gradient",
+                format!("`{other}` is not a supported mode (exact)"),
+            ))
+        }
+    };
+    let h: usize = case.meta_parse("image_height")?;
+    let w: usize = case.meta_parse("image_width")?;
+    let tanfovx: f64 = case.meta_parse("tanfovx")?;
+    let tanfovy: f64 = case.meta_parse("tanfovy")?;
+    let scale_modifier: f64 = case.meta_parse("scale_modifier")?;
+
+    let (shape, means) = case.get_real_any::<T>("means3D")?;
+    if shape.len() != 2 || shape[1] != 3 {
+        return Err(Error::Tensor {
+            context: case.path.display().to_string(),
+            name: "means3D".into(),
+            expected: "shape [N,3]".into(),
+            found: format!("shape {shape:?}"),
+        });
+    }
+    let n = shape[0];
+    let mut known = vec![
+        "means3D",
+        "opacities",
+        "viewmatrix",
+        "projmatrix",
+        "campos",
+        "bg",
+        "grad_out_color",
+        "grad_out_depth",
+    ];
+    let sh_data;
+    let colors = if case.contains("shs") {
+        known.push("shs");
+        let (s, v) = case.get_real_any::<T>("shs")?;
+        if s.len() != 3 || s[0] != n || s[2] != 3 {
+            return Err(Error::Tensor {
+                context: case.path.display().to_string(),
+                name: "shs".into(),
+                expected: format!("shape [{n},M,3]"),
+                found: format!("shape {s:?}"),
+            });
+        }
+        let degree: usize = case.meta_parse("sh_degree")?;
+        sh_data = (s[1], degree, v);
+        Colors::Sh {
+            coeffs: &sh_data.2,
+            stride: sh_data.0,
+            degree: sh_data.1,
+        }
+    } else {
+        known.push("colors_precomp");
+        sh_data = (0, 0, case.get_real::<T>("colors_precomp", &[n, 3])?);
+        Colors::Precomputed(&sh_data.2)
+    };
+    let opacities = case.get_real::<T>("opacities", &[n, 1])?;
+    let cov_data;
+    let covariances = if case.contains("cov3D_precomp") {
+        known.push("cov3D_precomp");
+        cov_data = (case.get_real::<T>("cov3D_precomp", &[n, 6])?, Vec::new());
+        Covariances::Precomputed(&cov_data.0)
+    } else {
+        known.extend(["scales", "rotations"]);
+        cov_data = (
+            case.get_real::<T>("scales", &[n, 3])?,
+            case.get_real::<T>("rotations", &[n, 4])?,
+        );
+        Covariances::ScaleRotation {
+            scales: &cov_data.0,
+            rotations: &cov_data.1,
+            scale_modifier: T::from_f64(scale_modifier),
+        }
+    };
+    case.reject_unknown(known)?;
+    let camera = RasterCamera {
+        viewmatrix: array::<T, 16>(case, "viewmatrix", &[4, 4])?,
+        projmatrix: array::<T, 16>(case, "projmatrix", &[4, 4])?,
+        campos: array::<T, 3>(case, "campos", &[3])?,
+        tanfovx: T::from_f64(tanfovx),
+        tanfovy: T::from_f64(tanfovy),
+        width: w,
+        height: h,
+    };
+    let background = array::<T, 3>(case, "bg", &[3])?;
+    let grad_color = case.get_real::<T>("grad_out_color", &[3, h, w])?;
+    let grad_depth = if case.contains("grad_out_depth") {
+        Some(case.get_real::<T>("grad_out_depth", &[1, h, w])?)
+    } else {
+        None
+    };
+    let input = RasterInput {
+        means3d: &means,
+        colors,
+        opacities: &opacities,
+        covariances,
+        camera: &camera,
+        background,
+    };
+    let (out, state) = rasterize(&input)?;
+    let g = rasterize_backward(&input, &state, &grad_color, grad_depth.as_deref(), mode)?;
+
+    let mut res = TensorFile::new(case.path.clone());
+    res.metadata = case.metadata.clone();
+    res.insert_real("color", vec![3, h, w], &out.color);
+    res.insert_real("depth", vec![1, h, w], &out.depth);
+    res.insert_i32("radii", vec![n], out.radii.clone());
+    res.insert_real("final_T", vec![h, w], &out.final_t);
+    res.insert_i32(
+        "n_contrib",
+        vec![h, w],
+        out.n_contrib.iter().map(|&c| c as i32).collect(),
+    );
+    res.insert_real("means2D", vec![n, 2], &out.means2d);
+    res.insert_real("grad_means3D", vec![n, 3], &g.means3d);
+    res.insert_real("grad_means2D", vec![n, 3], &g.means2d);
+    match input.colors {
+        Colors::Sh { stride, .. } => res.insert_real("grad_shs", vec![n, stride, 3], &g.colors),
+        Colors::Precomputed(_) => res.insert_real("grad_colors_precomp", vec![n, 3], &g.colors),
+    }
+    res.insert_real("grad_opacities", vec![n, 1], &g.opacities);
+    match input.covariances {
+        Covariances::ScaleRotation { .. } => {
+            res.insert_real("grad_scales", vec![n, 3], &g.scales_or_cov);
+            res.insert_real("grad_rotations", vec![n, 4], &g.rotations);
+        }
+        Covariances::Precomputed(_) => {
+            res.insert_real("grad_cov3D_precomp", vec![n, 6], &g.scales_or_cov)
+        }
+    }
+    Ok(res)
+}

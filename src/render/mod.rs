@@ -1,0 +1,643 @@
+//! The differentiable 3D Gaussian splatting rasterizer: forward and exact backward.
+//!
+//! ```text
+//! means3D, cov3D (scale, rotation | precomputed), colours (SH | precomputed), opacity
+//!   └─► project (per Gaussian) ─► tiles (sorted list) ─► rasterize (per pixel)
+//!         project_vjp ◄── per-Gaussian sums ◄── rasterize_vjp (per tile)
+//! ```
+//!
+//! Semantics follow the Inria rasterizer (and the depth output of the fork
+//! used by the D-3DGS paper) exactly; see [`project`], [`tiles`],
+//! [`rasterize`] and [`rasterize_vjp`] for each stage's rules and orders.
+//!
+//! ## Conventions
+//! - Inputs use the Inria Python API's layouts: `means3D [N,3]`, SH
+//!   coefficients `[N,M,3]` (M the per-Gaussian stride, coefficient 0 = DC),
+//!   precomputed colours `[N,3]`, opacities `[N]` (activated), scales `[N,3]`
+//!   (activated), rotations `[N,4]` (w, x, y, z, **not normalised**),
+//!   precomputed covariances `[N,6]` (upper triangle, row-major).
+//! - Images are channel-major: colour `[3,H,W]`, depth `[1,H,W]`.
+//! - Pixel `(i, j)` is sampled at `(i, j)` in the rasterizer's pixel space
+//!   (`ndc2Pix`); `means2d` outputs are in that space.
+//! - Gradients of `means2d` are in NDC units (pixel gradient × W/2, H/2), the
+//!   quantity densification thresholds are calibrated for; third column 0.
+//!
+//! ## Deliberate deviations from upstream
+//! - The scale gradient is `d/d(scale)` (includes `scale_modifier`).
+//! - A Gaussian whose radius rounds to 0 is culled (upstream would still
+//!   rasterize it if its tile rectangle is non-empty, possible only for an
+//!   indefinite covariance).
+//! - Per-Gaussian gradient sums have a fixed order instead of atomics.
+//! - `GradientMode::Exact` is the true derivative (see its documentation).
+//!
+//! ## Determinism
+//! Forward: parallel over Gaussians (independent) and over tiles (each tile
+//! owns its pixels). Backward: each tile accumulates its pixels' contributions
+//! in row-major order into a buffer indexed by list position; each Gaussian
+//! then sums its entries in ascending list position; the chain rule runs per
+//! Gaussian. No result depends on the number of threads.
+
+pub mod check;
+pub(crate) mod project;
+pub(crate) mod rasterize;
+pub(crate) mod rasterize_vjp;
+pub mod scene;
+pub(crate) mod tiles;
+
+use crate::camera::RasterCamera;
+use crate::error::{Error, Result};
+use crate::math::covariance::{cov3d, cov3d_vjp};
+use crate::math::sh::{sh_to_color, sh_to_color_vjp, ShColor, MAX_SH_DEGREE};
+use crate::math::Real;
+use project::{Intrinsics, Projected, ProjectedGrad};
+use rasterize::{Blend, Splat};
+use rasterize_vjp::EntryGrad;
+use rayon::prelude::*;
+
+/// Tile side in pixels (`BLOCK_X = BLOCK_Y = 16`).
+pub const BLOCK: usize = 16;
+
+/// Where Gaussian colours come from.
+#[derive(Clone, Copy, Debug)]
+pub enum Colors<'a, T> {
+    /// SH coefficients `[N, stride, 3]`, evaluated up to `degree` (≤ 3,
+    /// `(degree+1)² ≤ stride`).
+    Sh {
+        coeffs: &'a [T],
+        stride: usize,
+        degree: usize,
+    },
+    /// RGB per Gaussian, `[N, 3]`, used as given (no clamp).
+    Precomputed(&'a [T]),
+}
+
+/// Where Gaussian 3D covariances come from.
+#[derive(Clone, Copy, Debug)]
+pub enum Covariances<'a, T> {
+    /// Activated scales `[N, 3]`, unnormalised quaternions `[N, 4]` (w, x, y, z)
+    /// and the global `scale_modifier`.
+    ScaleRotation {
+        scales: &'a [T],
+        rotations: &'a [T],
+        scale_modifier: T,
+    },
+    /// `[N, 6]`: `[Σ00, Σ01, Σ02, Σ11, Σ12, Σ22]`.
+    Precomputed(&'a [T]),
+}
+
+/// Everything the rasterizer reads.
+#[derive(Clone, Copy, Debug)]
+pub struct RasterInput<'a, T> {
+    /// `[N, 3]` world-space means.
+    pub means3d: &'a [T],
+    pub colors: Colors<'a, T>,
+    /// `[N]` activated opacities.
+    pub opacities: &'a [T],
+    pub covariances: Covariances<'a, T>,
+    pub camera: &'a RasterCamera<T>,
+    pub background: [T; 3],
+}
+
+/// Forward outputs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RasterOutput<T> {
+    /// `[3, H, W]` colour, background composited.
+    pub color: Vec<T>,
+    /// `[1, H, W]` `Σ z·α·T` (no background, no normalisation).
+    pub depth: Vec<T>,
+    /// `[N]` integer radius in pixels, 0 for culled Gaussians.
+    pub radii: Vec<i32>,
+    /// `[H, W]` final transmittance.
+    pub final_t: Vec<T>,
+    /// `[H, W]` 1-based list position of the last blended Gaussian (0: none).
+    pub n_contrib: Vec<u32>,
+    /// `[N, 2]` pixel-space centres (0 for culled Gaussians).
+    pub means2d: Vec<T>,
+}
+
+/// What the backward needs from the forward.
+#[derive(Clone, Debug)]
+pub struct ForwardState<T> {
+    intr: Intrinsics<T>,
+    proj: Vec<Projected<T>>,
+    colors: Vec<ShColor<T>>,
+    cov3d: Vec<[T; 6]>,
+    binning: tiles::Binning,
+}
+
+impl<T: Real> ForwardState<T> {
+    /// Number of Gaussians rendered.
+    pub fn len(&self) -> usize {
+        self.proj.len()
+    }
+    /// Whether there are no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.proj.is_empty()
+    }
+    /// Number of (tile, Gaussian) entries in the sorted list.
+    pub fn num_rendered(&self) -> usize {
+        self.binning.list.len()
+    }
+    /// (pixel, Gaussian) pairs the tile lists put in front of pixels:
+    /// Σ over tiles of (pixels in the tile × entries in its list). Pixels that
+    /// stop early evaluate fewer; this is the work measure benchmarks report.
+    pub fn tile_pairs(&self) -> u64 {
+        let grid_x = self.intr.grid[0] as usize;
+        let mut total = 0u64;
+        for (tile, r) in self.binning.ranges.iter().enumerate() {
+            let [x0, x1, y0, y1] =
+                rasterize::tile_bounds(tile, grid_x, self.intr.width, self.intr.height);
+            total += ((x1 - x0) * (y1 - y0)) as u64 * (r[1] - r[0]) as u64;
+        }
+        total
+    }
+    /// Gaussian index of each sorted entry (tile-major, then depth, then index).
+    pub fn sorted_list(&self) -> &[u32] {
+        &self.binning.list
+    }
+    /// Whether each visible Gaussian's tangent clamp (x, y) was active.
+    pub fn tangent_clamps(&self) -> Vec<[bool; 2]> {
+        self.proj
+            .iter()
+            .map(|p| [p.clamped_x, p.clamped_y])
+            .collect()
+    }
+    /// Whether each Gaussian's colour channel hit the lower clamp.
+    pub fn color_clamps(&self) -> Vec<[bool; 3]> {
+        self.colors.iter().map(|c| c.clamped).collect()
+    }
+}
+
+/// How the backward differentiates the forward.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum GradientMode {
+    /// The true derivative of the forward function as computed: zero gradient
+    /// through the 0.99 alpha clamp where it is active; under the tangent clamp
+    /// `t.x/t.z`, zero `t.x` gradient and the correct `t.z` term (upstream's is
+    /// twice too large); transmittances from forward products, not division;
+    /// `1/det²` exactly; the depth output differentiated (w.r.t. `z` and every
+    /// alpha). Hard thresholds (power > 0, alpha < 1/255, transmittance stop,
+    /// tiles, culling) are constants almost everywhere and contribute nothing.
+    #[default]
+    Exact,
+}
+
+/// Gradients of the rasterizer's inputs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RasterGrads<T> {
+    /// `[N, 3]`.
+    pub means3d: Vec<T>,
+    /// `[N, 3]` gradient w.r.t. the NDC centre (pixel gradient × W/2, H/2);
+    /// third column 0. Not an input: this is the statistic densification uses.
+    pub means2d: Vec<T>,
+    /// `[N, M, 3]` for SH (0 above the active degree) or `[N, 3]` for
+    /// precomputed colours.
+    pub colors: Vec<T>,
+    /// `[N]`.
+    pub opacities: Vec<T>,
+    /// `[N, 3]` d/d(scale) or `[N, 6]` for precomputed covariances (an
+    /// off-diagonal slot's gradient is w.r.t. the scalar filling both positions).
+    pub scales_or_cov: Vec<T>,
+    /// `[N, 4]`, empty for precomputed covariances.
+    pub rotations: Vec<T>,
+}
+
+fn check_len(what: &str, len: usize, want: usize, n: usize) -> Result<()> {
+    if len != want {
+        return Err(Error::invalid(
+            what,
+            format!("{len} values for {n} Gaussians, expected {want}"),
+        ));
+    }
+    Ok(())
+}
+
+impl<T: Real> RasterInput<'_, T> {
+    /// Number of Gaussians, after checking every length against it.
+    pub fn validate(&self) -> Result<usize> {
+        if self.means3d.len() % 3 != 0 {
+            return Err(Error::invalid(
+                "means3d",
+                format!("length {} is not a multiple of 3", self.means3d.len()),
+            ));
+        }
+        let n = self.means3d.len() / 3;
+        check_len("opacities", self.opacities.len(), n, n)?;
+        match self.colors {
+            Colors::Sh {
+                coeffs,
+                stride,
+                degree,
+            } => {
+                if degree > MAX_SH_DEGREE {
+                    return Err(Error::invalid(
+                        "sh degree",
+                        format!("{degree} > {MAX_SH_DEGREE}"),
+                    ));
+                }
+                if stride < (degree + 1) * (degree + 1) {
+                    return Err(Error::invalid(
+                        "sh stride",
+                        format!("{stride} coefficients cannot hold degree {degree}"),
+                    ));
+                }
+                check_len("sh coefficients", coeffs.len(), n * stride * 3, n)?;
+            }
+            Colors::Precomputed(c) => check_len("colors_precomp", c.len(), 3 * n, n)?,
+        }
+        match self.covariances {
+            Covariances::ScaleRotation {
+                scales, rotations, ..
+            } => {
+                check_len("scales", scales.len(), 3 * n, n)?;
+                check_len("rotations", rotations.len(), 4 * n, n)?;
+            }
+            Covariances::Precomputed(c) => check_len("cov3D_precomp", c.len(), 6 * n, n)?,
+        }
+        let cam = self.camera;
+        if cam.width == 0 || cam.height == 0 {
+            return Err(Error::invalid(
+                "image size",
+                format!("{}x{}", cam.width, cam.height),
+            ));
+        }
+        if cam.width.div_ceil(BLOCK) as u64 * cam.height.div_ceil(BLOCK) as u64 >= 1 << 31
+            || n >= u32::MAX as usize
+        {
+            return Err(Error::invalid(
+                "problem size",
+                "too many tiles or Gaussians",
+            ));
+        }
+        if !(cam.tanfovx > T::ZERO && cam.tanfovy > T::ZERO) {
+            return Err(Error::invalid(
+                "camera",
+                format!(
+                    "tanfovx {} and tanfovy {} must be > 0",
+                    cam.tanfovx, cam.tanfovy
+                ),
+            ));
+        }
+        Ok(n)
+    }
+
+    fn mean(&self, i: usize) -> [T; 3] {
+        [
+            self.means3d[3 * i],
+            self.means3d[3 * i + 1],
+            self.means3d[3 * i + 2],
+        ]
+    }
+
+    fn cov3d(&self, i: usize) -> [T; 6] {
+        match self.covariances {
+            Covariances::ScaleRotation {
+                scales,
+                rotations,
+                scale_modifier,
+            } => cov3d(
+                [scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]],
+                scale_modifier,
+                [
+                    rotations[4 * i],
+                    rotations[4 * i + 1],
+                    rotations[4 * i + 2],
+                    rotations[4 * i + 3],
+                ],
+            ),
+            Covariances::Precomputed(c) => std::array::from_fn(|k| c[6 * i + k]),
+        }
+    }
+
+    fn color(&self, i: usize) -> ShColor<T> {
+        match self.colors {
+            Colors::Sh {
+                coeffs,
+                stride,
+                degree,
+            } => sh_to_color(
+                degree,
+                &coeffs[i * stride * 3..(i + 1) * stride * 3],
+                self.mean(i),
+                self.camera.campos,
+            ),
+            Colors::Precomputed(c) => ShColor {
+                color: [c[3 * i], c[3 * i + 1], c[3 * i + 2]],
+                clamped: [false; 3],
+            },
+        }
+    }
+}
+
+/// Render: the forward pass. Fails with [`Error::Invalid`] on inconsistent
+/// lengths or an unusable camera; never panics.
+pub fn rasterize<T: Real>(input: &RasterInput<T>) -> Result<(RasterOutput<T>, ForwardState<T>)> {
+    forward(input, None)
+}
+
+/// The forward pass as a function of an additive offset on each projected NDC
+/// centre (`[N, 2]`; upstream's dummy `means2D` input plays this role, with
+/// value 0). [`RasterGrads::means2d`] is the gradient with respect to this
+/// offset; this entry point exists so it can be checked by finite differences.
+pub fn rasterize_with_ndc_offset<T: Real>(
+    input: &RasterInput<T>,
+    ndc_offset: &[T],
+) -> Result<(RasterOutput<T>, ForwardState<T>)> {
+    forward(input, Some(ndc_offset))
+}
+
+fn forward<T: Real>(
+    input: &RasterInput<T>,
+    ndc_offset: Option<&[T]>,
+) -> Result<(RasterOutput<T>, ForwardState<T>)> {
+    let n = input.validate()?;
+    if let Some(o) = ndc_offset {
+        check_len("ndc offset", o.len(), 2 * n, n)?;
+    }
+    let intr = Intrinsics::new(input.camera);
+    let (w, h) = (intr.width, intr.height);
+
+    // 1. Per-Gaussian preprocessing.
+    let per: Vec<(Projected<T>, ShColor<T>, [T; 6])> = (0..n)
+        .into_par_iter()
+        .map(|i| {
+            let cov = input.cov3d(i);
+            let off = ndc_offset.map_or([T::ZERO; 2], |o| [o[2 * i], o[2 * i + 1]]);
+            let p = project::project(&intr, input.mean(i), &cov, off);
+            let c = if p.radius > 0 {
+                input.color(i)
+            } else {
+                ShColor {
+                    color: [T::ZERO; 3],
+                    clamped: [false; 3],
+                }
+            };
+            (p, c, cov)
+        })
+        .collect();
+    let mut proj = Vec::with_capacity(n);
+    let mut colors = Vec::with_capacity(n);
+    let mut covs = Vec::with_capacity(n);
+    for (p, c, v) in per {
+        proj.push(p);
+        colors.push(c);
+        covs.push(v);
+    }
+
+    // 2. Binning.
+    let binning = tiles::bin(&proj, intr.grid);
+    let state = ForwardState {
+        intr,
+        proj,
+        colors,
+        cov3d: covs,
+        binning,
+    };
+
+    // 3. Per-tile blending.
+    let k = Blend::new();
+    let grid_x = intr.grid[0] as usize;
+    let n_tiles = state.binning.ranges.len();
+    let bg = input.background;
+    let tiles_out: Vec<rasterize::TileOut<T>> = (0..n_tiles)
+        .into_par_iter()
+        .map(|tile| {
+            let splats = gather(&state, input.opacities, tile);
+            let bounds = rasterize::tile_bounds(tile, grid_x, w, h);
+            rasterize::render_tile(&splats, bounds, bg, &k)
+        })
+        .collect();
+    let hw = w * h;
+    let mut out = RasterOutput {
+        color: vec![T::ZERO; 3 * hw],
+        depth: vec![T::ZERO; hw],
+        radii: state.proj.iter().map(|p| p.radius).collect(),
+        final_t: vec![T::ZERO; hw],
+        n_contrib: vec![0; hw],
+        means2d: state.proj.iter().flat_map(|p| p.xy).collect(),
+    };
+    for (tile, to) in tiles_out.iter().enumerate() {
+        let [x0, x1, y0, y1] = rasterize::tile_bounds(tile, grid_x, w, h);
+        let mut q = 0;
+        for py in y0..y1 {
+            for px in x0..x1 {
+                let pix = py * w + px;
+                for ch in 0..3 {
+                    out.color[ch * hw + pix] = to.color[q][ch];
+                }
+                out.depth[pix] = to.depth[q];
+                out.final_t[pix] = to.final_t[q];
+                out.n_contrib[pix] = to.n_contrib[q];
+                q += 1;
+            }
+        }
+    }
+    Ok((out, state))
+}
+
+/// The splats of one tile in list order (the CUDA kernel's shared-memory batch).
+fn gather<T: Real>(state: &ForwardState<T>, opacities: &[T], tile: usize) -> Vec<Splat<T>> {
+    let [s, e] = state.binning.ranges[tile];
+    state.binning.list[s as usize..e as usize]
+        .iter()
+        .map(|&g| {
+            let g = g as usize;
+            let p = &state.proj[g];
+            Splat {
+                xy: p.xy,
+                conic: p.conic,
+                opacity: opacities[g],
+                color: state.colors[g].color,
+                depth: p.depth,
+            }
+        })
+        .collect()
+}
+
+/// The backward pass: gradients of `<grad_color, color> + <grad_depth, depth>`
+/// with respect to every input (`grad_color` `[3,H,W]`, `grad_depth`
+/// `[1,H,W]` or `None` for zero). `input` must be the one `state` was
+/// computed from; lengths are checked.
+pub fn rasterize_backward<T: Real>(
+    input: &RasterInput<T>,
+    state: &ForwardState<T>,
+    grad_color: &[T],
+    grad_depth: Option<&[T]>,
+    mode: GradientMode,
+) -> Result<RasterGrads<T>> {
+    let n = input.validate()?;
+    let intr = &state.intr;
+    let (w, h) = (intr.width, intr.height);
+    if n != state.len() || input.camera.width != w || input.camera.height != h {
+        return Err(Error::invalid(
+            "forward state",
+            format!(
+                "computed for {} Gaussians at {}x{}, called with {} at {}x{}",
+                state.len(),
+                w,
+                h,
+                n,
+                input.camera.width,
+                input.camera.height
+            ),
+        ));
+    }
+    let hw = w * h;
+    if grad_color.len() != 3 * hw {
+        return Err(Error::invalid(
+            "grad_color",
+            format!("{} values, expected 3x{h}x{w}", grad_color.len()),
+        ));
+    }
+    if let Some(d) = grad_depth {
+        if d.len() != hw {
+            return Err(Error::invalid(
+                "grad_depth",
+                format!("{} values, expected 1x{h}x{w}", d.len()),
+            ));
+        }
+    }
+
+    // 1. Per tile: contributions per list entry, pixels in row-major order.
+    let k = Blend::new();
+    let grid_x = intr.grid[0] as usize;
+    let bg = input.background;
+    let mut entry: Vec<EntryGrad<T>> = vec![[T::ZERO; 10]; state.num_rendered()];
+    {
+        let mut rest: &mut [EntryGrad<T>] = &mut entry;
+        let mut chunks = Vec::with_capacity(state.binning.ranges.len());
+        let mut pos = 0usize;
+        for (tile, r) in state.binning.ranges.iter().enumerate() {
+            let (s, e) = (r[0] as usize, r[1] as usize);
+            if e == s {
+                continue;
+            }
+            // Ranges are contiguous and ascending in tile order.
+            let (_, tail) = rest.split_at_mut(s - pos);
+            let (head, tail) = tail.split_at_mut(e - s);
+            chunks.push((tile, head));
+            rest = tail;
+            pos = e;
+        }
+        chunks.into_par_iter().for_each(|(tile, buf)| {
+            let splats = gather(state, input.opacities, tile);
+            let bounds = rasterize::tile_bounds(tile, grid_x, w, h);
+            rasterize_vjp::tile_vjp(
+                &splats, bounds, w, h, bg, grad_color, grad_depth, &k, mode, buf,
+            );
+        });
+    }
+
+    // 2. Gaussian -> entries, ascending list position (so ascending tile).
+    let mut start = vec![0usize; n + 1];
+    for &g in &state.binning.list {
+        start[g as usize + 1] += 1;
+    }
+    for i in 0..n {
+        start[i + 1] += start[i];
+    }
+    let mut fill = start.clone();
+    let mut index = vec![0u32; state.num_rendered()];
+    for (pos, &g) in state.binning.list.iter().enumerate() {
+        index[fill[g as usize]] = pos as u32;
+        fill[g as usize] += 1;
+    }
+
+    // 3. Per Gaussian: sum its entries in order, then the chain rule.
+    let (cstride, sh) = match input.colors {
+        Colors::Sh {
+            coeffs,
+            stride,
+            degree,
+        } => (3 * stride, Some((coeffs, degree))),
+        Colors::Precomputed(_) => (3, None),
+    };
+    let (cov_w, scale_rot) = match input.covariances {
+        Covariances::ScaleRotation {
+            scales,
+            rotations,
+            scale_modifier,
+        } => (3, Some((scales, rotations, scale_modifier))),
+        Covariances::Precomputed(_) => (6, None),
+    };
+    let mut grads = RasterGrads {
+        means3d: vec![T::ZERO; 3 * n],
+        means2d: vec![T::ZERO; 3 * n],
+        colors: vec![T::ZERO; cstride * n],
+        opacities: vec![T::ZERO; n],
+        scales_or_cov: vec![T::ZERO; cov_w * n],
+        // Scratch of the right length for precomputed covariances, emptied below.
+        rotations: vec![T::ZERO; 4 * n],
+    };
+    (
+        grads.means3d.par_chunks_mut(3),
+        grads.means2d.par_chunks_mut(3),
+        grads.colors.par_chunks_mut(cstride),
+        grads.opacities.par_iter_mut(),
+        grads.scales_or_cov.par_chunks_mut(cov_w),
+        grads.rotations.par_chunks_mut(4),
+    )
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, (gm3, gm2, gcol, gop, gcov_out, grot))| {
+            let p = &state.proj[i];
+            if p.radius <= 0 {
+                return;
+            }
+            let mut acc = [T::ZERO; 10];
+            for &pos in &index[start[i]..start[i + 1]] {
+                let e = &entry[pos as usize];
+                for q in 0..10 {
+                    acc[q] += e[q];
+                }
+            }
+            *gop = acc[8];
+            let mean = input.mean(i);
+            let pg = ProjectedGrad {
+                xy: [acc[3], acc[4]],
+                conic: [acc[5], acc[6], acc[7]],
+                depth: acc[9],
+            };
+            let (mut gmean, gcov, gndc) =
+                project::project_vjp(intr, mean, &state.cov3d[i], p, &pg, mode);
+            gm2[0] = gndc[0];
+            gm2[1] = gndc[1];
+            let gc = [acc[0], acc[1], acc[2]];
+            match sh {
+                Some((coeffs, degree)) => {
+                    let c = &coeffs[i * cstride..(i + 1) * cstride];
+                    let gd = sh_to_color_vjp(
+                        degree,
+                        c,
+                        mean,
+                        input.camera.campos,
+                        &state.colors[i],
+                        gc,
+                        gcol,
+                    );
+                    for a in 0..3 {
+                        gmean[a] += gd[a];
+                    }
+                }
+                None => gcol.copy_from_slice(&gc),
+            }
+            gm3.copy_from_slice(&gmean);
+            match scale_rot {
+                Some((scales, rotations, modifier)) => {
+                    let (gs, gq) = cov3d_vjp(
+                        [scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]],
+                        modifier,
+                        std::array::from_fn(|q| rotations[4 * i + q]),
+                        gcov,
+                    );
+                    gcov_out.copy_from_slice(&gs);
+                    grot.copy_from_slice(&gq);
+                }
+                None => gcov_out.copy_from_slice(&gcov),
+            }
+        });
+    if scale_rot.is_none() {
+        grads.rotations = Vec::new();
+    }
+    Ok(grads)
+}

@@ -1,0 +1,350 @@
+//! Per-Gaussian preprocessing (Inria `preprocessCUDA`) and its backward.
+//!
+//! Forward, for one Gaussian, in the upstream order:
+//! 1. view-space point `t = W2C·[p; 1]`; cull if `t.z ≤ 0.2`;
+//! 2. homogeneous projection, `ndc = p_hom.xy / (p_hom.w + 1e-7)`;
+//! 3. EWA 2D covariance with the tangent clamp `|t.x/t.z| ≤ 1.3·tanfovx`
+//!    (only the Jacobian sees the clamped point) and the 0.3 dilation;
+//! 4. conic = inverse 2D covariance, cull if `det == 0`;
+//! 5. radius `ceil(3·sqrt(λmax))` with the 0.1 floor on the discriminant;
+//! 6. pixel centre `ndc2Pix`, evaluated in f64 and rounded to `T`;
+//! 7. tile rectangle, cull if empty.
+//!
+//! The backward is the exact derivative of the forward as computed (see
+//! [`super::GradientMode::Exact`]).
+
+use super::{GradientMode, BLOCK};
+use crate::math::covariance::sym3;
+use crate::math::Real;
+
+/// Camera quantities shared by every Gaussian.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Intrinsics<T> {
+    pub view: [T; 16],
+    pub proj: [T; 16],
+    pub fx: T,
+    pub fy: T,
+    pub limx: T,
+    pub limy: T,
+    pub width: usize,
+    pub height: usize,
+    pub grid: [u32; 2],
+}
+
+impl<T: Real> Intrinsics<T> {
+    pub fn new(cam: &crate::camera::RasterCamera<T>) -> Self {
+        let w = T::from_usize(cam.width);
+        let h = T::from_usize(cam.height);
+        let two = T::from_f64(2.0);
+        let lim = T::from_f64(1.3);
+        Intrinsics {
+            view: cam.viewmatrix,
+            proj: cam.projmatrix,
+            fx: w / (two * cam.tanfovx),
+            fy: h / (two * cam.tanfovy),
+            limx: lim * cam.tanfovx,
+            limy: lim * cam.tanfovy,
+            width: cam.width,
+            height: cam.height,
+            grid: [
+                cam.width.div_ceil(BLOCK) as u32,
+                cam.height.div_ceil(BLOCK) as u32,
+            ],
+        }
+    }
+
+    /// `W2C(i, j)` for the rotation part.
+    #[inline]
+    fn wr(&self, i: usize, j: usize) -> T {
+        self.view[4 * j + i]
+    }
+}
+
+/// Everything the forward computes for one Gaussian and the backward reuses.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Projected<T> {
+    /// Integer radius in pixels; 0 when culled.
+    pub radius: i32,
+    /// View-space depth `t.z` (the sort key).
+    pub depth: T,
+    /// Pixel-space centre.
+    pub xy: [T; 2],
+    /// Conic `(A, B, C)`: `power = −0.5(A dx² + C dy²) − B dx dy`.
+    pub conic: [T; 3],
+    /// Dilated 2D covariance `(a, b, c)`.
+    pub cov2d: [T; 3],
+    /// Tile rectangle `[min, max)`.
+    pub rect_min: [u32; 2],
+    pub rect_max: [u32; 2],
+    /// Whether `t.x/t.z` (resp. `t.y/t.z`) was clamped (strictly outside the limit).
+    pub clamped_x: bool,
+    pub clamped_y: bool,
+}
+
+impl<T: Real> Projected<T> {
+    pub fn culled() -> Self {
+        Projected {
+            radius: 0,
+            depth: T::ZERO,
+            xy: [T::ZERO; 2],
+            conic: [T::ZERO; 3],
+            cov2d: [T::ZERO; 3],
+            rect_min: [0; 2],
+            rect_max: [0; 2],
+            clamped_x: false,
+            clamped_y: false,
+        }
+    }
+    pub fn tiles_touched(&self) -> usize {
+        (self.rect_max[0] - self.rect_min[0]) as usize
+            * (self.rect_max[1] - self.rect_min[1]) as usize
+    }
+}
+
+/// `m·[p; 1]` for a row-vector 4×4 stored row-major: component `i` is
+/// `m[i]·px + m[4+i]·py + m[8+i]·pz + m[12+i]`, summed left to right.
+#[inline]
+fn transform<T: Real>(m: &[T; 16], p: [T; 3], i: usize) -> T {
+    m[i] * p[0] + m[4 + i] * p[1] + m[8 + i] * p[2] + m[12 + i]
+}
+
+/// `((v + 1)·S − 1)·0.5` in f64, rounded to `T` (upstream uses double literals).
+#[inline]
+fn ndc2pix<T: Real>(v: T, size: usize) -> T {
+    T::from_f64(((v.to_f64() + 1.0) * size as f64 - 1.0) * 0.5)
+}
+
+/// C float→int conversion (truncation), saturating; NaN gives 0.
+#[inline]
+fn trunc_i64<T: Real>(v: T) -> i64 {
+    v.to_f64() as i64
+}
+
+/// Rows 0 and 1 of `J·Wr` for the view-space point `t` (clamped as upstream).
+struct Ewa<T> {
+    a: [[T; 3]; 2],
+    /// Clamped `t.x`, `t.y`.
+    tx: T,
+    ty: T,
+    clamped_x: bool,
+    clamped_y: bool,
+}
+
+fn ewa<T: Real>(k: &Intrinsics<T>, t: [T; 3]) -> Ewa<T> {
+    let txtz = t[0] / t[2];
+    let tytz = t[1] / t[2];
+    let tx = txtz.clamp(-k.limx, k.limx) * t[2];
+    let ty = tytz.clamp(-k.limy, k.limy) * t[2];
+    let tz2 = t[2] * t[2];
+    let j00 = k.fx / t[2];
+    let j02 = -(k.fx * tx) / tz2;
+    let j11 = k.fy / t[2];
+    let j12 = -(k.fy * ty) / tz2;
+    // glm: T = W·J, element (r, c) = Σ_k Wr(k, r)·J(c, k); the zero entries of J are skipped.
+    let mut a = [[T::ZERO; 3]; 2];
+    for r in 0..3 {
+        a[0][r] = k.wr(0, r) * j00 + k.wr(2, r) * j02;
+        a[1][r] = k.wr(1, r) * j11 + k.wr(2, r) * j12;
+    }
+    Ewa {
+        a,
+        tx,
+        ty,
+        clamped_x: txtz < -k.limx || txtz > k.limx,
+        clamped_y: tytz < -k.limy || tytz > k.limy,
+    }
+}
+
+/// Forward for one Gaussian. `ndc_offset` is added to the projected NDC
+/// centre (zero for ordinary rendering; see `rasterize_with_ndc_offset`).
+pub(crate) fn project<T: Real>(
+    k: &Intrinsics<T>,
+    mean: [T; 3],
+    cov3d: &[T; 6],
+    ndc_offset: [T; 2],
+) -> Projected<T> {
+    let t = [
+        transform(&k.view, mean, 0),
+        transform(&k.view, mean, 1),
+        transform(&k.view, mean, 2),
+    ];
+    if t[2] <= T::from_f64(0.2) || t[2].is_nan() {
+        return Projected::culled();
+    }
+    let hx = transform(&k.proj, mean, 0);
+    let hy = transform(&k.proj, mean, 1);
+    let hw = transform(&k.proj, mean, 3);
+    let pw = T::ONE / (hw + T::from_f64(1e-7));
+    let ndc = [hx * pw + ndc_offset[0], hy * pw + ndc_offset[1]];
+
+    let e = ewa(k, t);
+    let v = sym3(cov3d);
+    // X = A·V (rows 0, 1), cov(r, c) = Σ_k X(r, k)·A(c, k).
+    let mut x = [[T::ZERO; 3]; 2];
+    for r in 0..2 {
+        for c in 0..3 {
+            x[r][c] = e.a[r][0] * v[0][c] + e.a[r][1] * v[1][c] + e.a[r][2] * v[2][c];
+        }
+    }
+    let dot = |r: usize, c: usize| x[r][0] * e.a[c][0] + x[r][1] * e.a[c][1] + x[r][2] * e.a[c][2];
+    let dil = T::from_f64(0.3);
+    let a = dot(0, 0) + dil;
+    let b = dot(1, 0);
+    let c = dot(1, 1) + dil;
+
+    let det = a * c - b * b;
+    if det == T::ZERO {
+        return Projected::culled();
+    }
+    let det_inv = T::ONE / det;
+    let conic = [c * det_inv, -b * det_inv, a * det_inv];
+    let mid = T::from_f64(0.5) * (a + c);
+    let disc = T::from_f64(0.1).max(mid * mid - det).sqrt();
+    let l1 = mid + disc;
+    let l2 = mid - disc;
+    let radius_f = (T::from_f64(3.0) * l1.max(l2).sqrt()).ceil();
+    let radius = radius_f.to_f64().clamp(0.0, i32::MAX as f64) as i32;
+    let xy = [ndc2pix(ndc[0], k.width), ndc2pix(ndc[1], k.height)];
+
+    let rf = T::from_f64(radius as f64);
+    let blk = T::from_usize(BLOCK);
+    let blk1 = T::from_usize(BLOCK - 1);
+    let clampi = |v: i64, hi: u32| v.max(0).min(hi as i64) as u32;
+    let rect_min = [
+        clampi(trunc_i64((xy[0] - rf) / blk), k.grid[0]),
+        clampi(trunc_i64((xy[1] - rf) / blk), k.grid[1]),
+    ];
+    let rect_max = [
+        clampi(trunc_i64((xy[0] + rf + blk1) / blk), k.grid[0]),
+        clampi(trunc_i64((xy[1] + rf + blk1) / blk), k.grid[1]),
+    ];
+    if (rect_max[0] - rect_min[0]) as u64 * (rect_max[1] - rect_min[1]) as u64 == 0 || radius == 0 {
+        return Projected::culled();
+    }
+    Projected {
+        radius,
+        depth: t[2],
+        xy,
+        conic,
+        cov2d: [a, b, c],
+        rect_min,
+        rect_max,
+        clamped_x: e.clamped_x,
+        clamped_y: e.clamped_y,
+    }
+}
+
+/// Gradients arriving at one Gaussian's projected quantities.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ProjectedGrad<T> {
+    /// dL/d(pixel-space centre).
+    pub xy: [T; 2],
+    /// dL/d(A, B, C), each the derivative w.r.t. the scalar used in `power`.
+    pub conic: [T; 3],
+    /// dL/d(view-space depth) (from the depth image).
+    pub depth: T,
+}
+
+/// Backward of [`project`] for a visible Gaussian: returns
+/// `(dL/dmean (projection, EWA and depth paths), dL/dcov3d slots, dL/dndc)`.
+pub(crate) fn project_vjp<T: Real>(
+    k: &Intrinsics<T>,
+    mean: [T; 3],
+    cov3d: &[T; 6],
+    fwd: &Projected<T>,
+    g: &ProjectedGrad<T>,
+    mode: GradientMode,
+) -> ([T; 3], [T; 6], [T; 2]) {
+    match mode {
+        GradientMode::Exact => {}
+    }
+    let [a, b, c] = fwd.cov2d;
+    // Conic (A, B, C) = (c, −b, a)/det, det = ac − b².
+    let det = a * c - b * b;
+    let inv2 = T::ONE / (det * det);
+    let [ga, gb, gc] = g.conic;
+    let two = T::from_f64(2.0);
+    let da = (-(c * c) * ga + b * c * gb - b * b * gc) * inv2;
+    let db = (two * b * c * ga - (det + two * b * b) * gb + two * a * b * gc) * inv2;
+    let dc = (-(b * b) * ga + a * b * gb - a * a * gc) * inv2;
+
+    let t = [
+        transform(&k.view, mean, 0),
+        transform(&k.view, mean, 1),
+        transform(&k.view, mean, 2),
+    ];
+    let e = ewa(k, t);
+    let v = sym3(cov3d);
+    let a0 = e.a[0];
+    let a1 = e.a[1];
+    // a = A0ᵀVA0, b = A1ᵀVA0, c = A1ᵀVA1.
+    let mut gcov = [T::ZERO; 6];
+    let slots = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
+    for (s, &(i, j)) in slots.iter().enumerate() {
+        let full =
+            |i: usize, j: usize| a0[i] * a0[j] * da + a1[i] * a0[j] * db + a1[i] * a1[j] * dc;
+        gcov[s] = if i == j {
+            full(i, i)
+        } else {
+            full(i, j) + full(j, i)
+        };
+    }
+    let va0: [T; 3] = std::array::from_fn(|i| v[i][0] * a0[0] + v[i][1] * a0[1] + v[i][2] * a0[2]);
+    let va1: [T; 3] = std::array::from_fn(|i| v[i][0] * a1[0] + v[i][1] * a1[1] + v[i][2] * a1[2]);
+    let ga0: [T; 3] = std::array::from_fn(|i| two * va0[i] * da + va1[i] * db);
+    let ga1: [T; 3] = std::array::from_fn(|i| two * va1[i] * dc + va0[i] * db);
+    // A(0, r) = Wr(0, r)·J00 + Wr(2, r)·J02; A(1, r) = Wr(1, r)·J11 + Wr(2, r)·J12.
+    let mut dj00 = T::ZERO;
+    let mut dj02 = T::ZERO;
+    let mut dj11 = T::ZERO;
+    let mut dj12 = T::ZERO;
+    for r in 0..3 {
+        dj00 += k.wr(0, r) * ga0[r];
+        dj02 += k.wr(2, r) * ga0[r];
+        dj11 += k.wr(1, r) * ga1[r];
+        dj12 += k.wr(2, r) * ga1[r];
+    }
+    let tz = T::ONE / t[2];
+    let tz2 = tz * tz;
+    let tz3 = tz2 * tz;
+    // J02 = −fx·tx'/tz² with tx' = tx (unclamped) or ±lim·tz (clamped):
+    // ∂J02/∂tz is 2·fx·tx'/tz³ unclamped and fx·tx'/tz³ clamped.
+    let (mx, kx) = if fwd.clamped_x {
+        (T::ZERO, T::ONE)
+    } else {
+        (T::ONE, two)
+    };
+    let (my, ky) = if fwd.clamped_y {
+        (T::ZERO, T::ONE)
+    } else {
+        (T::ONE, two)
+    };
+    let dtx = mx * (-k.fx) * tz2 * dj02;
+    let dty = my * (-k.fy) * tz2 * dj12;
+    let dtz = -k.fx * tz2 * dj00 - k.fy * tz2 * dj11
+        + kx * k.fx * e.tx * tz3 * dj02
+        + ky * k.fy * e.ty * tz3 * dj12
+        + g.depth;
+    let dt = [dtx, dty, dtz];
+    let mut gmean: [T; 3] =
+        std::array::from_fn(|j| k.wr(0, j) * dt[0] + k.wr(1, j) * dt[1] + k.wr(2, j) * dt[2]);
+
+    // Pixel = ((ndc + 1)·S − 1)/2, so d pixel / d ndc = S/2.
+    let gndc = [
+        g.xy[0] * T::from_f64(0.5 * k.width as f64),
+        g.xy[1] * T::from_f64(0.5 * k.height as f64),
+    ];
+    // ndc = p_hom.xy · m_w, m_w = 1/(p_hom.w + 1e-7).
+    let m = &k.proj;
+    let hx = transform(m, mean, 0);
+    let hy = transform(m, mean, 1);
+    let hw = transform(m, mean, 3);
+    let mw = T::ONE / (hw + T::from_f64(1e-7));
+    let mul1 = hx * mw * mw;
+    let mul2 = hy * mw * mw;
+    for j in 0..3 {
+        gmean[j] += (m[4 * j] * mw - m[4 * j + 3] * mul1) * gndc[0]
+            + (m[4 * j + 1] * mw - m[4 * j + 3] * mul2) * gndc[1];
+    }
+    (gmean, gcov, gndc)
+}
