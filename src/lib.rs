@@ -30,5 +30,6 @@ pub mod error;
 pub mod gaussians;
 pub mod io;
 pub mod math;
+pub mod oracle;
 
 pub use error::{Error, Result};

@@ -7,6 +7,8 @@
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 
+mod cli;
+
 #[derive(Parser)]
 #[command(
     name = "liquid-splat",
@@ -22,7 +24,13 @@ struct Cli {
 }
 
 #[derive(Subcommand)]
-enum Command {}
+enum Command {
+    /// Oracle case files: compare outputs.
+    Case {
+        #[command(subcommand)]
+        command: cli::case::CaseCommand,
+    },
+}
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
@@ -35,5 +43,7 @@ fn main() -> ExitCode {
             return ExitCode::from(2);
         }
     }
-    match cli.command {}
+    match cli.command {
+        Command::Case { command } => cli::case::run(command),
+    }
 }

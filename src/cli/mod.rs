@@ -1,0 +1,3 @@
+//! Subcommand groups of the `liquid-splat` binary.
+
+pub mod case;
