@@ -74,7 +74,7 @@ fn round_trip_through_the_cli_matches_the_library() {
     assert_eq!(out.get_i32("radii").unwrap().0, vec![6]);
     // Wrong stage: exit 2.
     let mut wrong = case.clone();
-    wrong.set_meta("stage", "loss");
+    wrong.set_meta("stage", "no-such-stage");
     wrong.save(&dir.join("wrong.safetensors")).unwrap();
     let st = Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
         .args(["case", "run"])

@@ -6,6 +6,9 @@
 //! rank-0 tensors (shape `[]`), and `grad_image` `[3, H, W]` = dL/dimage.
 //! Metadata `lambda_dssim` is echoed into the output.
 
+/// The `stage` metadata value of a loss case.
+pub const STAGE: &str = "loss";
+
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
 use crate::loss::{loss_and_grad, LAMBDA_DSSIM};

@@ -1,2 +1,42 @@
+//! The oracle: what backend authors run in their CI against this reference.
+//!
+//! A *case file* is a safetensors file whose string metadata names the stage
+//! (`stage=rasterize|loss|deform`) and its settings, and whose tensors are the
+//! stage's inputs under the names of the upstream Python APIs. [`run_case`]
+//! computes the stage's outputs and gradients into another tensor file; the
+//! tensors' dtype (F32 or F64) selects the precision.
+//!
+//! - [`rasterize`]: the Inria rasterizer's forward and backward.
+//! - [`loss`]: L1 + SSIM training loss and its gradient.
+//! - [`compare`](mod@compare): tensor-by-tensor comparison of an expected case output with
+//!   an actual one, with a report richer than a max-abs number (relative L2,
+//!   cosine similarity, signed bias, ULP distance, NaN/Inf counts, the worst
+//!   element) and PyTorch's `allclose` rule for pass/fail.
+
+pub mod compare;
 pub mod loss;
 pub mod rasterize;
+
+pub use compare::{
+    compare, CompareReport, ElementStats, Status, TensorReport, Tolerance, ToleranceSpec,
+    Tolerances, Worst,
+};
+
+use crate::error::{Error, Result};
+use crate::io::TensorFile;
+
+/// Stage names [`run_case`] understands.
+pub const STAGES: &[&str] = &[rasterize::STAGE, loss::STAGE];
+
+/// Run the stage named by the case's `stage` metadata.
+pub fn run_case(case: &TensorFile) -> Result<TensorFile> {
+    match case.meta("stage")? {
+        s if s == rasterize::STAGE => rasterize::run(case),
+        s if s == loss::STAGE => loss::run(case),
+        other => Err(Error::field(
+            &case.path,
+            "__metadata__.stage",
+            format!("unknown stage `{other}` (known: {})", STAGES.join(", ")),
+        )),
+    }
+}

@@ -1,0 +1,6 @@
+//! Subcommand groups of the `liquid-splat` binary: argument parsing and
+//! messages only; the work is done by the library.
+
+pub mod bench;
+pub mod case;
+pub mod gradcheck;
