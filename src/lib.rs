@@ -26,6 +26,7 @@
 //! all randomness comes from explicit seeds.
 
 pub mod camera;
+pub mod dataset;
 pub mod error;
 pub mod gaussians;
 pub mod io;
