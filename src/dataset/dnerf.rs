@@ -141,13 +141,15 @@ pub(crate) fn check_sizes(dataset_files: &[(&[Frame], &[PathBuf])]) -> Result<()
         for (f, file) in frames.iter().zip(files.iter()) {
             match first {
                 None => first = Some((f.width, f.height)),
-                Some((w, h)) if (w, h) != (f.width, f.height) => return Err(Error::format(
-                    file,
-                    format!(
+                Some((w, h)) if (w, h) != (f.width, f.height) => {
+                    return Err(Error::format(
+                        file,
+                        format!(
                         "image is {}x{} after downscaling, the dataset's first image is {w}x{h}",
                         f.width, f.height
                     ),
-                )),
+                    ))
+                }
                 _ => {}
             }
         }

@@ -593,7 +593,7 @@ mod tests {
             }
         }
         let bytes = encode_gaussians(&g).unwrap();
-        let body = &bytes[bytes.len() - 23 * 4..];
+        let body = &bytes[bytes.len() - 26 * 4..];
         let f = |j: usize| f32::from_le_bytes(body[4 * j..4 * j + 4].try_into().unwrap());
         // x y z nx ny nz f_dc_0..2 f_rest_0..8
         let rest: Vec<f32> = (9..18).map(f).collect();
@@ -736,8 +736,8 @@ mod tests {
                 .to_string();
             assert!(e.starts_with("t.ply: "), "{e}");
         }
-        let header_len = bytes.len() - 3 * 23 * 4;
-        let e = decode_gaussians::<f32>(p, &bytes[..header_len + 23 * 4 + 5])
+        let header_len = bytes.len() - 3 * 26 * 4;
+        let e = decode_gaussians::<f32>(p, &bytes[..header_len + 26 * 4 + 5])
             .unwrap_err()
             .to_string();
         assert!(e.contains("truncated PLY body at vertex 1"), "{e}");

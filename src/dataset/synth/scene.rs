@@ -253,7 +253,7 @@ impl SceneName {
                     half: [0.3, 0.08, 0.05],
                     albedo: [0.5, 0.5, 0.5],
                 }];
-                let len = 0.55;
+                let len = 0.4;
                 let colours = [[0.95, 0.6, 0.1], [0.2, 0.7, 0.9], [0.85, 0.25, 0.6]];
                 let (mut p, mut angle) = (top, 0.0);
                 let yaw = 0.4 * s(2.0 * PI * 2.0 * t);
