@@ -85,16 +85,17 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         NerfiesSplit::Auto => auto_ratio,
         _ => 1.0,
     });
-    let folder = match ratio {
-        r if r == 1.0 => "1x",
-        r if r == 0.5 => "2x",
-        r if r == 0.25 => "4x",
-        r => {
-            return Err(Error::invalid(
-                "nerfies ratio",
-                format!("{r} is not 1, 0.5 or 0.25"),
-            ))
-        }
+    let folder = if ratio == 1.0 {
+        "1x"
+    } else if ratio == 0.5 {
+        "2x"
+    } else if ratio == 0.25 {
+        "4x"
+    } else {
+        return Err(Error::invalid(
+            "nerfies ratio",
+            format!("{ratio} is not 1, 0.5 or 0.25"),
+        ));
     };
     let (train_ids, test_ids) = match split {
         NerfiesSplit::TrainVal => (
