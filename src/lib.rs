@@ -26,6 +26,7 @@
 //! all randomness comes from explicit seeds.
 
 pub mod camera;
+pub mod dataset;
 pub mod densify;
 pub mod error;
 pub mod gaussians;

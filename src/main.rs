@@ -35,6 +35,10 @@ enum Command {
         #[command(subcommand)]
         what: cli::gradcheck::GradcheckWhat,
     },
+    /// Load a dataset (D-NeRF or nerfies layout) and print a JSON summary.
+    Inspect(cli::data::InspectArgs),
+    /// Generate a built-in synthetic dynamic scene (bouncing, swing, blob) on disk.
+    Synth(cli::data::SynthArgs),
     /// Throughput measurements.
     Bench {
         #[command(subcommand)]
@@ -68,5 +72,7 @@ fn main() -> ExitCode {
         Command::Case { command } => cli::case::run(command),
         Command::Gradcheck { what } => report(cli::gradcheck::run(what)),
         Command::Bench { what } => report(cli::bench::run(what)),
+        Command::Inspect(a) => report(cli::data::inspect(a)),
+        Command::Synth(a) => report(cli::data::synth(a)),
     }
 }

@@ -3,4 +3,5 @@
 
 pub mod bench;
 pub mod case;
+pub mod data;
 pub mod gradcheck;

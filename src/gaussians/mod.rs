@@ -13,6 +13,10 @@
 //!
 //! Activations (done before the rasterizer, as upstream): `scale = exp(scaling)`,
 //! `opacity = sigmoid(opacity)`, `rotation = q / max(|q|, 1e-12)`.
+//!
+//! [`ply`] reads and writes them in the Inria PLY layout.
+
+pub mod ply;
 
 use crate::error::{Error, Result};
 use crate::math::Real;

@@ -1,0 +1,107 @@
+//! `liquid-splat inspect` and `liquid-splat synth`: datasets on disk.
+
+use clap::{Args, ValueEnum};
+use liquid_splat::dataset::{self, synth, Background, LoadOptions};
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+/// Arguments of `inspect`.
+#[derive(Args)]
+pub struct InspectArgs {
+    /// Dataset folder.
+    pub dir: PathBuf,
+    /// Downscale factor: 1, 2, 4 or 8.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: usize,
+    /// Composite RGBA images on white instead of black.
+    #[arg(long)]
+    pub white_background: bool,
+}
+
+/// Arguments of `synth`.
+#[derive(Args)]
+pub struct SynthArgs {
+    /// Scene name: bouncing, swing or blob.
+    pub name: String,
+    /// Output folder (created).
+    pub out_dir: PathBuf,
+    /// Image width and height.
+    #[arg(long, default_value_t = 64)]
+    pub resolution: usize,
+    /// Training frames (nerfies layout: frames of the sequence).
+    #[arg(long, default_value_t = 24)]
+    pub frames: usize,
+    /// Frames in each of the val and test splits.
+    #[arg(long, default_value_t = 8)]
+    pub eval_frames: usize,
+    /// Seed of the camera placement (and of the nerfies points).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Camera placement.
+    #[arg(long, value_enum, default_value_t = OrbitArg::Hemisphere)]
+    pub orbit: OrbitArg,
+    /// Sub-pixel samples per axis.
+    #[arg(long, default_value_t = 4)]
+    pub supersampling: usize,
+    /// On-disk layout.
+    #[arg(long, value_enum, default_value_t = LayoutArg::Dnerf)]
+    pub layout: LayoutArg,
+    /// Background of the nerfies-layout RGB images.
+    #[arg(long)]
+    pub white_background: bool,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum OrbitArg {
+    Hemisphere,
+    Circle,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum LayoutArg {
+    Dnerf,
+    Nerfies,
+}
+
+pub fn background(white: bool) -> Background {
+    if white {
+        Background::White
+    } else {
+        Background::Black
+    }
+}
+
+/// `inspect DIR`: print the dataset's JSON summary.
+pub fn inspect(a: InspectArgs) -> liquid_splat::Result<ExitCode> {
+    let opts = LoadOptions {
+        background: background(a.white_background),
+        downscale: a.downscale,
+        ..Default::default()
+    };
+    let ds = dataset::load(&a.dir, &opts)?;
+    println!("{:#}", dataset::summary(&ds));
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `synth NAME OUT_DIR`: write a built-in scene to disk.
+pub fn synth(a: SynthArgs) -> liquid_splat::Result<ExitCode> {
+    let opts = synth::SynthOptions {
+        resolution: a.resolution,
+        frames: a.frames,
+        eval_frames: a.eval_frames,
+        seed: a.seed,
+        orbit: match a.orbit {
+            OrbitArg::Hemisphere => synth::Orbit::Hemisphere,
+            OrbitArg::Circle => synth::Orbit::Circle,
+        },
+        supersampling: a.supersampling,
+        background: background(a.white_background),
+        ..Default::default()
+    };
+    let layout = match a.layout {
+        LayoutArg::Dnerf => synth::Layout::DNerf,
+        LayoutArg::Nerfies => synth::Layout::Nerfies,
+    };
+    synth::write(&a.name, &a.out_dir, &opts, layout)?;
+    Ok(ExitCode::SUCCESS)
+}

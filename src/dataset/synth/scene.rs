@@ -1,0 +1,408 @@
+//! The analytic shapes, the built-in animated scenes, and the ray caster that draws them.
+//!
+//! This renderer is independent of the splatting rasterizer on purpose: ground truth comes
+//! from exact ray–shape intersections. Shading is Lambert with a fixed directional light plus
+//! ambient: `albedo · (0.3 + 0.7·max(0, n·l))`. Coverage comes from a fixed `S×S` grid of
+//! sub-pixel samples at `((a + ½)/S, (b + ½)/S)`; the pixel's alpha is the fraction of samples
+//! that hit, its colour the mean colour of the hits (straight, not premultiplied alpha).
+//! All arithmetic is f64 with transcendental functions from the pinned `libm`.
+
+use crate::camera::Camera;
+use crate::math::Rng;
+use std::f64::consts::PI;
+
+type V3 = [f64; 3];
+
+fn sub(a: V3, b: V3) -> V3 {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn add(a: V3, b: V3) -> V3 {
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
+}
+fn mul(a: V3, s: f64) -> V3 {
+    [a[0] * s, a[1] * s, a[2] * s]
+}
+fn dot(a: V3, b: V3) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+fn normalize(a: V3) -> V3 {
+    mul(a, 1.0 / dot(a, a).sqrt())
+}
+
+/// An analytic shape with a colour.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Shape {
+    Sphere {
+        centre: V3,
+        radius: f64,
+        albedo: V3,
+    },
+    /// All points within `radius` of the segment `a`–`b`.
+    Capsule {
+        a: V3,
+        b: V3,
+        radius: f64,
+        albedo: V3,
+    },
+    /// Axis-aligned box.
+    Box {
+        centre: V3,
+        half: V3,
+        albedo: V3,
+    },
+}
+
+impl Shape {
+    fn albedo(&self) -> V3 {
+        match self {
+            Shape::Sphere { albedo, .. }
+            | Shape::Capsule { albedo, .. }
+            | Shape::Box { albedo, .. } => *albedo,
+        }
+    }
+
+    /// Nearest hit distance along the ray (`dir` unit) with `t > 1e-9`, and the unit normal.
+    fn intersect(&self, o: V3, d: V3) -> Option<(f64, V3)> {
+        match *self {
+            Shape::Sphere { centre, radius, .. } => {
+                let oc = sub(o, centre);
+                let b = dot(oc, d);
+                let c = dot(oc, oc) - radius * radius;
+                let disc = b * b - c;
+                if disc < 0.0 {
+                    return None;
+                }
+                let s = disc.sqrt();
+                let t = if -b - s > 1e-9 { -b - s } else { -b + s };
+                (t > 1e-9).then(|| (t, normalize(sub(add(o, mul(d, t)), centre))))
+            }
+            Shape::Capsule { a, b, radius, .. } => {
+                // Cylinder body, then the two end spheres (closest hit wins).
+                let ba = sub(b, a);
+                let oa = sub(o, a);
+                let baba = dot(ba, ba);
+                let bard = dot(ba, d);
+                let baoa = dot(ba, oa);
+                let rdoa = dot(d, oa);
+                let oaoa = dot(oa, oa);
+                let qa = baba - bard * bard;
+                let qb = baba * rdoa - baoa * bard;
+                let qc = baba * oaoa - baoa * baoa - radius * radius * baba;
+                let mut best: Option<(f64, V3)> = None;
+                if qa > 1e-12 {
+                    let h = qb * qb - qa * qc;
+                    if h >= 0.0 {
+                        let t = (-qb - h.sqrt()) / qa;
+                        let y = baoa + t * bard;
+                        if t > 1e-9 && y > 0.0 && y < baba {
+                            let p = add(o, mul(d, t));
+                            let axis = add(a, mul(ba, y / baba));
+                            best = Some((t, normalize(sub(p, axis))));
+                        }
+                    }
+                }
+                for end in [a, b] {
+                    let s = Shape::Sphere {
+                        centre: end,
+                        radius,
+                        albedo: [0.0; 3],
+                    };
+                    if let Some(h) = s.intersect(o, d) {
+                        if best.map_or(true, |b| h.0 < b.0) {
+                            best = Some(h);
+                        }
+                    }
+                }
+                best
+            }
+            Shape::Box { centre, half, .. } => {
+                let mut tmin = f64::NEG_INFINITY;
+                let mut tmax = f64::INFINITY;
+                let mut axis = 0;
+                let mut sign = 1.0;
+                for k in 0..3 {
+                    let lo = centre[k] - half[k];
+                    let hi = centre[k] + half[k];
+                    if d[k] == 0.0 {
+                        if o[k] < lo || o[k] > hi {
+                            return None;
+                        }
+                        continue;
+                    }
+                    let (mut t0, mut t1) = ((lo - o[k]) / d[k], (hi - o[k]) / d[k]);
+                    let mut s = -1.0;
+                    if t0 > t1 {
+                        std::mem::swap(&mut t0, &mut t1);
+                        s = 1.0;
+                    }
+                    if t0 > tmin {
+                        tmin = t0;
+                        axis = k;
+                        sign = s;
+                    }
+                    tmax = tmax.min(t1);
+                }
+                if tmin > tmax || tmin <= 1e-9 {
+                    return None;
+                }
+                let mut n = [0.0; 3];
+                n[axis] = sign;
+                Some((tmin, n))
+            }
+        }
+    }
+
+    /// A point on the surface drawn from `r` (roughly uniform; used for seed point clouds).
+    fn sample_surface(&self, r: &mut Rng) -> V3 {
+        let unit = |r: &mut Rng| normalize([r.normal(), r.normal(), r.normal()]);
+        match *self {
+            Shape::Sphere { centre, radius, .. } => add(centre, mul(unit(r), radius)),
+            Shape::Capsule { a, b, radius, .. } => {
+                let ba = sub(b, a);
+                let axis = normalize(ba);
+                let u = unit(r);
+                let perp = normalize(sub(u, mul(axis, dot(u, axis))));
+                add(add(a, mul(ba, r.uniform())), mul(perp, radius))
+            }
+            Shape::Box { centre, half, .. } => {
+                let face = r.below(6) as usize;
+                let k = face % 3;
+                let mut p = [0.0; 3];
+                for (j, pj) in p.iter_mut().enumerate() {
+                    *pj = if j == k {
+                        if face < 3 {
+                            half[j]
+                        } else {
+                            -half[j]
+                        }
+                    } else {
+                        r.uniform_range(-half[j], half[j])
+                    }
+                }
+                add(centre, p)
+            }
+        }
+    }
+}
+
+/// The built-in scenes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SceneName {
+    /// Three balls bouncing on a floor tile: rigid motion.
+    Bouncing,
+    /// A hanging chain of three capsules swinging fast: high-frequency articulated motion.
+    Swing,
+    /// Six overlapping spheres pulsating out of phase: a non-rigid, deforming blob.
+    Blob,
+}
+
+impl SceneName {
+    /// Every scene, in a fixed order.
+    pub const ALL: [SceneName; 3] = [SceneName::Bouncing, SceneName::Swing, SceneName::Blob];
+
+    /// Parse a scene name.
+    pub fn parse(s: &str) -> Option<SceneName> {
+        SceneName::ALL.into_iter().find(|n| n.name() == s)
+    }
+
+    /// The scene's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            SceneName::Bouncing => "bouncing",
+            SceneName::Swing => "swing",
+            SceneName::Blob => "blob",
+        }
+    }
+
+    /// The shapes at time `t ∈ [0, 1]`. Everything stays inside `[-1.3, 1.3]³`.
+    pub fn shapes(self, t: f64) -> Vec<Shape> {
+        let s = |x: f64| libm::sin(x);
+        let c = |x: f64| libm::cos(x);
+        match self {
+            SceneName::Bouncing => {
+                let floor = -0.8;
+                let mut v = vec![Shape::Box {
+                    centre: [0.0, 0.0, floor - 0.06],
+                    half: [0.9, 0.9, 0.06],
+                    albedo: [0.55, 0.55, 0.6],
+                }];
+                let balls = [
+                    (0.30, [0.9, 0.2, 0.15], 2.0, 0.0, 0.5),
+                    (0.22, [0.2, 0.8, 0.3], 3.0, 1.3, -0.4),
+                    (0.18, [0.2, 0.35, 0.95], 5.0, 2.1, 0.1),
+                ];
+                for (k, &(radius, albedo, freq, phase, x0)) in balls.iter().enumerate() {
+                    let height = 1.1 * s(PI * freq * t + phase).abs();
+                    let ang = 2.0 * PI * t + k as f64 * 2.0;
+                    v.push(Shape::Sphere {
+                        centre: [
+                            x0 + 0.15 * c(ang),
+                            0.5 * s(ang + k as f64),
+                            floor + radius + height,
+                        ],
+                        radius,
+                        albedo,
+                    });
+                }
+                v
+            }
+            SceneName::Swing => {
+                let top = [0.0, 0.0, 0.95];
+                let mut v = vec![Shape::Box {
+                    centre: [0.0, 0.0, 1.02],
+                    half: [0.3, 0.08, 0.05],
+                    albedo: [0.5, 0.5, 0.5],
+                }];
+                let len = 0.4;
+                let colours = [[0.95, 0.6, 0.1], [0.2, 0.7, 0.9], [0.85, 0.25, 0.6]];
+                let (mut p, mut angle) = (top, 0.0);
+                let yaw = 0.4 * s(2.0 * PI * 2.0 * t);
+                for (k, albedo) in colours.into_iter().enumerate() {
+                    let f = [3.0, 5.0, 7.0][k];
+                    angle += [0.7, 0.8, 1.0][k] * s(2.0 * PI * f * t + k as f64);
+                    let dir = [s(angle) * c(yaw), s(angle) * s(yaw), -c(angle)];
+                    let q = add(p, mul(dir, len));
+                    v.push(Shape::Capsule {
+                        a: p,
+                        b: q,
+                        radius: 0.09,
+                        albedo,
+                    });
+                    p = q;
+                }
+                v
+            }
+            SceneName::Blob => (0..6)
+                .map(|i| {
+                    let fi = i as f64;
+                    let dir = [
+                        c(2.0 * PI * fi / 6.0) * c(0.5 * fi),
+                        s(2.0 * PI * fi / 6.0) * c(0.5 * fi),
+                        s(0.5 * fi) - 0.3,
+                    ];
+                    let reach = 0.35 * (1.0 + 0.4 * s(2.0 * PI * (t + fi / 3.0)));
+                    Shape::Sphere {
+                        centre: mul(dir, reach),
+                        radius: 0.35 + 0.12 * s(2.0 * PI * (2.0 * t + fi / 6.0)),
+                        albedo: [0.9 - 0.1 * fi, 0.3 + 0.1 * fi, 0.5 + 0.05 * fi],
+                    }
+                })
+                .collect(),
+        }
+    }
+
+    /// `n` points on the surfaces at time 0 (for `points.npy`), shapes in turn.
+    pub fn surface_points(self, n: usize, seed: u64) -> Vec<f64> {
+        let shapes = self.shapes(0.0);
+        let mut r = Rng::new(seed);
+        (0..n)
+            .flat_map(|i| shapes[i % shapes.len()].sample_surface(&mut r))
+            .collect()
+    }
+}
+
+const LIGHT: V3 = [0.4, 0.3, 0.866];
+const AMBIENT: f64 = 0.3;
+
+/// Render `shapes` through `camera` to interleaved RGBA bytes with `ss × ss` samples a pixel.
+pub fn render(shapes: &[Shape], camera: &Camera, ss: usize) -> Vec<u8> {
+    let (w, h) = (camera.width, camera.height);
+    let (fx, fy) = camera.focal();
+    let r = camera.rotation;
+    let o = camera.centre();
+    let l = normalize(LIGHT);
+    let mut out = Vec::with_capacity(4 * w * h);
+    for py in 0..h {
+        for px in 0..w {
+            let mut sum = [0.0; 3];
+            let mut hits = 0usize;
+            for a in 0..ss {
+                for b in 0..ss {
+                    let u = px as f64 + (b as f64 + 0.5) / ss as f64;
+                    let v = py as f64 + (a as f64 + 0.5) / ss as f64;
+                    let dc = [(u - w as f64 / 2.0) / fx, (v - h as f64 / 2.0) / fy, 1.0];
+                    // World direction Rᵀ·dc.
+                    let d = normalize(std::array::from_fn(|j| {
+                        r[0][j] * dc[0] + r[1][j] * dc[1] + r[2][j] * dc[2]
+                    }));
+                    let mut best: Option<(f64, V3, V3)> = None;
+                    for s in shapes {
+                        if let Some((t, n)) = s.intersect(o, d) {
+                            if best.map_or(true, |b| t < b.0) {
+                                best = Some((t, n, s.albedo()));
+                            }
+                        }
+                    }
+                    if let Some((_, n, alb)) = best {
+                        let shade = AMBIENT + (1.0 - AMBIENT) * dot(n, l).max(0.0);
+                        for k in 0..3 {
+                            sum[k] += (alb[k] * shade).min(1.0);
+                        }
+                        hits += 1;
+                    }
+                }
+            }
+            let byte = |x: f64| (x * 255.0 + 0.5).floor().clamp(0.0, 255.0) as u8;
+            if hits == 0 {
+                out.extend([0, 0, 0, 0]);
+            } else {
+                for s in sum {
+                    out.push(byte(s / hits as f64));
+                }
+                out.push(byte(hits as f64 / (ss * ss) as f64));
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn intersections_are_correct() {
+        let o = [0.0, 0.0, -5.0];
+        let d = [0.0, 0.0, 1.0];
+        let sph = Shape::Sphere {
+            centre: [0.0; 3],
+            radius: 1.0,
+            albedo: [1.0; 3],
+        };
+        assert_eq!(sph.intersect(o, d), Some((4.0, [0.0, 0.0, -1.0])));
+        let cap = Shape::Capsule {
+            a: [-1.0, 0.0, 0.0],
+            b: [1.0, 0.0, 0.0],
+            radius: 0.5,
+            albedo: [1.0; 3],
+        };
+        let (t, n) = cap.intersect(o, d).unwrap();
+        assert!((t - 4.5).abs() < 1e-12 && (n[2] + 1.0).abs() < 1e-12);
+        // Along the axis the end cap is hit.
+        let (t, _) = cap.intersect([-5.0, 0.0, 0.0], [1.0, 0.0, 0.0]).unwrap();
+        assert!((t - 3.5).abs() < 1e-12);
+        let bx = Shape::Box {
+            centre: [0.0; 3],
+            half: [1.0, 2.0, 0.5],
+            albedo: [1.0; 3],
+        };
+        assert_eq!(bx.intersect(o, d), Some((4.5, [0.0, 0.0, -1.0])));
+        assert_eq!(bx.intersect([3.0, 0.0, -5.0], d), None);
+    }
+
+    #[test]
+    fn scenes_stay_in_the_box() {
+        for name in SceneName::ALL {
+            for k in 0..=20 {
+                let t = k as f64 / 20.0;
+                let mut r = Rng::new(1);
+                for s in name.shapes(t) {
+                    for _ in 0..50 {
+                        let p = s.sample_surface(&mut r);
+                        assert!(p.iter().all(|v| v.abs() < 1.3), "{name:?} {t} {p:?}");
+                    }
+                }
+            }
+        }
+    }
+}
