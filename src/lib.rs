@@ -26,9 +26,11 @@
 //! all randomness comes from explicit seeds.
 
 pub mod camera;
+pub mod deform;
 pub mod error;
 pub mod gaussians;
 pub mod io;
 pub mod math;
+pub mod oracle;
 
 pub use error::{Error, Result};
