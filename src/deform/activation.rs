@@ -122,6 +122,12 @@ impl Activation {
     /// `f` applied to every element of `pre` (parallel, element-wise).
     pub fn forward<T: Real>(self, pre: &[T]) -> Vec<T> {
         let mut out = vec![T::ZERO; pre.len()];
+        if pre.len() <= 4096 {
+            for (o, &p) in out.iter_mut().zip(pre) {
+                *o = self.apply(p);
+            }
+            return out;
+        }
         out.par_chunks_mut(4096)
             .zip(pre.par_chunks(4096))
             .for_each(|(o, p)| {
@@ -134,6 +140,12 @@ impl Activation {
 
     /// vjp: `g ⊙ f'(pre)`, in place on `g`.
     pub fn backward_in_place<T: Real>(self, pre: &[T], g: &mut [T]) {
+        if g.len() <= 4096 {
+            for (g, &p) in g.iter_mut().zip(pre) {
+                *g *= self.derivative(p);
+            }
+            return;
+        }
         g.par_chunks_mut(4096)
             .zip(pre.par_chunks(4096))
             .for_each(|(g, p)| {

@@ -100,6 +100,11 @@ pub fn matmul<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
         return c;
     }
     let packed = pack_b(b);
+    if m <= ROW_BLOCK {
+        // One block: no task to share.
+        block_product(a, &packed, k, n, &mut c);
+        return c;
+    }
     c.par_chunks_mut(ROW_BLOCK * n)
         .enumerate()
         .for_each(|(blk, cb)| {
@@ -120,6 +125,9 @@ pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
         return vec![T::ZERO; m * n];
     }
     let chunks = r.div_ceil(REDUCTION_CHUNK);
+    if chunks == 1 {
+        return matmul(a.t(), b);
+    }
     let partials: Vec<Vec<T>> = (0..chunks)
         .into_par_iter()
         .map(|c| {
@@ -202,18 +210,29 @@ fn pack_b<T: Real>(b: MatRef<'_, T>) -> PackedB<T> {
     let (k, n) = (b.rows, b.cols);
     let panels = n.div_ceil(PANEL);
     let mut data = vec![T::ZERO; panels * k * PANEL];
-    data.par_chunks_mut(k * PANEL.max(1))
-        .enumerate()
-        .for_each(|(p, dst)| {
-            let j0 = p * PANEL;
-            let w = PANEL.min(n - j0);
-            for kk in 0..k {
-                let row = &mut dst[kk * PANEL..kk * PANEL + w];
+    let fill = |(p, dst): (usize, &mut [T])| {
+        let j0 = p * PANEL;
+        let w = PANEL.min(n - j0);
+        for (kk, row) in dst.chunks_exact_mut(PANEL).enumerate() {
+            let row = &mut row[..w];
+            if b.col_stride == 1 {
+                let s0 = kk * b.row_stride + j0;
+                row.copy_from_slice(&b.data[s0..s0 + w]);
+            } else {
                 for (q, v) in row.iter_mut().enumerate() {
                     *v = b.at(kk, j0 + q);
                 }
             }
-        });
+        }
+    };
+    if k == 0 {
+        return PackedB { data };
+    }
+    if k * n < 1 << 14 {
+        data.chunks_mut(k * PANEL).enumerate().for_each(fill);
+    } else {
+        data.par_chunks_mut(k * PANEL).enumerate().for_each(fill);
+    }
     PackedB { data }
 }
 
@@ -239,57 +258,39 @@ pub fn kernel_path() -> KernelPath {
     KernelPath::Baseline
 }
 
+/// A tile routine: `acc[MR][NR] = Σ_p strip[p][r] · panel[p][q]` (p
+/// ascending, from zero, separate multiply and add), type-erased pointers:
+/// `strip` is `k × MR`, `panel` points at the tile's first column of a
+/// `k × PANEL` panel, `acc` is `MR × NR` row-major.
+type TileFn = unsafe fn(*const u8, *const u8, usize, *mut u8);
+
 /// One block of output rows: `c[rows, n] = a[rows, k] · B` (B packed).
 fn block_product<T: Real>(a: MatRef<'_, T>, b: &PackedB<T>, k: usize, n: usize, c: &mut [T]) {
-    let path = kernel_path();
-    let f32 = T::SIZE == 4;
     #[cfg(target_arch = "x86_64")]
     {
-        // SAFETY: the features were detected on this CPU just above.
-        match (path, f32) {
-            (KernelPath::Avx512, true) => unsafe { return block_avx512::<T, 6, 32>(a, b, k, n, c) },
-            (KernelPath::Avx512, false) => unsafe {
-                return block_avx512::<T, 6, 16>(a, b, k, n, c);
-            },
-            (KernelPath::Avx2, true) => unsafe { return block_avx2::<T, 6, 16>(a, b, k, n, c) },
-            (KernelPath::Avx2, false) => unsafe { return block_avx2::<T, 6, 8>(a, b, k, n, c) },
+        let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
+        let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
+        match (kernel_path(), f32, f64) {
+            (KernelPath::Avx512, true, _) => {
+                return block_body::<T, 6, 32>(a, b, k, n, c, Some(simd::f32_avx512))
+            }
+            (KernelPath::Avx512, _, true) => {
+                return block_body::<T, 6, 16>(a, b, k, n, c, Some(simd::f64_avx512))
+            }
+            (KernelPath::Avx2, true, _) => {
+                return block_body::<T, 6, 16>(a, b, k, n, c, Some(simd::f32_avx2))
+            }
+            (KernelPath::Avx2, _, true) => {
+                return block_body::<T, 6, 8>(a, b, k, n, c, Some(simd::f64_avx2))
+            }
             _ => {}
         }
     }
-    let _ = path;
-    if f32 {
-        block_body::<T, 4, 8>(a, b, k, n, c)
-    } else {
-        block_body::<T, 4, 4>(a, b, k, n, c)
-    }
+    block_body::<T, 4, 8>(a, b, k, n, c, None)
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-unsafe fn block_avx512<T: Real, const MR: usize, const NR: usize>(
-    a: MatRef<'_, T>,
-    b: &PackedB<T>,
-    k: usize,
-    n: usize,
-    c: &mut [T],
-) {
-    block_body::<T, MR, NR>(a, b, k, n, c)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn block_avx2<T: Real, const MR: usize, const NR: usize>(
-    a: MatRef<'_, T>,
-    b: &PackedB<T>,
-    k: usize,
-    n: usize,
-    c: &mut [T],
-) {
-    block_body::<T, MR, NR>(a, b, k, n, c)
-}
-
-/// The micro-kernel driver, inlined into each instruction-set version.
-/// `NR` divides [`PANEL`].
+/// The micro-kernel driver. `NR` divides [`PANEL`]; `tile` (matching `T`,
+/// `MR` and `NR`) is the vector version, `None` the portable loop.
 #[inline(always)]
 fn block_body<T: Real, const MR: usize, const NR: usize>(
     a: MatRef<'_, T>,
@@ -297,19 +298,32 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
     k: usize,
     n: usize,
     c: &mut [T],
+    simd: Option<TileFn>,
 ) {
     let rows = a.rows;
     debug_assert_eq!(c.len(), rows * n);
     debug_assert_eq!(PANEL % NR, 0);
     // Gather MR rows of A into a k-major strip so the kernel reads it
-    // contiguously: strip[p*MR + r] = A[i+r, p].
+    // contiguously: strip[p*MR + r] = A[i+r, p]; missing rows are zero.
     let mut strip = vec![T::ZERO; k * MR];
     let mut i = 0;
     while i < rows {
         let mr = MR.min(rows - i);
-        for p in 0..k {
+        if mr < MR {
+            strip.fill(T::ZERO);
+        }
+        if a.row_stride == 1 {
+            // Columns of A are contiguous (a transposed view).
+            for (p, dst) in strip.chunks_exact_mut(MR).enumerate() {
+                let s0 = p * a.col_stride + i;
+                dst[..mr].copy_from_slice(&a.data[s0..s0 + mr]);
+            }
+        } else {
             for r in 0..mr {
-                strip[p * MR + r] = a.at(i + r, p);
+                let s0 = (i + r) * a.row_stride;
+                for (p, dst) in strip.chunks_exact_mut(MR).enumerate() {
+                    dst[r] = a.data[s0 + p * a.col_stride];
+                }
             }
         }
         let mut j = 0;
@@ -319,7 +333,20 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
             let off = j % PANEL;
             let bp = &b.data[panel * k * PANEL..(panel + 1) * k * PANEL];
             let mut acc = [[T::ZERO; NR]; MR];
-            tile::<T, MR, NR>(&strip, bp, off, k, &mut acc);
+            match simd {
+                // SAFETY: the routine was chosen for this CPU, for T, MR and
+                // NR; strip holds k·MR values, the panel k·PANEL from which
+                // the tile reads columns off..off+NR < PANEL.
+                Some(f) if k > 0 => unsafe {
+                    f(
+                        strip.as_ptr() as *const u8,
+                        bp.as_ptr().add(off) as *const u8,
+                        k,
+                        acc.as_mut_ptr() as *mut u8,
+                    )
+                },
+                _ => tile::<T, MR, NR>(&strip, bp, off, k, &mut acc),
+            }
             for r in 0..mr {
                 let dst = &mut c[(i + r) * n + j..(i + r) * n + j + nr];
                 dst.copy_from_slice(&acc[r][..nr]);
@@ -340,13 +367,11 @@ fn tile<T: Real, const MR: usize, const NR: usize>(
     k: usize,
     acc: &mut [[T; NR]; MR],
 ) {
-    let strip = &strip[..k * MR];
-    let panel = &panel[..k * PANEL];
-    for p in 0..k {
-        let av: &[T; MR] = strip[p * MR..p * MR + MR].try_into().unwrap();
-        let bv: &[T; NR] = panel[p * PANEL + off..p * PANEL + off + NR]
-            .try_into()
-            .unwrap();
+    for (av, bv) in strip[..k * MR]
+        .chunks_exact(MR)
+        .zip(panel[..k * PANEL].chunks_exact(PANEL))
+    {
+        let bv = &bv[off..off + NR];
         for r in 0..MR {
             let x = av[r];
             for q in 0..NR {
@@ -354,6 +379,102 @@ fn tile<T: Real, const MR: usize, const NR: usize>(
             }
         }
     }
+}
+
+/// Vector tiles: the same arithmetic as [`tile`], lane by lane (a multiply
+/// rounded, then an add rounded; no FMA), so every path gives the same bits.
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::PANEL;
+    use std::arch::x86_64::*;
+
+    macro_rules! tile_fn {
+        ($name:ident, $feat:literal, $t:ty, $vec:ty, $lanes:expr, $mr:expr, $zero:ident, $load:ident,
+         $set1:ident, $mul:ident, $add:ident, $store:ident) => {
+            /// # Safety
+            /// The CPU supports the feature; pointers as documented on `TileFn`.
+            #[target_feature(enable = $feat)]
+            pub unsafe fn $name(strip: *const u8, panel: *const u8, k: usize, acc: *mut u8) {
+                let strip = strip as *const $t;
+                let mut panel = panel as *const $t;
+                let mut c: [[$vec; 2]; $mr] = [[$zero(); 2]; $mr];
+                let mut s = strip;
+                for _ in 0..k {
+                    let b0 = $load(panel);
+                    let b1 = $load(panel.add($lanes));
+                    for r in 0..$mr {
+                        let a = $set1(*s.add(r));
+                        c[r][0] = $add(c[r][0], $mul(a, b0));
+                        c[r][1] = $add(c[r][1], $mul(a, b1));
+                    }
+                    s = s.add($mr);
+                    panel = panel.add(PANEL);
+                }
+                let out = acc as *mut $t;
+                for r in 0..$mr {
+                    $store(out.add(r * 2 * $lanes), c[r][0]);
+                    $store(out.add(r * 2 * $lanes + $lanes), c[r][1]);
+                }
+            }
+        };
+    }
+
+    tile_fn!(
+        f32_avx512,
+        "avx512f",
+        f32,
+        __m512,
+        16,
+        6,
+        _mm512_setzero_ps,
+        _mm512_loadu_ps,
+        _mm512_set1_ps,
+        _mm512_mul_ps,
+        _mm512_add_ps,
+        _mm512_storeu_ps
+    );
+    tile_fn!(
+        f64_avx512,
+        "avx512f",
+        f64,
+        __m512d,
+        8,
+        6,
+        _mm512_setzero_pd,
+        _mm512_loadu_pd,
+        _mm512_set1_pd,
+        _mm512_mul_pd,
+        _mm512_add_pd,
+        _mm512_storeu_pd
+    );
+    tile_fn!(
+        f32_avx2,
+        "avx2",
+        f32,
+        __m256,
+        8,
+        6,
+        _mm256_setzero_ps,
+        _mm256_loadu_ps,
+        _mm256_set1_ps,
+        _mm256_mul_ps,
+        _mm256_add_ps,
+        _mm256_storeu_ps
+    );
+    tile_fn!(
+        f64_avx2,
+        "avx2",
+        f64,
+        __m256d,
+        4,
+        6,
+        _mm256_setzero_pd,
+        _mm256_loadu_pd,
+        _mm256_set1_pd,
+        _mm256_mul_pd,
+        _mm256_add_pd,
+        _mm256_storeu_pd
+    );
 }
 
 /// Plain, slow, obviously correct versions of the products above, with the
