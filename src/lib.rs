@@ -27,6 +27,7 @@
 
 pub mod camera;
 pub mod dataset;
+pub mod deform;
 pub mod densify;
 pub mod error;
 pub mod gaussians;

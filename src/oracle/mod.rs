@@ -7,6 +7,7 @@
 //! tensors' dtype (F32 or F64) selects the precision.
 //!
 //! - [`rasterize`]: the Inria rasterizer's forward and backward.
+//! - [`deform`]: the MLP and CfC deformation fields' forward and backward.
 //! - [`loss`]: L1 + SSIM training loss and its gradient.
 //! - [`compare`](mod@compare): tensor-by-tensor comparison of an expected case output with
 //!   an actual one, with a report richer than a max-abs number (relative L2,
@@ -14,6 +15,7 @@
 //!   element) and PyTorch's `allclose` rule for pass/fail.
 
 pub mod compare;
+pub mod deform;
 pub mod loss;
 pub mod rasterize;
 
@@ -26,12 +28,13 @@ use crate::error::{Error, Result};
 use crate::io::TensorFile;
 
 /// Stage names [`run_case`] understands.
-pub const STAGES: &[&str] = &[rasterize::STAGE, loss::STAGE];
+pub const STAGES: &[&str] = &[rasterize::STAGE, deform::STAGE, loss::STAGE];
 
 /// Run the stage named by the case's `stage` metadata.
 pub fn run_case(case: &TensorFile) -> Result<TensorFile> {
     match case.meta("stage")? {
         s if s == rasterize::STAGE => rasterize::run(case),
+        s if s == deform::STAGE => deform::run(case),
         s if s == loss::STAGE => loss::run(case),
         other => Err(Error::field(
             &case.path,

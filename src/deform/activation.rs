@@ -1,0 +1,212 @@
+//! Element-wise activations of the deformation fields, each with its
+//! derivative (the vjp multiplies the incoming gradient by it).
+//!
+//! Names follow ncps (UPSTREAM §7.1): `relu`, `gelu` (exact erf form, not the
+//! tanh approximation), `silu`, `tanh`, `lecun_tanh` (1.7159·tanh(0.666·x),
+//! with 0.666 as upstream writes it, not 2/3). `sigmoid` is used by the CfC
+//! gate and is not selectable as a backbone activation.
+
+use crate::error::{Error, Result};
+use crate::math::Real;
+use rayon::prelude::*;
+use std::fmt;
+
+/// An element-wise activation function.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Activation {
+    Relu,
+    /// `0.5·x·(1 + erf(x/√2))`.
+    Gelu,
+    /// `x·σ(x)`.
+    Silu,
+    Tanh,
+    /// `1.7159·tanh(0.666·x)`.
+    LecunTanh,
+    /// `1/(1 + e^{−x})`.
+    Sigmoid,
+}
+
+const LECUN_A: f64 = 1.7159;
+const LECUN_B: f64 = 0.666;
+
+impl Activation {
+    /// Parse a backbone activation name: `relu|gelu|silu|tanh|lecun_tanh`.
+    pub fn parse(name: &str) -> Result<Self> {
+        Ok(match name {
+            "relu" => Activation::Relu,
+            "gelu" => Activation::Gelu,
+            "silu" => Activation::Silu,
+            "tanh" => Activation::Tanh,
+            "lecun_tanh" => Activation::LecunTanh,
+            other => {
+                return Err(Error::invalid(
+                    "activation",
+                    format!("{other:?} (expected relu, gelu, silu, tanh or lecun_tanh)"),
+                ))
+            }
+        })
+    }
+
+    /// The name [`parse`](Self::parse) accepts (`sigmoid` for the gate).
+    pub fn name(self) -> &'static str {
+        match self {
+            Activation::Relu => "relu",
+            Activation::Gelu => "gelu",
+            Activation::Silu => "silu",
+            Activation::Tanh => "tanh",
+            Activation::LecunTanh => "lecun_tanh",
+            Activation::Sigmoid => "sigmoid",
+        }
+    }
+
+    /// f(x).
+    #[inline]
+    pub fn apply<T: Real>(self, x: T) -> T {
+        let half = T::from_f64(0.5);
+        match self {
+            Activation::Relu => {
+                if x > T::ZERO {
+                    x
+                } else {
+                    T::ZERO
+                }
+            }
+            Activation::Gelu => {
+                half * x * (T::ONE + (x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)).erf())
+            }
+            Activation::Silu => x * x.sigmoid(),
+            Activation::Tanh => x.tanh(),
+            Activation::LecunTanh => T::from_f64(LECUN_A) * (T::from_f64(LECUN_B) * x).tanh(),
+            Activation::Sigmoid => x.sigmoid(),
+        }
+    }
+
+    /// f'(x). ReLU uses 0 at x = 0 (as PyTorch).
+    #[inline]
+    pub fn derivative<T: Real>(self, x: T) -> T {
+        let half = T::from_f64(0.5);
+        match self {
+            Activation::Relu => {
+                if x > T::ZERO {
+                    T::ONE
+                } else {
+                    T::ZERO
+                }
+            }
+            Activation::Gelu => {
+                // Φ(x) + x·φ(x), φ(x) = e^{−x²/2}/√(2π).
+                let cdf =
+                    half * (T::ONE + (x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)).erf());
+                let pdf = (-(half * x * x)).exp() * T::from_f64(0.398_942_280_401_432_7);
+                cdf + x * pdf
+            }
+            Activation::Silu => {
+                let s = x.sigmoid();
+                s * (T::ONE + x * (T::ONE - s))
+            }
+            Activation::Tanh => {
+                let y = x.tanh();
+                T::ONE - y * y
+            }
+            Activation::LecunTanh => {
+                let y = (T::from_f64(LECUN_B) * x).tanh();
+                T::from_f64(LECUN_A * LECUN_B) * (T::ONE - y * y)
+            }
+            Activation::Sigmoid => {
+                let s = x.sigmoid();
+                s * (T::ONE - s)
+            }
+        }
+    }
+
+    /// `f` applied to every element of `pre` (parallel, element-wise).
+    pub fn forward<T: Real>(self, pre: &[T]) -> Vec<T> {
+        let mut out = vec![T::ZERO; pre.len()];
+        if pre.len() <= 4096 {
+            for (o, &p) in out.iter_mut().zip(pre) {
+                *o = self.apply(p);
+            }
+            return out;
+        }
+        out.par_chunks_mut(4096)
+            .zip(pre.par_chunks(4096))
+            .for_each(|(o, p)| {
+                for (o, &p) in o.iter_mut().zip(p) {
+                    *o = self.apply(p);
+                }
+            });
+        out
+    }
+
+    /// vjp: `g ⊙ f'(pre)`, in place on `g`.
+    pub fn backward_in_place<T: Real>(self, pre: &[T], g: &mut [T]) {
+        if g.len() <= 4096 {
+            for (g, &p) in g.iter_mut().zip(pre) {
+                *g *= self.derivative(p);
+            }
+            return;
+        }
+        g.par_chunks_mut(4096)
+            .zip(pre.par_chunks(4096))
+            .for_each(|(g, p)| {
+                for (g, &p) in g.iter_mut().zip(p) {
+                    *g *= self.derivative(p);
+                }
+            });
+    }
+}
+
+impl fmt::Display for Activation {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const ALL: [Activation; 6] = [
+        Activation::Relu,
+        Activation::Gelu,
+        Activation::Silu,
+        Activation::Tanh,
+        Activation::LecunTanh,
+        Activation::Sigmoid,
+    ];
+
+    #[test]
+    fn derivatives_match_central_differences() {
+        for act in ALL {
+            for i in 0..41 {
+                // Avoid x = 0 (the ReLU kink).
+                let x = -3.05 + 0.15 * i as f64;
+                let h = 1e-6;
+                let num = (act.apply(x + h) - act.apply(x - h)) / (2.0 * h);
+                let a = act.derivative(x);
+                let rel = (a - num).abs() / a.abs().max(num.abs()).max(1e-6);
+                assert!(rel < 1e-6, "{act} at {x}: {a} vs {num}");
+            }
+        }
+    }
+
+    #[test]
+    fn known_values() {
+        // gelu(1) = 0.5·(1 + erf(1/√2)) = Φ(1) = 0.8413447460685429
+        assert!((Activation::Gelu.apply(1.0f64) - 0.841_344_746_068_542_9).abs() < 1e-15);
+        assert_eq!(
+            Activation::LecunTanh.apply(1.0f64),
+            1.7159 * libm::tanh(0.666)
+        );
+        assert_eq!(Activation::Relu.apply(-2.0f64), 0.0);
+        assert_eq!(
+            Activation::parse("lecun_tanh").unwrap(),
+            Activation::LecunTanh
+        );
+        assert!(Activation::parse("sigmoid").is_err());
+        assert!(Activation::parse("swish")
+            .unwrap_err()
+            .to_string()
+            .contains("swish"));
+    }
+}

@@ -1,0 +1,280 @@
+//! The liquid deformation field: D CfC cells stacked in depth (DECISIONS §2).
+//!
+//! `u = [γ₁₀(x), t_feat]` (93 synthetic, 84 real), `h = 0`. For cell
+//! `l = 0..D`: if `l == D/2`, first `h += skip(u)`; then
+//! `z = φ([u; h])` with the backbone `φ = Linear(|u|+W, U) → act → (Linear(U, U) → act)…`,
+//! and with `τ = t` (the field's time input, per Gaussian):
+//! `σ = sigmoid(time_a(z)·τ + time_b(z))`,
+//! `h ← tanh(ff1(z))·(1 − σ) + σ·tanh(ff2(z))` (ncps CfCCell, mode "default").
+//! Output: `head(h)` = Linear(W, 10) split 3 | 4 | 3.
+//!
+//! The four heads of a cell run as one stacked product, and the gate, both
+//! tanh's and the new state are computed in one fused pass over the `N × W`
+//! block, which keeps what the backward needs (tanh(ff1), tanh(ff2),
+//! time_a(z) and σ).
+
+use super::activation::Activation;
+use super::encoding::{encode, encoded_dim};
+use super::linear::InputGrad;
+use super::{
+    concat_cols, take_cols, Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked,
+    TimeCache, TimeEmbedding, XYZ_LEVELS,
+};
+use crate::math::Real;
+use rayon::prelude::*;
+
+/// Rows per parallel task of the fused cell pass (does not affect results).
+const ROWS_PER_TASK: usize = 64;
+
+/// One CfC cell's parameter places.
+#[derive(Clone, Debug)]
+struct Cell {
+    backbone: Vec<LinearParams>,
+    /// ff1, ff2, time_a, time_b.
+    heads: [LinearParams; 4],
+}
+
+/// Architecture and parameter places of the CfC field.
+#[derive(Clone, Debug)]
+pub(crate) struct CfcNet {
+    time: TimeEmbedding,
+    cells: Vec<Cell>,
+    skip: LinearParams,
+    head: LinearParams,
+    /// The cell before which `skip(u)` is added to the state (D/2).
+    skip_at: usize,
+    u_dim: usize,
+    width: usize,
+    act: Activation,
+}
+
+struct CellCache<T> {
+    /// Input of each backbone layer (`inputs[0] = [u; h]`).
+    inputs: Vec<Vec<T>>,
+    /// Pre-activation of each backbone layer.
+    pres: Vec<Vec<T>>,
+    /// Backbone output z `[n, U]`.
+    z: Vec<T>,
+    /// Per row, 4W values: tanh(ff1) | tanh(ff2) | time_a(z) | σ.
+    gate: Vec<T>,
+}
+
+/// What the CfC field's backward needs.
+pub(crate) struct CfcCache<T> {
+    time: TimeCache<T>,
+    u: Vec<T>,
+    cells: Vec<CellCache<T>>,
+    head_in: Vec<T>,
+}
+
+impl CfcNet {
+    pub fn build(c: &FieldConfig, lb: &mut LayoutBuilder) -> Self {
+        let time = TimeEmbedding::build(c.variant, lb);
+        let u_dim = c.input_dim();
+        let (w, units) = (c.width, c.backbone_units);
+        let mut cells = Vec::with_capacity(c.depth);
+        for l in 0..c.depth {
+            let mut backbone = Vec::with_capacity(c.backbone_layers);
+            for j in 0..c.backbone_layers {
+                let fan_in = if j == 0 { u_dim + w } else { units };
+                backbone.push(lb.linear(
+                    &format!("cells.{l}.backbone.{}", 2 * j),
+                    fan_in,
+                    units,
+                    Init::Xavier,
+                ));
+            }
+            let heads = ["ff1", "ff2", "time_a", "time_b"]
+                .map(|h| lb.linear(&format!("cells.{l}.{h}"), units, w, Init::Xavier));
+            cells.push(Cell { backbone, heads });
+        }
+        let skip = lb.linear("skip", u_dim, w, Init::TorchDefault);
+        let head = lb.linear("head", w, 10, Init::TorchDefault);
+        CfcNet {
+            time,
+            cells,
+            skip,
+            head,
+            skip_at: c.depth / 2,
+            u_dim,
+            width: w,
+            act: c.activation,
+        }
+    }
+
+    pub fn forward<T: Real>(&self, p: &[T], xyz: &[T], t: &[T]) -> (Deformation<T>, CfcCache<T>) {
+        let n = t.len();
+        let w = self.width;
+        let xd = encoded_dim(3, XYZ_LEVELS);
+        let x_emb = encode(xyz, 3, XYZ_LEVELS);
+        let (t_feat, time) = self.time.forward(p, t);
+        let u = concat_cols(&x_emb, xd, &t_feat, self.u_dim - xd, n);
+        drop(x_emb);
+        let mut h = vec![T::ZERO; n * w];
+        let mut cells = Vec::with_capacity(self.cells.len());
+        for (l, cell) in self.cells.iter().enumerate() {
+            if l == self.skip_at {
+                let s = self.skip.forward(p, &u, n);
+                for (hv, sv) in h.iter_mut().zip(s) {
+                    *hv += sv;
+                }
+            }
+            let mut cur = concat_cols(&u, self.u_dim, &h, w, n);
+            let mut inputs = Vec::with_capacity(cell.backbone.len());
+            let mut pres = Vec::with_capacity(cell.backbone.len());
+            for lin in &cell.backbone {
+                let pre = lin.forward(p, &cur, n);
+                let out = self.act.forward(&pre);
+                inputs.push(std::mem::replace(&mut cur, out));
+                pres.push(pre);
+            }
+            let z = cur;
+            let mut gate = Stacked(&cell.heads).forward(p, &z, n);
+            cell_forward_fused(&mut gate, &mut h, t, w);
+            cells.push(CellCache {
+                inputs,
+                pres,
+                z,
+                gate,
+            });
+        }
+        let out = self.head.forward(p, &h, n);
+        (
+            Deformation::from_head(&out),
+            CfcCache {
+                time,
+                u,
+                cells,
+                head_in: h,
+            },
+        )
+    }
+
+    pub fn backward<T: Real>(
+        &self,
+        p: &[T],
+        t: &[T],
+        c: &CfcCache<T>,
+        g: &Deformation<T>,
+        gp: &mut [T],
+    ) -> Vec<T> {
+        let n = t.len();
+        let w = self.width;
+        let xd = encoded_dim(3, XYZ_LEVELS);
+        let td = self.u_dim - xd;
+        let mut dh = self
+            .head
+            .backward(p, &c.head_in, &g.to_head(), n, InputGrad::From(0), gp)
+            .expect("input gradient requested");
+        let mut g_tfeat = vec![T::ZERO; n * td];
+        let mut gate_dt = vec![T::ZERO; n];
+        for l in (0..self.cells.len()).rev() {
+            let (cell, cc) = (&self.cells[l], &c.cells[l]);
+            let g_heads = cell_backward_fused(&cc.gate, &dh, t, w, &mut gate_dt);
+            let mut dz = Stacked(&cell.heads)
+                .backward(p, &cc.z, &g_heads, n, InputGrad::From(0), gp)
+                .expect("input gradient requested");
+            let mut din = Vec::new();
+            for j in (0..cell.backbone.len()).rev() {
+                self.act.backward_in_place(&cc.pres[j], &mut dz);
+                // The first layer's input is [γ(x), t_feat, h]: γ(x) is stop-gradient.
+                let want = if j == 0 {
+                    InputGrad::From(xd)
+                } else {
+                    InputGrad::From(0)
+                };
+                let gin = cell.backbone[j]
+                    .backward(p, &cc.inputs[j], &dz, n, want, gp)
+                    .expect("input gradient requested");
+                if j == 0 {
+                    din = gin;
+                } else {
+                    dz = gin;
+                }
+            }
+            let wd = td + w;
+            for (acc, v) in g_tfeat.iter_mut().zip(take_cols(&din, wd, 0, td)) {
+                *acc += v;
+            }
+            dh = take_cols(&din, wd, td, w);
+            if l == self.skip_at {
+                // h_in = h_prev + skip(u): the same gradient flows to both.
+                let gs = self
+                    .skip
+                    .backward(p, &c.u, &dh, n, InputGrad::From(xd), gp)
+                    .expect("input gradient requested");
+                for (acc, v) in g_tfeat.iter_mut().zip(gs) {
+                    *acc += v;
+                }
+            }
+        }
+        let mut gt = self.time.backward(p, t, &c.time, &g_tfeat, gp);
+        for (a, b) in gt.iter_mut().zip(gate_dt) {
+            *a += b;
+        }
+        gt
+    }
+}
+
+/// The fused element-wise pass of a cell. `gate` holds the four head
+/// outputs per row (ff1 | ff2 | time_a | time_b, each W wide) on entry and
+/// tanh(ff1) | tanh(ff2) | time_a | σ on exit; `h` receives the new state.
+fn cell_forward_fused<T: Real>(gate: &mut [T], h: &mut [T], t: &[T], w: usize) {
+    gate.par_chunks_mut(4 * w * ROWS_PER_TASK)
+        .zip(h.par_chunks_mut(w * ROWS_PER_TASK))
+        .zip(t.par_chunks(ROWS_PER_TASK))
+        .for_each(|((g, h), t)| {
+            for ((g, h), &tau) in g.chunks_exact_mut(4 * w).zip(h.chunks_exact_mut(w)).zip(t) {
+                let (ff, tt) = g.split_at_mut(2 * w);
+                let (f1, f2) = ff.split_at_mut(w);
+                let (ta, tb) = tt.split_at_mut(w);
+                for j in 0..w {
+                    let a = f1[j].tanh();
+                    let b = f2[j].tanh();
+                    let s = (ta[j] * tau + tb[j]).sigmoid();
+                    h[j] = a * (T::ONE - s) + s * b;
+                    f1[j] = a;
+                    f2[j] = b;
+                    tb[j] = s;
+                }
+            }
+        });
+}
+
+/// vjp of [`cell_forward_fused`]: the gradient of the four head outputs
+/// `[n, 4W]` given the state gradient `dh` `[n, W]`; adds each row's
+/// gradient with respect to τ (summed over j in order) to `dt`.
+fn cell_backward_fused<T: Real>(gate: &[T], dh: &[T], t: &[T], w: usize, dt: &mut [T]) -> Vec<T> {
+    let mut out = vec![T::ZERO; gate.len()];
+    out.par_chunks_mut(4 * w * ROWS_PER_TASK)
+        .zip(gate.par_chunks(4 * w * ROWS_PER_TASK))
+        .zip(dh.par_chunks(w * ROWS_PER_TASK))
+        .zip(t.par_chunks(ROWS_PER_TASK))
+        .zip(dt.par_chunks_mut(ROWS_PER_TASK))
+        .for_each(|((((o, g), dh), t), dt)| {
+            for ((((o, g), dh), &tau), dt) in o
+                .chunks_exact_mut(4 * w)
+                .zip(g.chunks_exact(4 * w))
+                .zip(dh.chunks_exact(w))
+                .zip(t)
+                .zip(dt.iter_mut())
+            {
+                let mut sum = T::ZERO;
+                for j in 0..w {
+                    let (a, b, ta, s) = (g[j], g[w + j], g[2 * w + j], g[3 * w + j]);
+                    let gh = dh[j];
+                    let da = gh * (T::ONE - s);
+                    let db = gh * s;
+                    let ds = gh * (b - a);
+                    let dpre = ds * (s * (T::ONE - s));
+                    o[j] = da * (T::ONE - a * a);
+                    o[w + j] = db * (T::ONE - b * b);
+                    o[2 * w + j] = dpre * tau;
+                    o[3 * w + j] = dpre;
+                    sum += dpre * ta;
+                }
+                *dt += sum;
+            }
+        });
+    out
+}

@@ -1,0 +1,647 @@
+//! Deterministic, fast matrix products for the deformation fields.
+//!
+//! Every output element is one sum over `k` in increasing order, starting
+//! from zero, with a separate multiply and add per term (Rust never contracts
+//! them into an FMA). The sum does not depend on the tiling, on the
+//! instruction set the kernel was compiled for, or on the number of threads,
+//! so the fast kernels give the same bits as the plain [`reference`] loops on
+//! every CPU and build.
+//!
+//! Speed comes from a register-tiled micro-kernel (a tile of `MR` rows by
+//! `NR` columns of the output kept in registers, vectorised across output
+//! columns) compiled three times: for AVX-512, for AVX2 and for the baseline
+//! target. The widest one the CPU supports is picked at run time, so a default
+//! build reaches the fast path too. Work is split over rayon threads by fixed
+//! blocks of output rows.
+//!
+//! The reduction over rows in [`matmul_tn`] (the weight gradient `Gᵀ X`) and
+//! [`column_sums`] (the bias gradient) is split into fixed chunks of
+//! [`REDUCTION_CHUNK`] rows, independent of the thread count: each chunk's
+//! partial sum is computed in row order, and the partials are added in chunk
+//! order (`((p0 + p1) + p2) + ...`).
+
+use crate::math::Real;
+use rayon::prelude::*;
+
+/// Rows per chunk of the fixed-order reductions over rows (weight and bias
+/// gradients). Part of the definition of the result: changing it changes bits.
+pub const REDUCTION_CHUNK: usize = 512;
+
+/// Output rows per parallel task of [`matmul`] (does not affect results).
+const ROW_BLOCK: usize = 48;
+
+/// A read-only matrix view with arbitrary row and column strides.
+#[derive(Clone, Copy, Debug)]
+pub struct MatRef<'a, T> {
+    pub data: &'a [T],
+    pub rows: usize,
+    pub cols: usize,
+    pub row_stride: usize,
+    pub col_stride: usize,
+}
+
+impl<'a, T: Real> MatRef<'a, T> {
+    /// A row-major `rows × cols` matrix.
+    pub fn row_major(data: &'a [T], rows: usize, cols: usize) -> Self {
+        assert!(data.len() >= rows * cols, "matrix data too short");
+        MatRef {
+            data,
+            rows,
+            cols,
+            row_stride: cols,
+            col_stride: 1,
+        }
+    }
+    /// The transpose (no copy).
+    pub fn t(self) -> Self {
+        MatRef {
+            data: self.data,
+            rows: self.cols,
+            cols: self.rows,
+            row_stride: self.col_stride,
+            col_stride: self.row_stride,
+        }
+    }
+    /// Columns `c0..c0+n` (no copy).
+    pub fn cols(self, c0: usize, n: usize) -> Self {
+        assert!(c0 + n <= self.cols, "column range out of bounds");
+        MatRef {
+            data: &self.data[(c0 * self.col_stride).min(self.data.len())..],
+            rows: self.rows,
+            cols: n,
+            row_stride: self.row_stride,
+            col_stride: self.col_stride,
+        }
+    }
+    /// Rows `r0..r0+n` (no copy).
+    pub fn rows(self, r0: usize, n: usize) -> Self {
+        assert!(r0 + n <= self.rows, "row range out of bounds");
+        MatRef {
+            data: &self.data[(r0 * self.row_stride).min(self.data.len())..],
+            rows: n,
+            cols: self.cols,
+            row_stride: self.row_stride,
+            col_stride: self.col_stride,
+        }
+    }
+    #[inline(always)]
+    fn at(&self, r: usize, c: usize) -> T {
+        self.data[r * self.row_stride + c * self.col_stride]
+    }
+}
+
+/// `C = A · B` for `A` `[m, k]` and `B` `[k, n]` (any strides); `C` is
+/// returned row-major `[m, n]`.
+pub fn matmul<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+    assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
+    let (m, k, n) = (a.rows, a.cols, b.cols);
+    let mut c = vec![T::ZERO; m * n];
+    if m == 0 || n == 0 {
+        return c;
+    }
+    let packed = pack_b(b);
+    if m <= ROW_BLOCK {
+        // One block: no task to share.
+        block_product(a, &packed, k, n, &mut c);
+        return c;
+    }
+    c.par_chunks_mut(ROW_BLOCK * n)
+        .enumerate()
+        .for_each(|(blk, cb)| {
+            let r0 = blk * ROW_BLOCK;
+            let rows = cb.len() / n;
+            block_product(a.rows(r0, rows), &packed, k, n, cb);
+        });
+    c
+}
+
+/// `C = Aᵀ · B` for `A` `[r, m]` and `B` `[r, n]`: a reduction over the `r`
+/// rows, done in fixed chunks of [`REDUCTION_CHUNK`] rows whose partials are
+/// added in chunk order. Returns `[m, n]` row-major.
+pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+    assert_eq!(a.rows, b.rows, "matmul_tn: row counts differ");
+    let (r, m, n) = (a.rows, a.cols, b.cols);
+    if r == 0 || m == 0 || n == 0 {
+        return vec![T::ZERO; m * n];
+    }
+    let chunks = r.div_ceil(REDUCTION_CHUNK);
+    if chunks == 1 {
+        return matmul(a.t(), b);
+    }
+    let partials: Vec<Vec<T>> = (0..chunks)
+        .into_par_iter()
+        .map(|c| {
+            let r0 = c * REDUCTION_CHUNK;
+            let rows = REDUCTION_CHUNK.min(r - r0);
+            let at = a.rows(r0, rows).t();
+            let bc = b.rows(r0, rows);
+            let packed = pack_b(bc);
+            let mut out = vec![T::ZERO; m * n];
+            // Parallel over output rows inside a chunk too (helps when there
+            // are fewer chunks than threads); results do not depend on it.
+            out.par_chunks_mut(ROW_BLOCK * n)
+                .enumerate()
+                .for_each(|(blk, cb)| {
+                    let o0 = blk * ROW_BLOCK;
+                    let orows = cb.len() / n;
+                    block_product(at.rows(o0, orows), &packed, rows, n, cb);
+                });
+            out
+        })
+        .collect();
+    sum_in_order(partials)
+}
+
+/// Column sums of a row-major `[r, n]` matrix, reduced over fixed chunks of
+/// [`REDUCTION_CHUNK`] rows (row order inside a chunk, chunk order outside).
+pub fn column_sums<T: Real>(g: &[T], r: usize, n: usize) -> Vec<T> {
+    assert!(g.len() >= r * n, "column_sums: data too short");
+    if r == 0 || n == 0 {
+        return vec![T::ZERO; n];
+    }
+    let chunks = r.div_ceil(REDUCTION_CHUNK);
+    let partials: Vec<Vec<T>> = (0..chunks)
+        .into_par_iter()
+        .map(|c| {
+            let r0 = c * REDUCTION_CHUNK;
+            let r1 = (r0 + REDUCTION_CHUNK).min(r);
+            let mut s = vec![T::ZERO; n];
+            for row in g[r0 * n..r1 * n].chunks_exact(n) {
+                for (acc, &v) in s.iter_mut().zip(row) {
+                    *acc += v;
+                }
+            }
+            s
+        })
+        .collect();
+    sum_in_order(partials)
+}
+
+/// `p0 + p1 + ...` element-wise, in order (the first partial is taken as is).
+fn sum_in_order<T: Real>(mut partials: Vec<Vec<T>>) -> Vec<T> {
+    let rest = partials.split_off(1);
+    let mut total = partials.pop().expect("at least one partial");
+    if rest.is_empty() {
+        return total;
+    }
+    total.par_chunks_mut(4096).enumerate().for_each(|(i, out)| {
+        let o = i * 4096;
+        let len = out.len();
+        for p in &rest {
+            for (acc, &v) in out.iter_mut().zip(&p[o..o + len]) {
+                *acc += v;
+            }
+        }
+    });
+    total
+}
+
+/// `B` `[k, n]` copied into column panels of `PANEL` columns: panel `j`
+/// holds rows `0..k` of columns `j*PANEL..`, each row `PANEL` wide (the last
+/// panel is zero-padded; padded columns are never stored).
+struct PackedB<T> {
+    data: Vec<T>,
+}
+
+/// Panel width in elements: the largest micro-kernel tile width.
+const PANEL: usize = 32;
+
+fn pack_b<T: Real>(b: MatRef<'_, T>) -> PackedB<T> {
+    let (k, n) = (b.rows, b.cols);
+    let panels = n.div_ceil(PANEL);
+    let mut data = vec![T::ZERO; panels * k * PANEL];
+    let fill = |(p, dst): (usize, &mut [T])| {
+        let j0 = p * PANEL;
+        let w = PANEL.min(n - j0);
+        for (kk, row) in dst.chunks_exact_mut(PANEL).enumerate() {
+            let row = &mut row[..w];
+            if b.col_stride == 1 {
+                let s0 = kk * b.row_stride + j0;
+                row.copy_from_slice(&b.data[s0..s0 + w]);
+            } else {
+                for (q, v) in row.iter_mut().enumerate() {
+                    *v = b.at(kk, j0 + q);
+                }
+            }
+        }
+    };
+    if k == 0 {
+        return PackedB { data };
+    }
+    if k * n < 1 << 14 {
+        data.chunks_mut(k * PANEL).enumerate().for_each(fill);
+    } else {
+        data.par_chunks_mut(k * PANEL).enumerate().for_each(fill);
+    }
+    PackedB { data }
+}
+
+/// Which compiled version of the micro-kernel runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum KernelPath {
+    Avx512,
+    Avx2,
+    Baseline,
+}
+
+/// The kernel version this CPU runs (all give identical results).
+pub fn kernel_path() -> KernelPath {
+    #[cfg(target_arch = "x86_64")]
+    {
+        if std::is_x86_feature_detected!("avx512f") {
+            return KernelPath::Avx512;
+        }
+        if std::is_x86_feature_detected!("avx2") {
+            return KernelPath::Avx2;
+        }
+    }
+    KernelPath::Baseline
+}
+
+/// A tile routine: `acc[MR][NR] = Σ_p strip[p][r] · panel[p][q]` (p
+/// ascending, from zero, separate multiply and add), type-erased pointers:
+/// `strip` is `k × MR`, `panel` points at the tile's first column of a
+/// `k × PANEL` panel, `acc` is `MR × NR` row-major.
+type TileFn = unsafe fn(*const u8, *const u8, usize, *mut u8);
+
+/// One block of output rows: `c[rows, n] = a[rows, k] · B` (B packed).
+fn block_product<T: Real>(a: MatRef<'_, T>, b: &PackedB<T>, k: usize, n: usize, c: &mut [T]) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
+        let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
+        match (kernel_path(), f32, f64) {
+            (KernelPath::Avx512, true, _) => {
+                return block_body::<T, 6, 32>(a, b, k, n, c, Some(simd::f32_avx512))
+            }
+            (KernelPath::Avx512, _, true) => {
+                return block_body::<T, 6, 16>(a, b, k, n, c, Some(simd::f64_avx512))
+            }
+            (KernelPath::Avx2, true, _) => {
+                return block_body::<T, 6, 16>(a, b, k, n, c, Some(simd::f32_avx2))
+            }
+            (KernelPath::Avx2, _, true) => {
+                return block_body::<T, 6, 8>(a, b, k, n, c, Some(simd::f64_avx2))
+            }
+            _ => {}
+        }
+    }
+    block_body::<T, 4, 8>(a, b, k, n, c, None)
+}
+
+/// The micro-kernel driver. `NR` divides [`PANEL`]; `tile` (matching `T`,
+/// `MR` and `NR`) is the vector version, `None` the portable loop.
+#[inline(always)]
+fn block_body<T: Real, const MR: usize, const NR: usize>(
+    a: MatRef<'_, T>,
+    b: &PackedB<T>,
+    k: usize,
+    n: usize,
+    c: &mut [T],
+    simd: Option<TileFn>,
+) {
+    let rows = a.rows;
+    debug_assert_eq!(c.len(), rows * n);
+    debug_assert_eq!(PANEL % NR, 0);
+    // Gather MR rows of A into a k-major strip so the kernel reads it
+    // contiguously: strip[p*MR + r] = A[i+r, p]; missing rows are zero.
+    let mut strip = vec![T::ZERO; k * MR];
+    let mut i = 0;
+    while i < rows {
+        let mr = MR.min(rows - i);
+        if mr < MR {
+            strip.fill(T::ZERO);
+        }
+        if a.row_stride == 1 {
+            // Columns of A are contiguous (a transposed view).
+            for (p, dst) in strip.chunks_exact_mut(MR).enumerate() {
+                let s0 = p * a.col_stride + i;
+                dst[..mr].copy_from_slice(&a.data[s0..s0 + mr]);
+            }
+        } else {
+            for r in 0..mr {
+                let s0 = (i + r) * a.row_stride;
+                for (p, dst) in strip.chunks_exact_mut(MR).enumerate() {
+                    dst[r] = a.data[s0 + p * a.col_stride];
+                }
+            }
+        }
+        let mut j = 0;
+        while j < n {
+            let nr = NR.min(n - j);
+            let panel = j / PANEL;
+            let off = j % PANEL;
+            let bp = &b.data[panel * k * PANEL..(panel + 1) * k * PANEL];
+            let mut acc = [[T::ZERO; NR]; MR];
+            match simd {
+                // SAFETY: the routine was chosen for this CPU, for T, MR and
+                // NR; strip holds k·MR values, the panel k·PANEL from which
+                // the tile reads columns off..off+NR < PANEL.
+                Some(f) if k > 0 => unsafe {
+                    f(
+                        strip.as_ptr() as *const u8,
+                        bp.as_ptr().add(off) as *const u8,
+                        k,
+                        acc.as_mut_ptr() as *mut u8,
+                    )
+                },
+                _ => tile::<T, MR, NR>(&strip, bp, off, k, &mut acc),
+            }
+            for r in 0..mr {
+                let dst = &mut c[(i + r) * n + j..(i + r) * n + j + nr];
+                dst.copy_from_slice(&acc[r][..nr]);
+            }
+            j += NR;
+        }
+        i += MR;
+    }
+}
+
+/// `acc[r][q] = Σ_p strip[p][r] · panel[p][off + q]`, p ascending, from zero.
+/// Rows or columns beyond the matrix read zeros (padding) and are not stored.
+#[inline(always)]
+fn tile<T: Real, const MR: usize, const NR: usize>(
+    strip: &[T],
+    panel: &[T],
+    off: usize,
+    k: usize,
+    acc: &mut [[T; NR]; MR],
+) {
+    for (av, bv) in strip[..k * MR]
+        .chunks_exact(MR)
+        .zip(panel[..k * PANEL].chunks_exact(PANEL))
+    {
+        let bv = &bv[off..off + NR];
+        for r in 0..MR {
+            let x = av[r];
+            for q in 0..NR {
+                acc[r][q] = acc[r][q] + x * bv[q];
+            }
+        }
+    }
+}
+
+/// Vector tiles: the same arithmetic as [`tile`], lane by lane (a multiply
+/// rounded, then an add rounded; no FMA), so every path gives the same bits.
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::PANEL;
+    use std::arch::x86_64::*;
+
+    macro_rules! tile_fn {
+        ($name:ident, $feat:literal, $t:ty, $vec:ty, $lanes:expr, $mr:expr, $zero:ident, $load:ident,
+         $set1:ident, $mul:ident, $add:ident, $store:ident) => {
+            /// # Safety
+            /// The CPU supports the feature; pointers as documented on `TileFn`.
+            #[target_feature(enable = $feat)]
+            pub unsafe fn $name(strip: *const u8, panel: *const u8, k: usize, acc: *mut u8) {
+                let strip = strip as *const $t;
+                let mut panel = panel as *const $t;
+                let mut c: [[$vec; 2]; $mr] = [[$zero(); 2]; $mr];
+                let mut s = strip;
+                for _ in 0..k {
+                    let b0 = $load(panel);
+                    let b1 = $load(panel.add($lanes));
+                    for r in 0..$mr {
+                        let a = $set1(*s.add(r));
+                        c[r][0] = $add(c[r][0], $mul(a, b0));
+                        c[r][1] = $add(c[r][1], $mul(a, b1));
+                    }
+                    s = s.add($mr);
+                    panel = panel.add(PANEL);
+                }
+                let out = acc as *mut $t;
+                for r in 0..$mr {
+                    $store(out.add(r * 2 * $lanes), c[r][0]);
+                    $store(out.add(r * 2 * $lanes + $lanes), c[r][1]);
+                }
+            }
+        };
+    }
+
+    tile_fn!(
+        f32_avx512,
+        "avx512f",
+        f32,
+        __m512,
+        16,
+        6,
+        _mm512_setzero_ps,
+        _mm512_loadu_ps,
+        _mm512_set1_ps,
+        _mm512_mul_ps,
+        _mm512_add_ps,
+        _mm512_storeu_ps
+    );
+    tile_fn!(
+        f64_avx512,
+        "avx512f",
+        f64,
+        __m512d,
+        8,
+        6,
+        _mm512_setzero_pd,
+        _mm512_loadu_pd,
+        _mm512_set1_pd,
+        _mm512_mul_pd,
+        _mm512_add_pd,
+        _mm512_storeu_pd
+    );
+    tile_fn!(
+        f32_avx2,
+        "avx2",
+        f32,
+        __m256,
+        8,
+        6,
+        _mm256_setzero_ps,
+        _mm256_loadu_ps,
+        _mm256_set1_ps,
+        _mm256_mul_ps,
+        _mm256_add_ps,
+        _mm256_storeu_ps
+    );
+    tile_fn!(
+        f64_avx2,
+        "avx2",
+        f64,
+        __m256d,
+        4,
+        6,
+        _mm256_setzero_pd,
+        _mm256_loadu_pd,
+        _mm256_set1_pd,
+        _mm256_mul_pd,
+        _mm256_add_pd,
+        _mm256_storeu_pd
+    );
+}
+
+/// Plain, slow, obviously correct versions of the products above, with the
+/// same summation order by design: the fast ones must match them bit for bit.
+pub mod reference {
+    use super::{MatRef, REDUCTION_CHUNK};
+    use crate::math::Real;
+
+    /// `C = A · B`, each element summed over k ascending from zero.
+    pub fn matmul<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+        let (m, k, n) = (a.rows, a.cols, b.cols);
+        let mut c = vec![T::ZERO; m * n];
+        for i in 0..m {
+            for j in 0..n {
+                let mut s = T::ZERO;
+                for p in 0..k {
+                    s = s + a.at(i, p) * b.at(p, j);
+                }
+                c[i * n + j] = s;
+            }
+        }
+        c
+    }
+
+    /// `C = Aᵀ · B` with the chunked reduction over rows.
+    pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+        let (r, m, n) = (a.rows, a.cols, b.cols);
+        let mut total = vec![T::ZERO; m * n];
+        for (ci, r0) in (0..r).step_by(REDUCTION_CHUNK).enumerate() {
+            let r1 = (r0 + REDUCTION_CHUNK).min(r);
+            for i in 0..m {
+                for j in 0..n {
+                    let mut s = T::ZERO;
+                    for p in r0..r1 {
+                        s = s + a.at(p, i) * b.at(p, j);
+                    }
+                    if ci == 0 {
+                        total[i * n + j] = s;
+                    } else {
+                        total[i * n + j] += s;
+                    }
+                }
+            }
+        }
+        total
+    }
+
+    /// Column sums with the chunked reduction over rows.
+    pub fn column_sums<T: Real>(g: &[T], r: usize, n: usize) -> Vec<T> {
+        let mut total = vec![T::ZERO; n];
+        for (ci, r0) in (0..r).step_by(REDUCTION_CHUNK).enumerate() {
+            let r1 = (r0 + REDUCTION_CHUNK).min(r);
+            for j in 0..n {
+                let mut s = T::ZERO;
+                for p in r0..r1 {
+                    s += g[p * n + j];
+                }
+                if ci == 0 {
+                    total[j] = s;
+                } else {
+                    total[j] += s;
+                }
+            }
+        }
+        total
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::Rng;
+
+    fn random<T: Real>(seed: u64, len: usize) -> Vec<T> {
+        let mut r = Rng::new(seed);
+        (0..len)
+            .map(|_| T::from_f64(r.uniform_range(-1.0, 1.0)))
+            .collect()
+    }
+
+    fn bits<T: Real>(v: &[T]) -> Vec<u64> {
+        v.iter().map(|x| x.bits()).collect()
+    }
+
+    fn check_all<T: Real>() {
+        // Odd sizes exercise every remainder path of the tiles.
+        for &(m, k, n) in &[
+            (1, 1, 1),
+            (7, 5, 3),
+            (13, 37, 33),
+            (50, 64, 70),
+            (97, 93, 256),
+        ] {
+            let a = random::<T>(1 + m as u64, m * k);
+            let b = random::<T>(2 + n as u64, k * n);
+            let am = MatRef::row_major(&a, m, k);
+            let bm = MatRef::row_major(&b, k, n);
+            assert_eq!(
+                bits(&matmul(am, bm)),
+                bits(&reference::matmul(am, bm)),
+                "nn {m}x{k}x{n}"
+            );
+            // Transposed and column-sliced views.
+            let bt = MatRef::row_major(&b, n, k).t();
+            assert_eq!(bits(&matmul(am, bt)), bits(&reference::matmul(am, bt)));
+            if n > 2 {
+                let bs = bm.cols(1, n - 2);
+                assert_eq!(bits(&matmul(am, bs)), bits(&reference::matmul(am, bs)));
+            }
+        }
+        for &(r, m, n) in &[(1, 3, 2), (700, 5, 9), (1500, 33, 40)] {
+            let a = random::<T>(3, r * m);
+            let b = random::<T>(4, r * n);
+            let am = MatRef::row_major(&a, r, m);
+            let bm = MatRef::row_major(&b, r, n);
+            assert_eq!(
+                bits(&matmul_tn(am, bm)),
+                bits(&reference::matmul_tn(am, bm)),
+                "tn {r}x{m}x{n}"
+            );
+            assert_eq!(
+                bits(&column_sums(&b, r, n)),
+                bits(&reference::column_sums(&b, r, n))
+            );
+        }
+    }
+
+    #[test]
+    fn fast_products_match_reference_bits_f32() {
+        check_all::<f32>();
+    }
+
+    #[test]
+    fn fast_products_match_reference_bits_f64() {
+        check_all::<f64>();
+    }
+
+    #[test]
+    fn reference_matches_f64_dot_products() {
+        // Independent check of the reference itself on small integers (exact).
+        let a: Vec<f64> = (0..6).map(|v| v as f64).collect(); // [[0,1,2],[3,4,5]]
+        let b: Vec<f64> = (0..6).map(|v| (v as f64) - 2.0).collect(); // [[-2,-1],[0,1],[2,3]]
+        let c = reference::matmul(MatRef::row_major(&a, 2, 3), MatRef::row_major(&b, 3, 2));
+        assert_eq!(c, vec![4.0, 7.0, 4.0, 16.0]);
+    }
+
+    #[test]
+    fn products_are_identical_across_thread_counts() {
+        let (r, k, n) = (1300, 40, 70);
+        let a = random::<f32>(5, r * k);
+        let b = random::<f32>(6, k * n);
+        let g = random::<f32>(7, r * n);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let am = MatRef::row_major(&a, r, k);
+                let c = matmul(am, MatRef::row_major(&b, k, n));
+                let w = matmul_tn(MatRef::row_major(&g, r, n), am);
+                let s = column_sums(&g, r, n);
+                (bits(&c), bits(&w), bits(&s))
+            })
+        };
+        let one = run(1);
+        assert_eq!(one, run(2));
+        assert_eq!(one, run(3));
+    }
+}

@@ -1,0 +1,84 @@
+//! Oracle stage `deform`: run a deformation field forward and backward on a
+//! case file and return every output and gradient.
+//!
+//! Case metadata: `stage=deform`, `field=mlp|cfc`, and optionally `variant`,
+//! `depth`, `width`, `activation`, `backbone_units`, `backbone_layers`,
+//! `is_6dof` (defaults per field kind, see [`FieldConfig::new`]). Case tensors:
+//! the weights under their PyTorch `state_dict` names, `xyz` `[N,3]`, `t`
+//! `[N,1]`, `grad_d_xyz` `[N,3]`, `grad_d_rotation` `[N,4]`,
+//! `grad_d_scaling` `[N,3]`, all of one dtype (F32 or F64, which selects the
+//! precision). Outputs: `d_xyz`, `d_rotation`, `d_scaling`, `grad_t` `[N,1]`
+//! and `grad.<name>` for every weight.
+
+use crate::deform::{Deformation, Field, FieldConfig};
+use crate::error::{Error, Result};
+use crate::io::TensorFile;
+use crate::math::{Precision, Real};
+
+const INPUTS: [&str; 5] = [
+    "xyz",
+    "t",
+    "grad_d_xyz",
+    "grad_d_rotation",
+    "grad_d_scaling",
+];
+
+/// The `stage` metadata value of a deform case.
+pub const STAGE: &str = "deform";
+
+/// Run the `deform` stage on `case`.
+pub fn run(case: &TensorFile) -> Result<TensorFile> {
+    let stage = case.meta("stage")?;
+    if stage != "deform" {
+        return Err(Error::field(
+            &case.path,
+            "__metadata__.stage",
+            format!("{stage:?}, expected \"deform\""),
+        ));
+    }
+    match case.precision()? {
+        Precision::F32 => run_typed::<f32>(case),
+        Precision::F64 => run_typed::<f64>(case),
+    }
+}
+
+fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
+    let config = FieldConfig::from_meta(case)?;
+    // Weights: every tensor that is not one of the inputs.
+    let mut weights = TensorFile::new(&case.path);
+    for (name, t) in &case.tensors {
+        if !INPUTS.contains(&name.as_str()) {
+            weights.tensors.insert(name.clone(), t.clone());
+        }
+    }
+    let field = Field::<T>::from_tensor_file(config, &weights)?;
+    let (shape, xyz) = case.get_real_any::<T>("xyz")?;
+    if shape.len() != 2 || shape[1] != 3 {
+        return Err(Error::Tensor {
+            context: case.path.display().to_string(),
+            name: "xyz".into(),
+            expected: "shape [N,3]".into(),
+            found: format!("shape {shape:?}"),
+        });
+    }
+    let n = shape[0];
+    let t = case.get_real::<T>("t", &[n, 1])?;
+    let grad = Deformation {
+        d_xyz: case.get_real::<T>("grad_d_xyz", &[n, 3])?,
+        d_rotation: case.get_real::<T>("grad_d_rotation", &[n, 4])?,
+        d_scaling: case.get_real::<T>("grad_d_scaling", &[n, 3])?,
+    };
+    let (d, cache) = field.forward(&xyz, &t)?;
+    let (gp, gt) = field.backward(&cache, &grad)?;
+    let mut out = TensorFile::new(&case.path);
+    out.set_meta("stage", "deform");
+    config.to_meta(&mut out);
+    out.insert_real("d_xyz", vec![n, 3], &d.d_xyz);
+    out.insert_real("d_rotation", vec![n, 4], &d.d_rotation);
+    out.insert_real("d_scaling", vec![n, 3], &d.d_scaling);
+    out.insert_real("grad_t", vec![n, 1], &gt);
+    for s in field.layout() {
+        out.insert_real(&format!("grad.{}", s.name), s.shape.clone(), &gp[s.range()]);
+    }
+    Ok(out)
+}

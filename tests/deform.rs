@@ -1,0 +1,611 @@
+//! Deformation fields: gradients by central differences, an independent
+//! scalar re-implementation of both forwards, thread-count determinism,
+//! weight files and the oracle stage.
+
+use liquid_splat::deform::{Activation, Deformation, Field, FieldConfig, FieldKind, Variant};
+use liquid_splat::io::TensorFile;
+use liquid_splat::math::gradcheck::{compare, cotangent};
+use liquid_splat::math::Rng;
+
+fn config(
+    kind: FieldKind,
+    variant: Variant,
+    depth: usize,
+    width: usize,
+    act: Activation,
+) -> FieldConfig {
+    FieldConfig {
+        variant,
+        depth,
+        width,
+        activation: act,
+        backbone_units: 6,
+        backbone_layers: 2,
+        ..FieldConfig::new(kind)
+    }
+}
+
+fn inputs(seed: u64, n: usize) -> (Vec<f64>, Vec<f64>) {
+    let mut r = Rng::new(seed);
+    let xyz = (0..3 * n).map(|_| r.uniform_range(-1.0, 1.0)).collect();
+    let t = (0..n).map(|_| r.uniform()).collect();
+    (xyz, t)
+}
+
+fn dot(d: &Deformation<f64>, v: &Deformation<f64>) -> f64 {
+    let mut s = 0.0;
+    for (a, b) in [
+        (&d.d_xyz, &v.d_xyz),
+        (&d.d_rotation, &v.d_rotation),
+        (&d.d_scaling, &v.d_scaling),
+    ] {
+        for (x, y) in a.iter().zip(b.iter()) {
+            s += x * y;
+        }
+    }
+    s
+}
+
+/// Sixth-order central difference
+/// `(45(L₁ − L₋₁) − 9(L₂ − L₋₂) + (L₃ − L₋₃)) / 60h`, `Lₖ = L(x + k·s)`, with a
+/// step `s = h·max(1, |x|)`: truncation error O(h⁶), so a step of 1e-2 keeps
+/// both truncation and rounding noise near 1e-13, well below the 1e-6
+/// tolerance even for small gradient entries.
+fn central6(x: f64, h: f64, mut f: impl FnMut(f64) -> f64) -> f64 {
+    let s = h * x.abs().max(1.0);
+    let mut d = [0.0; 3];
+    for (k, dk) in d.iter_mut().enumerate() {
+        let o = (k + 1) as f64 * s;
+        *dk = f(x + o) - f(x - o);
+    }
+    (45.0 * d[0] - 9.0 * d[1] + d[2]) / (60.0 * s)
+}
+
+/// Move every ReLU pre-activation at least `margin` away from the kink by
+/// shifting the biases of the units that come too close (test-only change of
+/// the weights; layer by layer in forward order, re-evaluating after each).
+fn clear_relu_kinks(field: &mut Field<f64>, xyz: &[f64], t: &[f64], margin: f64) {
+    let cfg = *field.config();
+    let scalar = if cfg.kind == FieldKind::Mlp {
+        scalar_mlp
+    } else {
+        scalar_cfc
+    };
+    for _ in 0..64 {
+        let file = field.to_tensor_file();
+        RELU_PRE.with(|r| r.borrow_mut().clear());
+        let mut per_row = Vec::new();
+        for i in 0..t.len() {
+            scalar(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
+            per_row.push(RELU_PRE.with(|r| std::mem::take(&mut *r.borrow_mut())));
+        }
+        // First layer (in forward order) with a pre-activation inside the margin.
+        let layers = per_row[0].len();
+        let bad = (0..layers).find(|&k| {
+            per_row
+                .iter()
+                .any(|row| row[k].1.iter().any(|v| v.abs() < margin))
+        });
+        let Some(k) = bad else { return };
+        let name = per_row[0][k].0.clone();
+        let spec = field
+            .layout()
+            .iter()
+            .find(|s| s.name == format!("{name}.bias"))
+            .unwrap()
+            .clone();
+        for unit in 0..spec.len() {
+            let vals: Vec<f64> = per_row.iter().map(|row| row[k].1[unit]).collect();
+            let shift = (0..400)
+                .map(|j| if j % 2 == 0 { 1.0 } else { -1.0 } * (j / 2) as f64 * 0.25 * margin)
+                .find(|c| vals.iter().all(|v| (v + c).abs() >= margin))
+                .expect("a bias shift clears the kink");
+            field.params_mut()[spec.offset + unit] += shift;
+        }
+    }
+    panic!("could not clear the ReLU kinks");
+}
+
+/// Check every parameter tensor and t; entries of tensors with more than
+/// `dense` values are sampled with a fixed stride (all tensors are covered).
+fn gradcheck(cfg: FieldConfig, seed: u64, dense: usize) {
+    let n = 5;
+    let mut field = Field::<f64>::new(cfg, seed).unwrap();
+    let (xyz, t) = inputs(seed + 100, n);
+    // Relative weight steps of 3 × 1e-2 move pre-activations by far less than this.
+    clear_relu_kinks(&mut field, &xyz, &t, 0.2);
+    let v = Deformation {
+        d_xyz: cotangent(seed + 1, 3 * n),
+        d_rotation: cotangent(seed + 2, 4 * n),
+        d_scaling: cotangent(seed + 3, 3 * n),
+    };
+    let (_, cache) = field.forward(&xyz, &t).unwrap();
+    let (gp, gt) = field.backward(&cache, &v).unwrap();
+    let h = 1e-2;
+    let tol = 1e-6;
+    let mut f = field.clone();
+    for spec in field.layout() {
+        let range = spec.range();
+        let stride = if range.len() > dense { 7 } else { 1 };
+        let idx: Vec<usize> = range.clone().step_by(stride).collect();
+        let mut analytic = Vec::new();
+        let mut numeric = Vec::new();
+        for &i in &idx {
+            let num = central6(field.params()[i], h, |x| {
+                f.params_mut()[i] = x;
+                let (d, _) = f.forward(&xyz, &t).unwrap();
+                dot(&d, &v)
+            });
+            f.params_mut()[i] = field.params()[i];
+            analytic.push(gp[i]);
+            numeric.push(num);
+        }
+        let scale = analytic.iter().fold(0.0f64, |m, a| m.max(a.abs()));
+        let r = compare(&spec.name, &analytic, &numeric, (1e-3 * scale).max(1e-10));
+        assert!(r.passes(tol), "{cfg:?}\n{r}");
+    }
+    let num: Vec<f64> = (0..n)
+        .map(|k| {
+            let mut tt = t.clone();
+            // γ₁₀(t) has frequencies up to 512: a much smaller step for t.
+            central6(t[k], 1e-7, |x| {
+                tt[k] = x;
+                dot(&field.forward(&xyz, &tt).unwrap().0, &v)
+            })
+        })
+        .collect();
+    let r = compare("t", &gt, &num, 1e-10);
+    assert!(r.passes(tol), "{cfg:?}\n{r}");
+}
+
+#[test]
+fn cfc_gradients_every_activation_and_depth() {
+    for act in [
+        Activation::Gelu,
+        Activation::Relu,
+        Activation::Silu,
+        Activation::Tanh,
+        Activation::LecunTanh,
+    ] {
+        for depth in [1, 3, 4] {
+            gradcheck(
+                config(FieldKind::Cfc, Variant::Real, depth, 8, act),
+                11 + depth as u64,
+                256,
+            );
+        }
+    }
+    // Synthetic variant (timenet), odd and even depth; the 13×256 and 256×30
+    // timenet weights are sampled with stride 7.
+    gradcheck(
+        config(FieldKind::Cfc, Variant::Synthetic, 3, 8, Activation::Gelu),
+        5,
+        256,
+    );
+    gradcheck(
+        config(
+            FieldKind::Cfc,
+            Variant::Synthetic,
+            2,
+            8,
+            Activation::LecunTanh,
+        ),
+        6,
+        256,
+    );
+}
+
+#[test]
+fn mlp_gradients_several_depths() {
+    for depth in [3, 4, 5] {
+        gradcheck(
+            config(FieldKind::Mlp, Variant::Real, depth, 8, Activation::Relu),
+            21 + depth as u64,
+            256,
+        );
+    }
+    gradcheck(
+        config(FieldKind::Mlp, Variant::Synthetic, 3, 8, Activation::Relu),
+        7,
+        256,
+    );
+}
+
+// ---- independent scalar re-implementation of the forward passes ----
+
+fn lin(f: &TensorFile, name: &str, x: &[f64]) -> Vec<f64> {
+    let (ws, w) = f.get_real_any::<f64>(&format!("{name}.weight")).unwrap();
+    let (_, b) = f.get_real_any::<f64>(&format!("{name}.bias")).unwrap();
+    assert_eq!(ws[1], x.len(), "{name}");
+    (0..ws[0])
+        .map(|o| {
+            let mut s = 0.0;
+            for (k, xk) in x.iter().enumerate() {
+                s += xk * w[o * ws[1] + k];
+            }
+            s + b[o]
+        })
+        .collect()
+}
+
+fn gamma(p: &[f64], levels: usize) -> Vec<f64> {
+    let mut out = p.to_vec();
+    for k in 0..levels {
+        let fr = (1u64 << k) as f64;
+        out.extend(p.iter().map(|v| libm::sin(v * fr)));
+        out.extend(p.iter().map(|v| libm::cos(v * fr)));
+    }
+    out
+}
+
+thread_local! {
+    /// ReLU pre-activations seen by the scalar forward, per layer name (test-only probe).
+    static RELU_PRE: std::cell::RefCell<Vec<(String, Vec<f64>)>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+fn relu_probe(name: &str, pre: &[f64]) -> Vec<f64> {
+    RELU_PRE.with(|r| r.borrow_mut().push((name.to_string(), pre.to_vec())));
+    pre.iter().map(|v| v.max(0.0)).collect()
+}
+
+fn time_feature(f: &TensorFile, variant: Variant, t: f64) -> Vec<f64> {
+    match variant {
+        Variant::Synthetic => {
+            let h = relu_probe("timenet.0", &lin(f, "timenet.0", &gamma(&[t], 6)));
+            lin(f, "timenet.2", &h)
+        }
+        Variant::Real => gamma(&[t], 10),
+    }
+}
+
+fn scalar_cfc(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
+    let mut u = gamma(x, 10);
+    u.extend(time_feature(f, c.variant, t));
+    let mut h = vec![0.0; c.width];
+    for l in 0..c.depth {
+        if l == c.depth / 2 {
+            for (hv, s) in h.iter_mut().zip(lin(f, "skip", &u)) {
+                *hv += s;
+            }
+        }
+        let mut z: Vec<f64> = u.iter().chain(h.iter()).copied().collect();
+        for j in 0..c.backbone_layers {
+            let name = format!("cells.{l}.backbone.{}", 2 * j);
+            let pre = lin(f, &name, &z);
+            z = if c.activation == Activation::Relu {
+                relu_probe(&name, &pre)
+            } else {
+                pre.iter().map(|&v| c.activation.apply(v)).collect()
+            };
+        }
+        let ff1 = lin(f, &format!("cells.{l}.ff1"), &z);
+        let ff2 = lin(f, &format!("cells.{l}.ff2"), &z);
+        let ta = lin(f, &format!("cells.{l}.time_a"), &z);
+        let tb = lin(f, &format!("cells.{l}.time_b"), &z);
+        for j in 0..c.width {
+            let s = 1.0 / (1.0 + libm::exp(-(ta[j] * t + tb[j])));
+            h[j] = libm::tanh(ff1[j]) * (1.0 - s) + s * libm::tanh(ff2[j]);
+        }
+    }
+    lin(f, "head", &h)
+}
+
+fn scalar_mlp(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
+    let mut input = gamma(x, 10);
+    input.extend(time_feature(f, c.variant, t));
+    let mut h = input.clone();
+    for i in 0..c.depth {
+        let name = format!("linear.{i}");
+        h = relu_probe(&name, &lin(f, &name, &h));
+        if i == c.depth / 2 {
+            h = input.iter().chain(h.iter()).copied().collect();
+        }
+    }
+    let mut out = lin(f, "gaussian_warp", &h);
+    out.extend(lin(f, "gaussian_rotation", &h));
+    out.extend(lin(f, "gaussian_scaling", &h));
+    out
+}
+
+#[test]
+fn forward_matches_scalar_reimplementation() {
+    let n = 4;
+    for (cfg, scalar) in [
+        (
+            config(FieldKind::Cfc, Variant::Synthetic, 3, 8, Activation::Gelu),
+            scalar_cfc as fn(&_, &_, &_, _) -> _,
+        ),
+        (
+            config(FieldKind::Cfc, Variant::Real, 4, 8, Activation::LecunTanh),
+            scalar_cfc,
+        ),
+        (
+            config(FieldKind::Mlp, Variant::Synthetic, 5, 8, Activation::Relu),
+            scalar_mlp,
+        ),
+        (
+            config(FieldKind::Mlp, Variant::Real, 4, 8, Activation::Relu),
+            scalar_mlp,
+        ),
+    ] {
+        let field = Field::<f64>::new(cfg, 3).unwrap();
+        let file = field.to_tensor_file();
+        let (xyz, t) = inputs(4, n);
+        let (d, _) = field.forward(&xyz, &t).unwrap();
+        for i in 0..n {
+            let want = scalar(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
+            let got: Vec<f64> = d.d_xyz[3 * i..3 * i + 3]
+                .iter()
+                .chain(&d.d_rotation[4 * i..4 * i + 4])
+                .chain(&d.d_scaling[3 * i..3 * i + 3])
+                .copied()
+                .collect();
+            for (a, b) in got.iter().zip(&want) {
+                assert!(
+                    (a - b).abs() <= 1e-12 * b.abs().max(1.0),
+                    "{cfg:?}: {got:?} vs {want:?}"
+                );
+            }
+        }
+    }
+}
+
+// ---- determinism, files, oracle ----
+
+#[test]
+fn fields_are_bit_identical_across_thread_counts() {
+    let n = 1100; // more than two reduction chunks of 512 rows
+    for cfg in [
+        config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu),
+        config(FieldKind::Mlp, Variant::Synthetic, 4, 16, Activation::Relu),
+    ] {
+        let field = Field::<f32>::new(cfg, 9).unwrap();
+        let mut r = Rng::new(1);
+        let xyz: Vec<f32> = (0..3 * n)
+            .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+            .collect();
+        let t: Vec<f32> = (0..n).map(|_| r.uniform() as f32).collect();
+        let g = Deformation {
+            d_xyz: (0..3 * n)
+                .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+                .collect(),
+            d_rotation: (0..4 * n)
+                .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+                .collect(),
+            d_scaling: (0..3 * n)
+                .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+                .collect(),
+        };
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            pool.install(|| {
+                let (d, c) = field.forward(&xyz, &t).unwrap();
+                let (gp, gt) = field.backward(&c, &g).unwrap();
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                (
+                    bits(&d.d_xyz),
+                    bits(&d.d_rotation),
+                    bits(&d.d_scaling),
+                    bits(&gp),
+                    bits(&gt),
+                )
+            })
+        };
+        let one = run(1);
+        assert_eq!(one, run(2), "{cfg:?}");
+        assert_eq!(one, run(3), "{cfg:?}");
+    }
+}
+
+#[test]
+fn weight_file_round_trip_and_errors() {
+    let cfg = config(FieldKind::Cfc, Variant::Synthetic, 2, 8, Activation::Gelu);
+    let field = Field::<f32>::new(cfg, 1).unwrap();
+    let bytes = field.to_tensor_file().to_bytes().unwrap();
+    let file = TensorFile::from_bytes(std::path::Path::new("w.safetensors"), &bytes).unwrap();
+    assert_eq!(FieldConfig::from_meta(&file).unwrap(), cfg);
+    let back = Field::<f32>::from_tensor_file(cfg, &file).unwrap();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    assert_eq!(bits(back.params()), bits(field.params()));
+    assert_eq!(back.layout(), field.layout());
+
+    let mut missing = file.clone();
+    missing.tensors.remove("cells.1.time_b.bias");
+    let e = Field::<f32>::from_tensor_file(cfg, &missing)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("cells.1.time_b.bias"), "{e}");
+
+    let mut extra = file.clone();
+    extra.insert_real::<f32>("cells.2.ff1.weight", vec![1], &[0.0]);
+    let e = Field::<f32>::from_tensor_file(cfg, &extra)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("cells.2.ff1.weight"), "{e}");
+
+    let mut bad = file.clone();
+    bad.insert_real::<f32>("skip.weight", vec![93, 8], &[0.0; 93 * 8]);
+    let e = Field::<f32>::from_tensor_file(cfg, &bad)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("skip.weight") && e.contains("[8,93]") && e.contains("[93,8]"),
+        "{e}"
+    );
+
+    let e = Field::<f64>::from_tensor_file(cfg, &file)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("F64"), "{e}");
+}
+
+#[test]
+fn state_dict_names_and_order() {
+    let field = Field::<f32>::new(FieldConfig::new(FieldKind::Mlp), 0).unwrap();
+    let names: Vec<&str> = field.layout().iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(
+        &names[..4],
+        &[
+            "timenet.0.weight",
+            "timenet.0.bias",
+            "timenet.2.weight",
+            "timenet.2.bias"
+        ]
+    );
+    assert_eq!(names[4], "linear.0.weight");
+    assert_eq!(field.layout()[4 + 2 * 5].shape, vec![256, 256 + 93]); // linear.5
+    assert_eq!(
+        &names[names.len() - 6..],
+        &[
+            "gaussian_warp.weight",
+            "gaussian_warp.bias",
+            "gaussian_rotation.weight",
+            "gaussian_rotation.bias",
+            "gaussian_scaling.weight",
+            "gaussian_scaling.bias"
+        ]
+    );
+    assert_eq!(field.param_count(), 522_280);
+    let cfc = Field::<f32>::new(FieldConfig::new(FieldKind::Cfc), 0).unwrap();
+    assert_eq!(cfc.param_count(), 334_504);
+    let names: Vec<&str> = cfc.layout().iter().map(|s| s.name.as_str()).collect();
+    assert_eq!(
+        &names[4..16],
+        &[
+            "cells.0.backbone.0.weight",
+            "cells.0.backbone.0.bias",
+            "cells.0.backbone.2.weight",
+            "cells.0.backbone.2.bias",
+            "cells.0.ff1.weight",
+            "cells.0.ff1.bias",
+            "cells.0.ff2.weight",
+            "cells.0.ff2.bias",
+            "cells.0.time_a.weight",
+            "cells.0.time_a.bias",
+            "cells.0.time_b.weight",
+            "cells.0.time_b.bias"
+        ]
+    );
+    assert_eq!(
+        &names[names.len() - 4..],
+        &["skip.weight", "skip.bias", "head.weight", "head.bias"]
+    );
+    // Offsets are contiguous.
+    let mut off = 0;
+    for s in cfc.layout() {
+        assert_eq!(s.offset, off);
+        off += s.len();
+    }
+    assert_eq!(off, cfc.params().len());
+}
+
+#[test]
+fn initialisation_bounds_follow_the_decisions() {
+    let cfg = config(FieldKind::Cfc, Variant::Synthetic, 2, 8, Activation::Gelu);
+    let f = Field::<f64>::new(cfg, 2).unwrap();
+    for s in f.layout() {
+        let fan_in = *s.shape.last().unwrap() as f64;
+        let (out, inn) = (s.shape[0] as f64, fan_in);
+        let bound = if s.name.starts_with("cells.") && s.name.ends_with(".weight") {
+            (6.0 / (inn + out)).sqrt()
+        } else if s.name.ends_with(".bias") {
+            let w = f
+                .layout()
+                .iter()
+                .find(|w| w.name == s.name.replace(".bias", ".weight"))
+                .unwrap();
+            1.0 / (w.shape[1] as f64).sqrt()
+        } else {
+            1.0 / fan_in.sqrt()
+        };
+        let v = &f.params()[s.range()];
+        let max = v.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+        assert!(max <= bound, "{}: {max} > {bound}", s.name);
+        if v.len() >= 50 {
+            assert!(max > 0.8 * bound, "{}: {max} vs {bound}", s.name);
+        }
+    }
+    // Same seed, same weights; different seed, different weights.
+    assert_eq!(Field::<f64>::new(cfg, 2).unwrap().params(), f.params());
+    assert_ne!(Field::<f64>::new(cfg, 3).unwrap().params(), f.params());
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let f = Field::<f32>::new(FieldConfig::new(FieldKind::Cfc), 0).unwrap();
+    assert!(f.forward(&[0.0; 5], &[0.0; 2]).is_err());
+    let (_, c) = f.forward(&[0.0; 6], &[0.0; 2]).unwrap();
+    assert!(f.backward(&c, &Deformation::zeros(3)).is_err());
+    let mut cfg = FieldConfig::new(FieldKind::Mlp);
+    cfg.depth = 2;
+    assert!(Field::<f32>::new(cfg, 0)
+        .unwrap_err()
+        .to_string()
+        .contains("depth"));
+    cfg.depth = 8;
+    cfg.is_6dof = true;
+    assert!(Field::<f32>::new(cfg, 0)
+        .unwrap_err()
+        .to_string()
+        .contains("6-DoF"));
+}
+
+#[test]
+fn oracle_stage_matches_direct_calls() {
+    for cfg in [
+        config(FieldKind::Cfc, Variant::Synthetic, 3, 8, Activation::Silu),
+        config(FieldKind::Mlp, Variant::Real, 3, 8, Activation::Relu),
+    ] {
+        let field = Field::<f64>::new(cfg, 4).unwrap();
+        let n = 6;
+        let (xyz, t) = inputs(8, n);
+        let g = Deformation {
+            d_xyz: cotangent(1, 3 * n),
+            d_rotation: cotangent(2, 4 * n),
+            d_scaling: cotangent(3, 3 * n),
+        };
+        let mut case = field.to_tensor_file();
+        case.set_meta("stage", "deform");
+        case.insert_real("xyz", vec![n, 3], &xyz);
+        case.insert_real("t", vec![n, 1], &t);
+        case.insert_real("grad_d_xyz", vec![n, 3], &g.d_xyz);
+        case.insert_real("grad_d_rotation", vec![n, 4], &g.d_rotation);
+        case.insert_real("grad_d_scaling", vec![n, 3], &g.d_scaling);
+        let out = liquid_splat::oracle::deform::run(&case).unwrap();
+        let (d, c) = field.forward(&xyz, &t).unwrap();
+        let (gp, gt) = field.backward(&c, &g).unwrap();
+        assert_eq!(out.get_real::<f64>("d_xyz", &[n, 3]).unwrap(), d.d_xyz);
+        assert_eq!(
+            out.get_real::<f64>("d_rotation", &[n, 4]).unwrap(),
+            d.d_rotation
+        );
+        assert_eq!(
+            out.get_real::<f64>("d_scaling", &[n, 3]).unwrap(),
+            d.d_scaling
+        );
+        assert_eq!(out.get_real::<f64>("grad_t", &[n, 1]).unwrap(), gt);
+        for s in field.layout() {
+            assert_eq!(
+                out.get_real::<f64>(&format!("grad.{}", s.name), &s.shape)
+                    .unwrap(),
+                gp[s.range()].to_vec()
+            );
+        }
+        // A wrong stage and a misshaped input are errors naming the problem.
+        let mut wrong = case.clone();
+        wrong.set_meta("stage", "rasterize");
+        assert!(liquid_splat::oracle::deform::run(&wrong)
+            .unwrap_err()
+            .to_string()
+            .contains("stage"));
+        let mut bad = case.clone();
+        bad.insert_real("t", vec![n], &t);
+        assert!(liquid_splat::oracle::deform::run(&bad)
+            .unwrap_err()
+            .to_string()
+            .contains("`t`"));
+    }
+}
