@@ -39,6 +39,12 @@ enum Command {
     Inspect(cli::data::InspectArgs),
     /// Generate a built-in synthetic dynamic scene (bouncing, swing, blob) on disk.
     Synth(cli::data::SynthArgs),
+    /// Train a deformable Gaussian model (liquid CfC or MLP field) on a dataset or built-in scene.
+    Train(cli::train::TrainArgs),
+    /// Render a trained run's test views and a time sweep (PNG and EXR).
+    Render(cli::train::RenderArgs),
+    /// PSNR and SSIM of a run's saved renders (results.json, per_view.json).
+    Eval(cli::train::EvalArgs),
     /// Throughput measurements.
     Bench {
         #[command(subcommand)]
@@ -71,6 +77,9 @@ fn main() -> ExitCode {
     match cli.command {
         Command::Case { command } => cli::case::run(command),
         Command::Gradcheck { what } => report(cli::gradcheck::run(what)),
+        Command::Train(a) => report(cli::train::train(a)),
+        Command::Render(a) => report(cli::train::render(a)),
+        Command::Eval(a) => report(cli::train::eval(a)),
         Command::Bench { what } => report(cli::bench::run(what)),
         Command::Inspect(a) => report(cli::data::inspect(a)),
         Command::Synth(a) => report(cli::data::synth(a)),

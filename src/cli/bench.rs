@@ -13,12 +13,21 @@ pub enum BenchWhat {
         #[arg(long, default_value_t = 3)]
         reps: usize,
     },
+    /// Milliseconds per training iteration split by stage, on a dataset or built-in scene.
+    Train {
+        #[command(flatten)]
+        spec: super::train::RunSpec,
+    },
 }
 
 /// Run a `bench` subcommand.
 pub fn run(what: BenchWhat) -> liquid_splat::Result<ExitCode> {
     match what {
         BenchWhat::Raster { reps } => bench_raster(reps),
+        BenchWhat::Train { spec } => match spec.precision {
+            super::train::PrecisionArg::F32 => bench_train::<f32>(&spec),
+            super::train::PrecisionArg::F64 => bench_train::<f64>(&spec),
+        },
     }
 }
 
@@ -82,5 +91,68 @@ fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
         }
     }
     println!("(pairs: pixels x entries of their tile list, an upper bound on evaluated pairs; f32, SH degree 3)");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Train in memory (no files) and print the mean time of each stage, over
+/// all iterations and over those with the field on.
+fn bench_train<T: liquid_splat::math::Real>(
+    spec: &super::train::RunSpec,
+) -> liquid_splat::Result<ExitCode> {
+    use liquid_splat::dataset::init::initial_gaussians;
+    use liquid_splat::train::{run, StageTimes, Trainer};
+    let data = spec.load_dataset()?;
+    let config = spec.train_config(&data)?;
+    let views = run::views::<T>(&data.train);
+    let bg = [if data.white_background { 1.0 } else { 0.0 }; 3];
+    let g = initial_gaussians::<T>(&data.init)?;
+    let mut trainer = Trainer::new(config.clone(), g, views.len(), data.scene_extent, bg)?;
+    let (mut all, mut active) = (StageTimes::default(), StageTimes::default());
+    let (mut n_active, mut gaussians) = (0u64, 0u64);
+    let t0 = Instant::now();
+    while trainer.iteration < config.iterations {
+        let r = trainer.step(&views)?;
+        all.add(&r.times);
+        gaussians += r.gaussians as u64;
+        if trainer.field_active(r.iteration) {
+            active.add(&r.times);
+            n_active += 1;
+        }
+    }
+    let total = t0.elapsed().as_secs_f64();
+    let n = config.iterations;
+    let (w, h) = (data.train[0].width, data.train[0].height);
+    println!(
+        "{} on {} ({w}x{h}, {} views), {} iterations, {}, {} threads, mean {:.0} Gaussians",
+        super::train::field_label(&config.field),
+        spec.data_name(),
+        views.len(),
+        n,
+        if T::PRECISION == liquid_splat::math::Precision::F32 {
+            "f32"
+        } else {
+            "f64"
+        },
+        rayon::current_num_threads(),
+        gaussians as f64 / n as f64
+    );
+    println!(
+        "{:<16} {:>14} {:>18}",
+        "stage", "ms/it (all)", "ms/it (field on)"
+    );
+    for (i, name) in StageTimes::NAMES.iter().enumerate() {
+        println!(
+            "{:<16} {:>14.2} {:>18.2}",
+            name,
+            1e3 * all.values()[i] / n as f64,
+            1e3 * active.values()[i] / n_active.max(1) as f64
+        );
+    }
+    println!(
+        "{:<16} {:>14.2} {:>18.2}",
+        "total",
+        1e3 * total / n as f64,
+        1e3 * active.values().iter().sum::<f64>() / n_active.max(1) as f64
+    );
     Ok(ExitCode::SUCCESS)
 }

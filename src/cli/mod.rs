@@ -5,3 +5,4 @@ pub mod bench;
 pub mod case;
 pub mod data;
 pub mod gradcheck;
+pub mod train;

@@ -41,6 +41,11 @@ impl CameraSampler {
         }
     }
 
+    /// Number of training cameras.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
     pub fn stack(&self) -> &[usize] {
         &self.stack
     }

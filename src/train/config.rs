@@ -2,17 +2,30 @@
 //! the rule that scales every schedule to a shorter run.
 //!
 //! Upstream trains for 40,000 iterations. A run of `iterations = n` uses
-//! `s = n / 40,000` and multiplies every iteration count in the schedule by
-//! `s`, rounding to the nearest integer with a floor of 1: the warm-up
-//! (3,000), the SH degree interval (1,000), densification start (500), end
-//! (15,000) and interval (100), the opacity-reset interval (3,000), the
-//! learning-rate decay lengths (30,000 for positions, 40,000 for the field)
-//! and the AST noise decay (20,000). Thresholds, learning rates and
-//! everything else keep their upstream values. With `n = 40,000` the
-//! schedule is exactly upstream's.
+//! `s = n / 40,000`:
+//! - every *position in the run* is multiplied by `s`: the warm-up (3,000),
+//!   the SH degree interval (1,000), densification start (500) and end
+//!   (15,000), the learning-rate decay lengths (30,000 for positions, 40,000
+//!   for the field) and the AST noise decay (20,000);
+//! - the two *intervals between interventions*, densification (100) and
+//!   opacity reset (3,000), are multiplied by `√s`. After a densification or
+//!   an opacity reset the optimizer needs a number of steps to recover that
+//!   does not shrink with the run; scaling these linearly would densify every
+//!   iteration and reset opacities faster than they recover in short runs.
+//!   With `√s` the number of interventions falls as `√s` instead.
+//!
+//! Counts are rounded to the nearest integer (halves away from zero), with a
+//! floor of 1. Thresholds, learning rates and everything else keep their
+//! upstream values. With `n = 40,000`, `s = 1` and the schedule is exactly
+//! upstream's.
 
 /// Upstream's total iteration count, the reference for scaling.
 pub const REFERENCE_ITERATIONS: u64 = 40_000;
+
+use crate::deform::{FieldConfig, Variant};
+use crate::densify::DensifyConfig;
+use crate::error::{Error, Result};
+use crate::optim::LearningRates;
 
 /// Every iteration count of the schedule.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -53,18 +66,93 @@ impl Schedule {
     pub fn scaled_to(iterations: u64) -> Self {
         let s = iterations as f64 / REFERENCE_ITERATIONS as f64;
         let f = |n: u64| ((n as f64 * s).round() as u64).max(1);
+        let g = |n: u64| ((n as f64 * s.sqrt()).round() as u64).max(1);
         let u = Self::upstream();
         Schedule {
             warm_up: f(u.warm_up),
             sh_degree_interval: f(u.sh_degree_interval),
             densify_from: f(u.densify_from),
             densify_until: f(u.densify_until),
-            densification_interval: f(u.densification_interval),
-            opacity_reset_interval: f(u.opacity_reset_interval),
+            densification_interval: g(u.densification_interval),
+            opacity_reset_interval: g(u.opacity_reset_interval),
             position_lr_steps: f(u.position_lr_steps),
             deform_lr_steps: f(u.deform_lr_steps),
             ast_steps: f(u.ast_steps),
         }
+    }
+}
+
+/// Everything that defines a training run besides the data. Two runs with
+/// equal configurations and equal data give bit-identical results.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TrainConfig {
+    /// Total iterations (upstream 40,000).
+    pub iterations: u64,
+    /// Seed of the run: camera order, field initialisation, AST noise and
+    /// split sampling all derive from it.
+    pub seed: u64,
+    pub field: FieldConfig,
+    /// Every iteration count, scaled to `iterations`.
+    pub schedule: Schedule,
+    /// Learning rates; decay lengths scaled to `iterations`.
+    pub lr: LearningRates,
+    /// Densification thresholds (`screen_size_after` follows the schedule's
+    /// opacity-reset interval).
+    pub densify: DensifyConfig,
+    /// Weight of `1 − SSIM` in the loss (0.2).
+    pub lambda_dssim: f64,
+    /// Highest SH degree (3).
+    pub max_sh_degree: usize,
+    /// AST time noise (upstream: on for real scenes, off for D-NeRF).
+    pub ast: bool,
+}
+
+impl TrainConfig {
+    /// Upstream's settings scaled to `iterations` (module docs), with `field`.
+    /// AST noise follows the field's variant: on for [`Variant::Real`].
+    pub fn new(iterations: u64, seed: u64, field: FieldConfig) -> Self {
+        let schedule = Schedule::scaled_to(iterations);
+        let densify = DensifyConfig {
+            screen_size_after: schedule.opacity_reset_interval,
+            ..DensifyConfig::default()
+        };
+        TrainConfig {
+            iterations,
+            seed,
+            ast: field.variant == Variant::Real,
+            field,
+            lr: LearningRates::default().scaled_to(iterations, REFERENCE_ITERATIONS),
+            schedule,
+            densify,
+            lambda_dssim: crate::loss::LAMBDA_DSSIM,
+            max_sh_degree: 3,
+        }
+    }
+
+    /// Check the values a run depends on.
+    pub fn validate(&self) -> Result<()> {
+        if self.iterations == 0 {
+            return Err(Error::invalid("iterations", "must be at least 1"));
+        }
+        if self.max_sh_degree > 3 {
+            return Err(Error::invalid(
+                "max_sh_degree",
+                format!("{} (at most 3)", self.max_sh_degree),
+            ));
+        }
+        if !(0.0..=1.0).contains(&self.lambda_dssim) {
+            return Err(Error::invalid(
+                "lambda_dssim",
+                format!("{} (must be in [0, 1])", self.lambda_dssim),
+            ));
+        }
+        self.field.validate()
+    }
+
+    /// A stable text form of the configuration, stored in checkpoints: a
+    /// resumed run must have the same one.
+    pub fn fingerprint(&self) -> String {
+        format!("{self:?}")
     }
 }
 
@@ -81,7 +169,9 @@ mod tests {
     fn short_run_scales_every_count() {
         let s = Schedule::scaled_to(4_000);
         assert_eq!(s.warm_up, 300);
-        assert_eq!(s.densification_interval, 10);
+        // s = 0.1: positions × 0.1, intervals × √0.1.
+        assert_eq!(s.densification_interval, 32);
+        assert_eq!(s.opacity_reset_interval, 949);
         assert_eq!(s.densify_from, 50);
         assert_eq!(s.deform_lr_steps, 4_000);
         let tiny = Schedule::scaled_to(10);

@@ -13,12 +13,7 @@ use crate::gaussians::{normalize_vjp, Gaussians};
 use crate::math::Real;
 
 /// Per-Gaussian offsets from a deformation field: `[N,3]`, `[N,4]`, `[N,3]`.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct Offsets<T> {
-    pub d_xyz: Vec<T>,
-    pub d_rotation: Vec<T>,
-    pub d_scaling: Vec<T>,
-}
+pub use crate::deform::Deformation as Offsets;
 
 /// The activated, deformed Gaussians handed to the rasterizer.
 #[derive(Clone, Debug)]
@@ -53,19 +48,10 @@ pub fn deform_gaussians<T: Real>(g: &Gaussians<T>, offsets: Option<&Offsets<T>>)
     }
 }
 
-/// Gradients of the canonical raw parameters (same layout as [`Gaussians`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct GaussianGrads<T> {
-    pub xyz: Vec<T>,
-    pub sh: Vec<T>,
-    pub scaling: Vec<T>,
-    pub rotation: Vec<T>,
-    pub opacity: Vec<T>,
-}
-
 /// Backward of [`deform_gaussians`]: from the gradients with respect to the
 /// rasterizer's means, scales, rotations, opacities and SH, returns the
-/// gradients of the raw parameters and of the offsets. The offsets receive
+/// gradients of the raw parameters (in a [`Gaussians`] used as a gradient
+/// container, same layout) and of the offsets. The offsets receive
 /// the rasterizer gradients unchanged (each is added once).
 pub fn deform_gaussians_vjp<T: Real>(
     g: &Gaussians<T>,
@@ -74,7 +60,7 @@ pub fn deform_gaussians_vjp<T: Real>(
     grad_scales: &[T],
     grad_rotations: &[T],
     grad_opacities: &[T],
-) -> (GaussianGrads<T>, Offsets<T>) {
+) -> (Gaussians<T>, Offsets<T>) {
     let n = g.len();
     let scaling: Vec<T> = g
         .scaling
@@ -100,7 +86,8 @@ pub fn deform_gaussians_vjp<T: Real>(
         })
         .collect();
     (
-        GaussianGrads {
+        Gaussians {
+            max_sh_degree: g.max_sh_degree,
             xyz: grad_means.to_vec(),
             sh: grad_sh.to_vec(),
             scaling,

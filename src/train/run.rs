@@ -1,0 +1,311 @@
+//! A whole training run: train, checkpoint, evaluate, write renders and
+//! metrics. The CLI's `train` is a thin layer over [`run`].
+//!
+//! Output folder:
+//! ```text
+//! OUT/checkpoints/iteration_NNNNNN/   state, field weights, PLY, curve.json
+//! OUT/test/renders/NAME.png           8-bit renders (torchvision save_image rounding)
+//! OUT/test/renders_exr/NAME.exr       float renders
+//! OUT/test/gt/NAME.png                ground truth, saved the same way
+//! OUT/results.json, OUT/per_view.json test PSNR / SSIM (upstream metrics.py layout)
+//! ```
+
+use super::checkpoint;
+use super::config::TrainConfig;
+use super::trainer::{StepReport, Trainer, View, ViewMetrics};
+use crate::dataset::init::initial_gaussians;
+use crate::dataset::{Dataset, Frame};
+use crate::error::{Error, Result};
+use crate::gaussians::Gaussians;
+use crate::io::{image, write_atomic};
+use crate::math::Real;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// How a run is driven (not part of its result).
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub out: PathBuf,
+    /// Write a checkpoint every this many iterations (0: only at the end).
+    pub checkpoint_every: u64,
+    /// Evaluate the test views every this many iterations for the curve
+    /// (0: only at the end).
+    pub eval_every: u64,
+    /// Continue from the newest checkpoint in `OUT/checkpoints` if there is one.
+    pub resume: bool,
+}
+
+/// One point of the training curve.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct CurvePoint {
+    pub iteration: u64,
+    /// Mean training loss over the iterations since the previous point.
+    pub loss: f64,
+    pub test_psnr: Option<f64>,
+    pub gaussians: usize,
+}
+
+/// What the caller hears while a run goes on.
+#[derive(Debug)]
+pub enum Event<'a> {
+    Resumed {
+        iteration: u64,
+    },
+    Step(&'a StepReport),
+    Eval {
+        iteration: u64,
+        psnr: f64,
+        ssim: f64,
+    },
+    Checkpoint(&'a Path),
+}
+
+/// The result of a run.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RunSummary {
+    pub iterations: u64,
+    pub gaussians: usize,
+    pub psnr: f64,
+    pub ssim: f64,
+    pub per_view: Vec<ViewMetrics>,
+    /// [`Trainer::state_hash`] of the final state, hexadecimal.
+    pub state_hash: String,
+    /// Wall-clock seconds spent in training iterations in this process.
+    pub train_seconds: f64,
+    /// Iterations run in this process (fewer than `iterations` after a resume).
+    pub iterations_run: u64,
+    pub curve: Vec<CurvePoint>,
+}
+
+/// Convert dataset frames to views in the run's precision.
+pub fn views<T: Real>(frames: &[Frame]) -> Vec<View<T>> {
+    frames
+        .iter()
+        .map(|f| View::new(&f.name, &f.camera, f.time, &f.image))
+        .collect()
+}
+
+/// Mean PSNR and SSIM over views (0 views: an error).
+pub fn mean_metrics(per_view: &[ViewMetrics]) -> Result<(f64, f64)> {
+    if per_view.is_empty() {
+        return Err(Error::invalid("evaluation", "no views to evaluate"));
+    }
+    let n = per_view.len() as f64;
+    Ok((
+        per_view.iter().map(|m| m.psnr).sum::<f64>() / n,
+        per_view.iter().map(|m| m.ssim).sum::<f64>() / n,
+    ))
+}
+
+/// Train on `data` with `config`, writing into `opts.out`.
+pub fn run<T: Real>(
+    config: &TrainConfig,
+    data: &Dataset,
+    opts: &RunOptions,
+    on_event: &mut dyn FnMut(Event),
+) -> Result<RunSummary> {
+    let train = views::<T>(&data.train);
+    let test = views::<T>(eval_frames(data));
+    let ckpt_dir = opts.out.join("checkpoints");
+    let background = [if data.white_background { 1.0 } else { 0.0 }; 3];
+
+    let (mut trainer, mut curve) = match opts
+        .resume
+        .then(|| checkpoint::latest(&ckpt_dir))
+        .transpose()?
+        .flatten()
+    {
+        Some(dir) => {
+            let t = checkpoint::load::<T>(&dir, config)?;
+            if t.sampler.count() != train.len() {
+                return Err(Error::invalid(
+                    "resume",
+                    format!(
+                        "{} was trained on {} views, the dataset has {}",
+                        dir.display(),
+                        t.sampler.count(),
+                        train.len()
+                    ),
+                ));
+            }
+            on_event(Event::Resumed {
+                iteration: t.iteration,
+            });
+            (t, read_curve(&dir)?)
+        }
+        None => {
+            let g = with_sh_degree(initial_gaussians::<T>(&data.init)?, config.max_sh_degree);
+            (
+                Trainer::new(
+                    config.clone(),
+                    g,
+                    train.len(),
+                    data.scene_extent,
+                    background,
+                )?,
+                Vec::new(),
+            )
+        }
+    };
+
+    let start = trainer.iteration;
+    let clock = Instant::now();
+    let (mut loss_sum, mut loss_n) = (0.0, 0u64);
+    let curve_every = (config.iterations / 100).max(1);
+    while trainer.iteration < config.iterations {
+        let r = trainer.step(&train)?;
+        on_event(Event::Step(&r));
+        loss_sum += r.loss;
+        loss_n += 1;
+        let it = r.iteration;
+        let last = it == config.iterations;
+        let eval = last || (opts.eval_every > 0 && it % opts.eval_every == 0);
+        if eval || it % curve_every == 0 {
+            let test_psnr = if eval && !test.is_empty() {
+                let (psnr, ssim) = mean_metrics(&trainer.evaluate(&test)?)?;
+                on_event(Event::Eval {
+                    iteration: it,
+                    psnr,
+                    ssim,
+                });
+                Some(psnr)
+            } else {
+                None
+            };
+            curve.push(CurvePoint {
+                iteration: it,
+                loss: loss_sum / loss_n as f64,
+                test_psnr,
+                gaussians: r.gaussians,
+            });
+            (loss_sum, loss_n) = (0.0, 0);
+        }
+        if last || (opts.checkpoint_every > 0 && it % opts.checkpoint_every == 0) {
+            let dir = checkpoint::save(&trainer, &ckpt_dir)?;
+            write_json(&dir.join("curve.json"), &curve)?;
+            on_event(Event::Checkpoint(&dir));
+        }
+    }
+    let train_seconds = clock.elapsed().as_secs_f64();
+
+    let per_view = render_views(&trainer, &test, &opts.out.join("test"))?;
+    let (psnr, ssim) = mean_metrics(&per_view)?;
+    write_metrics(&opts.out, &per_view)?;
+    Ok(RunSummary {
+        iterations: trainer.iteration,
+        gaussians: trainer.gaussians.len(),
+        psnr,
+        ssim,
+        per_view,
+        state_hash: format!("{:016x}", trainer.state_hash()),
+        train_seconds,
+        iterations_run: trainer.iteration - start,
+        curve,
+    })
+}
+
+/// The test split, or the val split when a dataset has no test frames.
+pub fn eval_frames(data: &Dataset) -> &[Frame] {
+    if data.test.is_empty() {
+        &data.val
+    } else {
+        &data.test
+    }
+}
+
+/// `g` with its SH array resized for degree `deg` (coefficients kept in
+/// order, new ones zero).
+fn with_sh_degree<T: Real>(mut g: Gaussians<T>, deg: usize) -> Gaussians<T> {
+    let (n, old_k) = (g.len(), g.coeffs());
+    g.max_sh_degree = deg;
+    let k = g.coeffs();
+    if k != old_k {
+        let m = 3 * old_k.min(k);
+        let mut sh = vec![T::ZERO; 3 * k * n];
+        for i in 0..n {
+            sh[3 * k * i..3 * k * i + m].copy_from_slice(&g.sh[3 * old_k * i..3 * old_k * i + m]);
+        }
+        g.sh = sh;
+    }
+    g
+}
+
+/// Render `views`, save renders (PNG, EXR) and ground truth (PNG) under
+/// `dir`, and return the 8-bit metrics of each view.
+pub fn render_views<T: Real>(
+    trainer: &Trainer<T>,
+    views: &[View<T>],
+    dir: &Path,
+) -> Result<Vec<ViewMetrics>> {
+    for sub in ["renders", "renders_exr", "gt"] {
+        std::fs::create_dir_all(dir.join(sub)).map_err(|e| Error::io(dir.join(sub), e))?;
+    }
+    let mut per_view = Vec::with_capacity(views.len());
+    for v in views {
+        let out = trainer.render(&v.camera, v.time)?;
+        let name = file_stem(&v.name);
+        image::write_png(
+            &dir.join("renders").join(format!("{name}.png")),
+            &out.color,
+            v.height,
+            v.width,
+        )?;
+        image::write_exr(
+            &dir.join("renders_exr").join(format!("{name}.exr")),
+            &out.color,
+            v.height,
+            v.width,
+        )?;
+        image::write_png(
+            &dir.join("gt").join(format!("{name}.png")),
+            &v.image,
+            v.height,
+            v.width,
+        )?;
+        per_view.push(super::trainer::view_metrics(
+            &v.name, &out.color, &v.image, v.height, v.width,
+        )?);
+    }
+    Ok(per_view)
+}
+
+/// A frame name usable as a file name (`./test/r_000` → `r_000`).
+pub fn file_stem(name: &str) -> String {
+    let base = name.rsplit(['/', '\\']).next().unwrap_or(name);
+    base.strip_suffix(".png").unwrap_or(base).to_string()
+}
+
+/// `results.json` (`{"psnr", "ssim", "views"}`) and `per_view.json`
+/// (`{"psnr": {name: v}, "ssim": {name: v}}`), as upstream's metrics.py.
+pub fn write_metrics(out: &Path, per_view: &[ViewMetrics]) -> Result<()> {
+    let (psnr, ssim) = mean_metrics(per_view)?;
+    write_json(
+        &out.join("results.json"),
+        &serde_json::json!({ "psnr": psnr, "ssim": ssim, "views": per_view.len() }),
+    )?;
+    let mut p = serde_json::Map::new();
+    let mut s = serde_json::Map::new();
+    for m in per_view {
+        p.insert(m.name.clone(), m.psnr.into());
+        s.insert(m.name.clone(), m.ssim.into());
+    }
+    write_json(
+        &out.join("per_view.json"),
+        &serde_json::json!({ "psnr": p, "ssim": s }),
+    )
+}
+
+pub fn write_json(path: &Path, v: &impl serde::Serialize) -> Result<()> {
+    let mut bytes = serde_json::to_vec_pretty(v).map_err(|e| Error::format(path, e.to_string()))?;
+    bytes.push(b'\n');
+    write_atomic(path, &bytes)
+}
+
+fn read_curve(dir: &Path) -> Result<Vec<CurvePoint>> {
+    let path = dir.join("curve.json");
+    if !path.exists() {
+        return Ok(Vec::new());
+    }
+    let bytes = crate::io::read(&path)?;
+    serde_json::from_slice(&bytes).map_err(|e| Error::format(&path, e.to_string()))
+}

@@ -1,0 +1,252 @@
+//! Training: bit-exact reproduction across thread counts and against a
+//! recorded hash, checkpoint/resume, and damaged checkpoints.
+
+use liquid_splat::dataset::{self, Dataset, LoadOptions};
+use liquid_splat::deform::{Activation, FieldConfig, FieldKind};
+use liquid_splat::train::{self, checkpoint, Event, RunOptions, TrainConfig, Trainer};
+use std::path::{Path, PathBuf};
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("ls-train-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// The committed fixture scene with a few hundred random initial points.
+fn scene() -> Dataset {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/scenes/swing");
+    dataset::load(
+        &dir,
+        &LoadOptions {
+            init_points: 300,
+            ..Default::default()
+        },
+    )
+    .unwrap()
+}
+
+/// A small CfC field and a schedule compressed so that a short run passes
+/// through warm-up, SH degree increases, densification (clone, split, prune)
+/// and opacity resets.
+fn config(iterations: u64) -> TrainConfig {
+    let mut field = FieldConfig::new(FieldKind::Cfc);
+    field.depth = 2;
+    field.width = 8;
+    field.backbone_units = 8;
+    field.backbone_layers = 1;
+    field.activation = Activation::Gelu;
+    let mut c = TrainConfig::new(iterations, 7, field);
+    c.schedule.warm_up = 20;
+    c.schedule.sh_degree_interval = 15;
+    c.schedule.densify_from = 10;
+    c.schedule.densify_until = 100;
+    c.schedule.densification_interval = 15;
+    c.schedule.opacity_reset_interval = 50;
+    c.densify.screen_size_after = 50;
+    c
+}
+
+fn train_in_pool<T: liquid_splat::math::Real>(
+    threads: usize,
+    data: &Dataset,
+    iterations: u64,
+) -> Trainer<T> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let views = train::run::views::<T>(&data.train);
+        let g = liquid_splat::dataset::init::initial_gaussians::<T>(&data.init).unwrap();
+        let mut t = Trainer::new(
+            config(iterations),
+            g,
+            views.len(),
+            data.scene_extent,
+            [0.0; 3],
+        )
+        .unwrap();
+        let (mut densified, mut resets) = (0, 0);
+        while t.iteration < iterations {
+            let r = t.step(&views).unwrap();
+            assert!(
+                r.loss.is_finite(),
+                "iteration {}: loss {}",
+                r.iteration,
+                r.loss
+            );
+            densified += r.densify.is_some() as u32;
+            resets += r.opacity_reset as u32;
+        }
+        assert!(
+            densified >= 5 && resets >= 1,
+            "{densified} densifications, {resets} resets"
+        );
+        assert!(t.field_optimizer.step > 0);
+        t
+    })
+}
+
+/// The record a training hash is compared with (fixtures/training/record.json).
+#[derive(serde::Deserialize, serde::Serialize, Debug, PartialEq)]
+struct Record {
+    crate_version: String,
+    libm_version: String,
+    scene: String,
+    iterations: u64,
+    state_hash_f32: String,
+    state_hash_f64: String,
+}
+
+const ITERATIONS: u64 = 120;
+
+#[test]
+fn training_is_bit_identical_for_1_2_and_3_threads_and_matches_the_record() {
+    let data = scene();
+    let h32: Vec<u64> = [1, 2, 3]
+        .iter()
+        .map(|&n| train_in_pool::<f32>(n, &data, ITERATIONS).state_hash())
+        .collect();
+    assert!(
+        h32.iter().all(|&h| h == h32[0]),
+        "f32 hashes differ by thread count: {h32:x?}"
+    );
+    let h64 = train_in_pool::<f64>(2, &data, ITERATIONS).state_hash();
+    let h64_1 = train_in_pool::<f64>(1, &data, ITERATIONS).state_hash();
+    assert_eq!(h64, h64_1, "f64 hashes differ by thread count");
+
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/training/record.json");
+    let got = Record {
+        crate_version: env!("CARGO_PKG_VERSION").into(),
+        libm_version: "0.2.11".into(),
+        scene: "fixtures/scenes/swing, 300 random initial points (seed 0), CfC D2 W8 gelu backbone 8x1, seed 7, tests/train.rs config()".into(),
+        iterations: ITERATIONS,
+        state_hash_f32: format!("{:016x}", h32[0]),
+        state_hash_f64: format!("{h64:016x}"),
+    };
+    if std::env::var_os("LIQUID_SPLAT_RECORD").is_some() {
+        std::fs::write(&path, serde_json::to_string_pretty(&got).unwrap() + "\n").unwrap();
+    }
+    let want: Record = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    assert_eq!(
+        got, want,
+        "the training run no longer reproduces the recorded state; if the change is intended, \
+         rerun with LIQUID_SPLAT_RECORD=1 and commit fixtures/training/record.json"
+    );
+}
+
+fn run(
+    config: &TrainConfig,
+    data: &Dataset,
+    out: &Path,
+    every: u64,
+    resume: bool,
+) -> train::RunSummary {
+    let opts = RunOptions {
+        out: out.to_path_buf(),
+        checkpoint_every: every,
+        eval_every: 0,
+        resume,
+    };
+    train::run::<f32>(config, data, &opts, &mut |_: Event| {}).unwrap()
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
+    }
+}
+
+#[test]
+fn resumed_run_ends_bit_identical_to_the_uninterrupted_run() {
+    let data = scene();
+    let cfg = config(90);
+    let a = tmp("full");
+    let full = run(&cfg, &data, &a, 30, false);
+    assert_eq!(full.iterations_run, 90);
+    for it in [30, 60] {
+        // "Interrupted" after the checkpoint at `it`, with a half-written
+        // later checkpoint left behind.
+        let b = tmp(&format!("resumed{it}"));
+        let name = checkpoint::checkpoint_name(it);
+        copy_dir(
+            &a.join("checkpoints").join(&name),
+            &b.join("checkpoints").join(&name),
+        );
+        let partial = b
+            .join("checkpoints")
+            .join(format!("{}.partial", checkpoint::checkpoint_name(it + 30)));
+        std::fs::create_dir_all(&partial).unwrap();
+        std::fs::write(partial.join(checkpoint::STATE_FILE), b"half").unwrap();
+        let resumed = run(&cfg, &data, &b, 30, true);
+        assert_eq!(resumed.iterations_run, 90 - it);
+        assert_eq!(resumed.state_hash, full.state_hash);
+        assert_eq!(resumed.psnr.to_bits(), full.psnr.to_bits());
+        assert_eq!(resumed.curve, full.curve);
+        for f in ["results.json", "per_view.json"] {
+            assert_eq!(
+                std::fs::read(a.join(f)).unwrap(),
+                std::fs::read(b.join(f)).unwrap(),
+                "{f}"
+            );
+        }
+    }
+    // The final checkpoint loads and its PLY is a valid Inria file of the same Gaussians.
+    let last = checkpoint::latest(&a.join("checkpoints")).unwrap().unwrap();
+    let t = checkpoint::load::<f32>(&last, &cfg).unwrap();
+    assert_eq!(format!("{:016x}", t.state_hash()), full.state_hash);
+    let ply = liquid_splat::gaussians::ply::read_gaussians::<f32>(&last.join(checkpoint::PLY_FILE))
+        .unwrap();
+    assert_eq!(ply.xyz, t.gaussians.xyz);
+    assert_eq!(ply.opacity, t.gaussians.opacity);
+}
+
+#[test]
+fn damaged_or_foreign_checkpoints_are_errors() {
+    let data = scene();
+    let cfg = config(25);
+    let a = tmp("damaged");
+    run(&cfg, &data, &a, 0, false);
+    let ckpt = checkpoint::latest(&a.join("checkpoints")).unwrap().unwrap();
+    assert!(checkpoint::load::<f32>(&ckpt, &cfg).is_ok());
+
+    let state = ckpt.join(checkpoint::STATE_FILE);
+    let field = ckpt.join(checkpoint::FIELD_FILE);
+    let original = std::fs::read(&state).unwrap();
+    let original_field = std::fs::read(&field).unwrap();
+    let expect_err = |what: &str, needle: &str| {
+        let e = checkpoint::load::<f32>(&ckpt, &cfg)
+            .err()
+            .unwrap_or_else(|| panic!("{what}: loaded"));
+        assert!(e.to_string().contains(needle), "{what}: {e}");
+    };
+
+    // One flipped bit in the tensor data (the last byte belongs to a tensor).
+    let mut bad = original.clone();
+    *bad.last_mut().unwrap() ^= 1;
+    std::fs::write(&state, &bad).unwrap();
+    expect_err("flipped bit", "corrupt");
+
+    std::fs::write(&state, &original[..original.len() / 2]).unwrap();
+    expect_err("truncated", "state.safetensors");
+    std::fs::write(&state, &original).unwrap();
+
+    let mut bad = original_field.clone();
+    *bad.last_mut().unwrap() ^= 0x40;
+    std::fs::write(&field, &bad).unwrap();
+    expect_err("flipped bit in the field", "corrupt");
+    std::fs::write(&field, &original_field[..100]).unwrap();
+    expect_err("truncated field", "deform.safetensors");
+    std::fs::write(&field, &original_field).unwrap();
+
+    let mut other = cfg.clone();
+    other.seed += 1;
+    let e = checkpoint::load::<f32>(&ckpt, &other).err().unwrap();
+    assert!(e.to_string().contains("different run configuration"), "{e}");
+    let e = checkpoint::load::<f64>(&ckpt, &cfg).err().unwrap();
+    assert!(e.to_string().contains("dtype"), "{e}");
+    assert!(checkpoint::load::<f32>(&ckpt, &cfg).is_ok());
+}
