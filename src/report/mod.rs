@@ -253,7 +253,7 @@ fn field_colours(records: &[RunRecord]) -> BTreeMap<String, [u8; 3]> {
         .collect()
 }
 
-const COST_NOTE: &str = "Counted for one point (batch 1) as ptflops counts them (UPSTREAM §8.3): one \
+const COST_NOTE: &str = "Counted for one point (batch 1) as ptflops counts them: one \
     multiply-add is one MAC, and a Linear layer counts in·out + out. `aten`: linear layers only (the ptflops \
     0.7.3 default; equals the parameter count). `pytorch` (count_functional=True, the ptflops ≥ 0.7.4 \
     default): also ReLU/GELU modules twice, SiLU modules and functional ReLU once. `pytorch no-functional`: \
@@ -281,22 +281,20 @@ pub fn write_report(dir: &Path, records: &[RunRecord], meta: &ReportMeta) -> Res
         distinct(records.iter().map(|r| r.scene.clone()))
     );
     md += &format!("- seeds: {}\n", distinct(records.iter().map(|r| r.seed)));
-    md += &format!(
-        "- iterations: {}\n",
-        distinct(records.iter().map(|r| r.iterations))
+    let iters = distinct(records.iter().map(|r| r.iterations));
+    let res = distinct(
+        records
+            .iter()
+            .map(|r| format!("{}x{}", r.resolution[0], r.resolution[1])),
     );
-    md += &format!(
-        "- resolution: {}\n",
-        distinct(
-            records
-                .iter()
-                .map(|r| format!("{}x{}", r.resolution[0], r.resolution[1]))
-        )
-    );
+    md += &format!("- iterations: {iters}\n- resolution: {res}\n");
     md += &format!(
         "- threads: {}\n",
         distinct(records.iter().map(|r| r.threads))
     );
+    if iters.contains(',') || res.contains(',') {
+        md += "- **warning**: the runs differ in iterations or resolution; tables average them per field.\n";
+    }
     for (k, v) in &meta.settings {
         md += &format!("- {k}: {v}\n");
     }
@@ -565,7 +563,7 @@ pub(crate) mod tests {
                 .map(|i| CurvePoint {
                     iteration: 50 * i,
                     loss: 0.1 / (1.0 + i as f64),
-                    test_psnr: (i % 2 == 0).then(|| psnr - 4.0 + i as f64),
+                    test_psnr: (i % 2 == 0).then_some(psnr - 4.0 + i as f64),
                 })
                 .collect(),
             wall_seconds: 3.5,
@@ -702,11 +700,19 @@ pub(crate) mod tests {
         assert!(!dir.join("table_stages.csv").exists());
         let curves = std::fs::read_to_string(dir.join("curves.csv")).unwrap();
         assert_eq!(curves.lines().count(), 1 + 4 * 5);
+        assert!(!md.contains("warning"));
         let first = std::fs::read(dir.join("plots/lego-psnr.png")).unwrap();
         write_report(&dir, &recs, &meta).unwrap();
         assert_eq!(
             std::fs::read(dir.join("plots/lego-psnr.png")).unwrap(),
             first
+        );
+        recs[3].iterations = 400;
+        write_report(&dir, &recs, &meta).unwrap();
+        let md = std::fs::read_to_string(dir.join("report.md")).unwrap();
+        assert!(
+            md.contains("- iterations: 200, 400\n")
+                && md.contains("- **warning**: the runs differ")
         );
         let _ = std::fs::remove_dir_all(&dir);
     }

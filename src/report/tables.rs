@@ -18,45 +18,32 @@ pub struct Cell {
 }
 
 impl Cell {
-    pub fn text(s: impl Into<String>) -> Self {
-        let s = s.into();
+    fn new(md: String, csv: String) -> Self {
         Cell {
-            md: s.clone(),
-            csv: s,
+            md,
+            csv,
             bold: false,
         }
     }
+    pub fn text(s: impl Into<String>) -> Self {
+        let s = s.into();
+        Cell::new(s.clone(), s)
+    }
     /// A number shown with `decimals` places; the CSV keeps every digit.
     pub fn num(v: f64, decimals: usize) -> Self {
-        Cell {
-            md: format!("{v:.decimals$}"),
-            csv: format!("{v}"),
-            bold: false,
-        }
+        Cell::new(format!("{v:.decimals$}"), v.to_string())
     }
     /// A number shown with `digits` significant digits in scientific notation.
     pub fn sci(v: f64, digits: usize) -> Self {
         let d = digits.saturating_sub(1);
-        Cell {
-            md: format!("{v:.d$e}"),
-            csv: format!("{v}"),
-            bold: false,
-        }
+        Cell::new(format!("{v:.d$e}"), v.to_string())
     }
     /// An integer shown with thousands separators.
     pub fn count(v: u64) -> Self {
-        Cell {
-            md: thousands(v),
-            csv: v.to_string(),
-            bold: false,
-        }
+        Cell::new(thousands(v), v.to_string())
     }
     pub fn missing() -> Self {
-        Cell {
-            md: "–".into(),
-            csv: String::new(),
-            bold: false,
-        }
+        Cell::new("–".into(), String::new())
     }
 }
 
@@ -97,12 +84,9 @@ impl Table {
         for row in &self.rows {
             let cells: Vec<String> = row
                 .iter()
-                .map(|c| {
-                    if c.bold {
-                        format!("**{}**", c.md)
-                    } else {
-                        c.md.clone()
-                    }
+                .map(|c| match c.bold {
+                    true => format!("**{}**", c.md),
+                    false => c.md.clone(),
                 })
                 .collect();
             s += &format!("| {} |\n", cells.join(" | "));
@@ -423,24 +407,18 @@ pub fn cost_table(records: &[RunRecord]) -> Result<Table> {
         };
         configs.push((c, true, false));
     }
-    let mut run_configs: Vec<(FieldConfig, (bool, usize, usize, String, String))> = Vec::new();
+    let mut run_configs: Vec<FieldConfig> = Vec::new();
     for r in records {
         let c = r.field_config()?;
-        if !run_configs.iter().any(|x| x.0 == c) {
-            run_configs.push((
-                c,
-                (
-                    c.kind != FieldKind::Mlp,
-                    c.depth,
-                    c.width,
-                    c.activation.name().into(),
-                    c.variant.name().into(),
-                ),
-            ));
+        if !run_configs.contains(&c) {
+            run_configs.push(c);
         }
     }
-    run_configs.sort_by(|a, b| a.1.cmp(&b.1));
-    for (c, _) in run_configs {
+    run_configs.sort_by_key(|c| {
+        let names = (c.activation.name(), c.variant.name());
+        (c.kind != FieldKind::Mlp, c.depth, c.width, names)
+    });
+    for c in run_configs {
         match configs.iter_mut().find(|x| x.0 == c) {
             Some(x) => x.2 = true,
             None => configs.push((c, false, true)),
