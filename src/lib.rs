@@ -18,6 +18,8 @@
 //!   the seeded generator and the finite-difference gradient checker.
 //! - [`camera`]: pinhole cameras and the matrices the rasterizer consumes.
 //! - [`io`]: atomic writes and named-tensor (safetensors) files.
+//! - [`report`]: per-run records and the experiment report (Markdown, CSV,
+//!   PNG plots, temporal smoothness of a learned deformation).
 //!
 //! ## Determinism
 //! The same inputs give the same bits whatever the thread count, run or CPU:
@@ -37,6 +39,7 @@ pub mod math;
 pub mod optim;
 pub mod oracle;
 pub mod render;
+pub mod report;
 
 pub use error::{Error, Result};
 pub mod train;
