@@ -45,6 +45,8 @@ enum Command {
     Render(cli::train::RenderArgs),
     /// PSNR and SSIM of a run's saved renders (results.json, per_view.json).
     Eval(cli::train::EvalArgs),
+    /// Train and compare the MLP and liquid fields on several scenes; write a report folder.
+    Experiment(cli::experiment::ExperimentArgs),
     /// Throughput measurements.
     Bench {
         #[command(subcommand)]
@@ -80,6 +82,7 @@ fn main() -> ExitCode {
         Command::Train(a) => report(cli::train::train(a)),
         Command::Render(a) => report(cli::train::render(a)),
         Command::Eval(a) => report(cli::train::eval(a)),
+        Command::Experiment(a) => report(cli::experiment::experiment(a)),
         Command::Bench { what } => report(cli::bench::run(what)),
         Command::Inspect(a) => report(cli::data::inspect(a)),
         Command::Synth(a) => report(cli::data::synth(a)),

@@ -124,7 +124,7 @@ fn bench_train<T: liquid_splat::math::Real>(
     let (w, h) = (data.train[0].width, data.train[0].height);
     println!(
         "{} on {} ({w}x{h}, {} views), {} iterations, {}, {} threads, mean {:.0} Gaussians",
-        super::train::field_label(&config.field),
+        liquid_splat::report::field_label(&config.field),
         spec.data_name(),
         views.len(),
         n,

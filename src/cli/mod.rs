@@ -4,5 +4,6 @@
 pub mod bench;
 pub mod case;
 pub mod data;
+pub mod experiment;
 pub mod gradcheck;
 pub mod train;

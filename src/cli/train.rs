@@ -236,7 +236,7 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
     if !a.quiet {
         eprintln!(
             "training {} field ({} parameters) on {}: {} train / {} test views, {} initial Gaussians, {} iterations, {} threads",
-            field_label(&config.field),
+            liquid_splat::report::field_label(&config.field),
             liquid_splat::deform::count::param_count(&config.field)?,
             a.spec.data_name(),
             data.train.len(),
@@ -501,14 +501,6 @@ fn read_rgb(path: &Path) -> Result<(Vec<f32>, usize, usize)> {
     let img = dataset::image::read_png(path)?;
     let (w, h) = (img.width, img.height);
     Ok((dataset::image::to_chw(&img.rgb(), w, h), h, w))
-}
-
-/// `cfc D6 W128 gelu` / `mlp D8 W256`.
-pub fn field_label(c: &FieldConfig) -> String {
-    match c.kind {
-        FieldKind::Mlp => format!("mlp D{} W{}", c.depth, c.width),
-        FieldKind::Cfc => format!("cfc D{} W{} {}", c.depth, c.width, c.activation.name()),
-    }
 }
 
 fn print_metrics(per_view: &[ViewMetrics]) -> Result<()> {

@@ -1,0 +1,217 @@
+//! The `train`, `render`, `eval` and `experiment` commands end to end, and
+//! their exit codes on bad input.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("ls-train-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn cli(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn json(p: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+}
+
+const SMALL_FIELD: [&str; 8] = [
+    "--depth",
+    "2",
+    "--width",
+    "8",
+    "--backbone-units",
+    "8",
+    "--backbone-layers",
+    "1",
+];
+
+#[test]
+fn train_render_eval_on_the_fixture_scene() {
+    let out = tmp("run");
+    let scene = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/scenes/swing");
+    let o = out.to_str().unwrap();
+    let mut args = vec![
+        "train",
+        scene,
+        "--iterations",
+        "40",
+        "--init-points",
+        "200",
+        "--out",
+        o,
+    ];
+    args.extend(SMALL_FIELD);
+    let r = cli(&args);
+    assert!(r.status.success(), "{}", text(&r));
+    let stdout = String::from_utf8_lossy(&r.stdout);
+    assert!(stdout.contains("test PSNR"), "{stdout}");
+    let results = json(&out.join("results.json"));
+    let per_view = json(&out.join("per_view.json"));
+    assert_eq!(results["views"], 8);
+    assert_eq!(per_view["psnr"].as_object().unwrap().len(), 8);
+    for sub in ["renders", "renders_exr", "gt"] {
+        assert_eq!(
+            std::fs::read_dir(out.join("test").join(sub))
+                .unwrap()
+                .count(),
+            8,
+            "{sub}"
+        );
+    }
+    let ckpt = out.join("checkpoints/iteration_000040");
+    for f in [
+        "state.safetensors",
+        "deform.safetensors",
+        "point_cloud.ply",
+        "curve.json",
+    ] {
+        assert!(ckpt.join(f).is_file(), "{f}");
+    }
+
+    // eval recomputes the metrics from the PNGs: the same numbers.
+    let r = cli(&["eval", o]);
+    assert!(r.status.success(), "{}", text(&r));
+    assert_eq!(json(&out.join("results.json")), results);
+
+    let r = cli(&["render", o, "--sweep-frames", "3", "--sweep-view", "1"]);
+    assert!(r.status.success(), "{}", text(&r));
+    for k in 0..3 {
+        assert!(out.join(format!("sweep/{k:04}.png")).is_file());
+        assert!(out.join(format!("sweep/{k:04}.exr")).is_file());
+    }
+    assert_eq!(json(&out.join("results.json")), results);
+
+    // Resuming a finished run with other arguments is refused.
+    let mut args = vec![
+        "train",
+        scene,
+        "--iterations",
+        "50",
+        "--init-points",
+        "200",
+        "--out",
+        o,
+        "--resume",
+    ];
+    args.extend(SMALL_FIELD);
+    let r = cli(&args);
+    assert_eq!(r.status.code(), Some(2), "{}", text(&r));
+    assert!(text(&r).contains("different run arguments"), "{}", text(&r));
+}
+
+#[test]
+fn bad_input_exits_2_with_a_message() {
+    let out = tmp("bad");
+    let o = out.to_str().unwrap();
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (
+            vec!["train", "/nonexistent/scene", "--out", o],
+            "/nonexistent/scene",
+        ),
+        (
+            vec!["train", "--scene", "nosuchscene", "--out", o],
+            "nosuchscene",
+        ),
+        (
+            vec!["train", "--scene", "swing", "--iterations", "0", "--out", o],
+            "iterations",
+        ),
+        (
+            vec![
+                "train",
+                "--scene",
+                "swing",
+                "--activation",
+                "softplus",
+                "--out",
+                o,
+            ],
+            "softplus",
+        ),
+        (vec!["train", "--out", o], "required"),
+        (vec!["render", "/nonexistent/run"], "run.json"),
+        (vec!["eval", "/nonexistent/run"], "renders"),
+    ];
+    for (args, needle) in cases {
+        let r = cli(&args);
+        assert_eq!(r.status.code(), Some(2), "{args:?}: {}", text(&r));
+        assert!(text(&r).contains(needle), "{args:?}: {}", text(&r));
+    }
+}
+
+#[test]
+fn experiment_writes_a_report_and_resumes_per_configuration() {
+    let out = tmp("exp");
+    let o = out.to_str().unwrap();
+    let args = [
+        "experiment",
+        "--scenes",
+        "swing",
+        "--iterations",
+        "6",
+        "--resolution",
+        "16",
+        "--init-points",
+        "100",
+        "--evals",
+        "2",
+        "--sweep-times",
+        "9",
+        "--out",
+        o,
+    ];
+    let r = cli(&args);
+    assert!(r.status.success(), "{}", text(&r));
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    for needle in [
+        "mlp-d8-w256-relu",
+        "cfc-d6-w128-gelu",
+        "522,280",
+        "334,504",
+        "threads",
+    ] {
+        assert!(md.contains(needle), "report.md lacks {needle}");
+    }
+    let runs = |d: &Path| {
+        let mut v: Vec<String> = std::fs::read_dir(d.join("runs"))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(runs(&out).len(), 2);
+    let mlp = out.join("runs/swing__mlp-d8-w256-relu__seed0.json");
+    let cfc = out.join("runs/swing__cfc-d6-w128-gelu__seed0.json");
+    let cfc_before = std::fs::read(&cfc).unwrap();
+    let rec = json(&mlp);
+    assert!(rec["temporal_smoothness"].as_f64().unwrap().is_finite());
+    assert_eq!(
+        rec["curves"].as_array().unwrap().last().unwrap()["iteration"],
+        6
+    );
+
+    // Rerun after removing one record: only that configuration trains again.
+    std::fs::remove_file(&mlp).unwrap();
+    let r = cli(&args);
+    assert!(r.status.success(), "{}", text(&r));
+    assert!(text(&r).contains("done earlier, kept"), "{}", text(&r));
+    assert_eq!(std::fs::read(&cfc).unwrap(), cfc_before);
+    let again = json(&mlp);
+    assert_eq!(again["test_psnr"], rec["test_psnr"]);
+}
