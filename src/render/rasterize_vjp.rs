@@ -132,7 +132,7 @@ fn inria_pixel<T: Real>(
     for &(j, h, _) in hits.iter().rev() {
         let s = &splats[j];
         let alpha = h.alpha;
-        t = t / (T::ONE - alpha);
+        t /= T::ONE - alpha;
         let dchannel_dcolor = alpha * t;
         let mut dl_dalpha = T::ZERO;
         let e = &mut grads[j];
@@ -143,7 +143,7 @@ fn inria_pixel<T: Real>(
             dl_dalpha += (c - accum[ch]) * g[ch];
             e[ch] += dchannel_dcolor * g[ch];
         }
-        dl_dalpha = dl_dalpha * t;
+        dl_dalpha *= t;
         last_alpha = alpha;
         dl_dalpha += (-t_final / (T::ONE - alpha)) * bg_dot;
         let dl_dg = s.opacity * dl_dalpha;
