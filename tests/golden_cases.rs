@@ -153,3 +153,53 @@ fn f64_tolerances_separate_inria_from_exact() {
         |t| t.name == "grad_means3D" && !matches!(t.status, liquid_splat::oracle::Status::Pass)
     ));
 }
+
+#[test]
+fn case_new_cli_writes_runnable_cases_and_rejects_bad_options() {
+    let tmp = std::env::temp_dir().join(format!("ls-case-new-{}", std::process::id()));
+    std::fs::create_dir_all(&tmp).unwrap();
+    let bin = env!("CARGO_BIN_EXE_liquid-splat");
+    let run = |args: &[&str]| Command::new(bin).args(args).output().unwrap();
+    let p = |n: &str| tmp.join(n).display().to_string();
+    for (stage, extra) in [
+        (
+            "rasterize",
+            vec!["--gradient", "inria", "--width", "20", "--count", "3"],
+        ),
+        (
+            "deform",
+            vec!["--field", "cfc", "--depth", "1", "--hidden", "4"],
+        ),
+        ("loss", vec!["--height", "7"]),
+    ] {
+        let case = p(&format!("{stage}.safetensors"));
+        let mut args = vec!["case", "new", stage, &case, "--dtype", "f32", "--seed", "5"];
+        args.extend(extra.iter().copied());
+        let o = run(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let f = TensorFile::load(Path::new(&case)).unwrap();
+        assert_eq!(f.meta("stage").unwrap(), stage);
+        assert_eq!(f.precision().unwrap(), liquid_splat::math::Precision::F32);
+        let o = run(&["case", "run", &case, &p("out.safetensors")]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let f = TensorFile::load(&tmp.join("rasterize.safetensors")).unwrap();
+    assert_eq!(f.meta("gradient").unwrap(), "inria");
+    assert_eq!(f.shape("grad_out_color").unwrap(), &[3, 24, 20]);
+    assert_eq!(f.shape("means3D").unwrap(), &[4, 3]);
+    for bad in [
+        vec!["case", "new", "loss", "x", "--field", "mlp"],
+        vec!["case", "new", "rasterize", "x", "--dtype", "f16"],
+        vec!["case", "new", "rasterize", "x", "--gradient", "approx"],
+        vec!["case", "new", "step-that-does-not-exist", "x"],
+        vec!["case", "new", "deform", "x", "--field", "lstm"],
+    ] {
+        let o = run(&bad);
+        assert_eq!(o.status.code(), Some(2), "{bad:?}");
+        assert!(
+            String::from_utf8_lossy(&o.stderr).starts_with("error:"),
+            "{bad:?}"
+        );
+    }
+    std::fs::remove_dir_all(&tmp).unwrap();
+}
