@@ -11,7 +11,7 @@ Usage:
     python reference_loss.py CASE.safetensors OUT.safetensors
 
 Case (stage `loss`): image [3,H,W], gt [3,H,W]; optional metadata lambda_dssim (0.2).
-Output: l1 [1], ssim [1], loss [1], grad_image [3,H,W] (autograd of `loss`).
+Output: l1, ssim, loss (rank-0, shape []), grad_image [3,H,W] (autograd of `loss`).
 """
 
 import argparse
@@ -64,7 +64,7 @@ def run(meta, t):
     s = ssim(img, gt)
     loss = (1.0 - lam) * l1 + lam * (1.0 - s)
     loss.backward()
-    one = lambda v: v.detach().reshape(1)
+    one = lambda v: v.detach().reshape(())  # rank-0, as the Rust oracle writes them
     return {"l1": one(l1), "ssim": one(s), "loss": one(loss), "grad_image": img.grad}
 
 

@@ -119,3 +119,33 @@ fn malformed_cases_name_the_problem() {
     c.set_meta("gradient", "fancy");
     assert!(run(&c).unwrap_err().to_string().contains("fancy"));
 }
+
+#[test]
+fn gradient_metadata_selects_the_mode_and_is_echoed() {
+    let (case, _, gmeans) = case_file(PathBuf::from("case.safetensors"));
+    let out = run(&case).unwrap();
+    assert_eq!(out.meta("gradient").unwrap(), "exact");
+    assert_eq!(
+        out.get_real::<f64>("grad_means3D", &[6, 3]).unwrap(),
+        gmeans
+    );
+    let mut c = case.clone();
+    c.set_meta("gradient", "inria");
+    let out_i = run(&c).unwrap();
+    assert_eq!(out_i.meta("gradient").unwrap(), "inria");
+    // The case has a depth gradient, which inria mode ignores.
+    let s = random_scene(&SceneSpec::small(6, 3)).unwrap();
+    let input = s.input(ColorSource::Sh, CovSource::ScaleRotation);
+    let (_, state) = rasterize(&input).unwrap();
+    let gc = case
+        .get_real::<f64>("grad_out_color", &[3, 24, 32])
+        .unwrap();
+    let g = rasterize_backward(&input, &state, &gc, None, GradientMode::Inria).unwrap();
+    assert_eq!(
+        out_i.get_real::<f64>("grad_means3D", &[6, 3]).unwrap(),
+        g.means3d
+    );
+    // Forward outputs do not depend on the mode.
+    assert_eq!(out_i.tensors["color"], out.tensors["color"]);
+    assert_ne!(out_i.tensors["grad_means3D"], out.tensors["grad_means3D"]);
+}

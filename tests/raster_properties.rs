@@ -17,6 +17,15 @@ fn run<T: Real>(
     colors: ColorSource,
     cov: CovSource,
 ) -> (RasterOutput<T>, RasterGrads<T>) {
+    run_mode(scene, colors, cov, GradientMode::Exact)
+}
+
+fn run_mode<T: Real>(
+    scene: &Scene<T>,
+    colors: ColorSource,
+    cov: CovSource,
+    mode: GradientMode,
+) -> (RasterOutput<T>, RasterGrads<T>) {
     let input = scene.input(colors, cov);
     let (out, state) = rasterize(&input).unwrap();
     let gc: Vec<T> = liquid_splat::math::gradcheck::cotangent(3, out.color.len())
@@ -27,7 +36,7 @@ fn run<T: Real>(
         .into_iter()
         .map(T::from_f64)
         .collect();
-    let g = rasterize_backward(&input, &state, &gc, Some(&gd), GradientMode::Exact).unwrap();
+    let g = rasterize_backward(&input, &state, &gc, Some(&gd), mode).unwrap();
     (out, g)
 }
 
@@ -59,9 +68,22 @@ fn bit_identical_for_1_2_3_threads() {
     spec.off_axis = 4;
     let s64 = random_scene(&spec).unwrap();
     let s32 = s64.cast::<f32>();
-    for (colors, cov) in [
-        (ColorSource::Sh, CovSource::ScaleRotation),
-        (ColorSource::Precomputed, CovSource::Precomputed),
+    for (colors, cov, mode) in [
+        (
+            ColorSource::Sh,
+            CovSource::ScaleRotation,
+            GradientMode::Exact,
+        ),
+        (
+            ColorSource::Precomputed,
+            CovSource::Precomputed,
+            GradientMode::Exact,
+        ),
+        (
+            ColorSource::Sh,
+            CovSource::ScaleRotation,
+            GradientMode::Inria,
+        ),
     ] {
         let mut prints64 = Vec::new();
         let mut prints32 = Vec::new();
@@ -71,9 +93,9 @@ fn bit_identical_for_1_2_3_threads() {
                 .build()
                 .unwrap();
             pool.install(|| {
-                let (o, g) = run(&s64, colors, cov);
+                let (o, g) = run_mode(&s64, colors, cov, mode);
                 prints64.push(fingerprint(&o, &g));
-                let (o, g) = run(&s32, colors, cov);
+                let (o, g) = run_mode(&s32, colors, cov, mode);
                 prints32.push(fingerprint(&o, &g));
             });
         }

@@ -1,9 +1,14 @@
 //! `liquid-splat case ...`: work with oracle case files.
 
 use clap::{Args, Subcommand};
+use liquid_splat::deform::FieldKind;
 use liquid_splat::io::TensorFile;
+use liquid_splat::math::Precision;
+use liquid_splat::oracle::new::{golden_files, new_case, CaseSpec};
 use liquid_splat::oracle::{compare, Tolerances};
-use std::path::PathBuf;
+use liquid_splat::render::GradientMode;
+use liquid_splat::Error;
+use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 /// Subcommands of `case`.
@@ -16,10 +21,53 @@ pub enum CaseCommand {
         /// Where to write the outputs (safetensors).
         output: PathBuf,
     },
+    /// Write a seeded random, well-formed case file (inputs only) for a stage.
+    New(NewArgs),
+    /// Rewrite the golden fixtures (inputs and expected outputs) into DIR.
+    RegenGolden {
+        /// Directory to write into (created if missing), normally fixtures/cases.
+        dir: PathBuf,
+    },
     /// Compare an expected output file with an actual one, tensor by tensor.
     /// Exit 0 when every tensor is within tolerance, 1 when one is not, 2 on
     /// unusable input.
     Compare(CompareArgs),
+}
+
+/// Arguments of `case new`.
+#[derive(Args)]
+pub struct NewArgs {
+    /// Stage: rasterize, deform or loss.
+    pub stage: String,
+    /// Where to write the case (safetensors).
+    pub output: PathBuf,
+    /// Precision of every floating-point tensor: f32 or f64.
+    #[arg(long, default_value = "f64")]
+    pub dtype: String,
+    /// Seed of every random draw.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Image width (rasterize, loss).
+    #[arg(long)]
+    pub width: Option<usize>,
+    /// Image height (rasterize, loss).
+    #[arg(long)]
+    pub height: Option<usize>,
+    /// Number of Gaussians (rasterize: in view, plus one beside it) or points (deform).
+    #[arg(long)]
+    pub count: Option<usize>,
+    /// Rasterize: gradient mode, exact or inria.
+    #[arg(long)]
+    pub gradient: Option<String>,
+    /// Deform: field kind, mlp or cfc.
+    #[arg(long)]
+    pub field: Option<String>,
+    /// Deform: depth (MLP layers or CfC cells); default small.
+    #[arg(long)]
+    pub depth: Option<usize>,
+    /// Deform: width (MLP trunk or CfC hidden size); default small.
+    #[arg(long)]
+    pub hidden: Option<usize>,
 }
 
 /// Arguments of `case compare`.
@@ -53,8 +101,78 @@ pub struct CompareArgs {
 pub fn run(cmd: CaseCommand) -> ExitCode {
     match cmd {
         CaseCommand::Run { input, output } => run_case(&input, &output),
+        CaseCommand::New(args) => run_new(args),
+        CaseCommand::RegenGolden { dir } => regen_golden(&dir),
         CaseCommand::Compare(args) => run_compare(args),
     }
+}
+
+fn exit_code(outcome: liquid_splat::Result<()>) -> ExitCode {
+    match outcome {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+fn run_new(a: NewArgs) -> ExitCode {
+    exit_code((|| -> liquid_splat::Result<()> {
+        let mut spec = CaseSpec::new(&a.stage);
+        spec.precision = match a.dtype.as_str() {
+            "f32" => Precision::F32,
+            "f64" => Precision::F64,
+            other => return Err(Error::invalid("--dtype", format!("`{other}` (f32 or f64)"))),
+        };
+        spec.seed = a.seed;
+        let uses = |flag: &str, given: bool, stages: &[&str]| -> liquid_splat::Result<()> {
+            if given && !stages.contains(&a.stage.as_str()) {
+                return Err(Error::invalid(
+                    flag,
+                    format!(
+                        "not used by stage `{}` (only {})",
+                        a.stage,
+                        stages.join(", ")
+                    ),
+                ));
+            }
+            Ok(())
+        };
+        uses("--width", a.width.is_some(), &["rasterize", "loss"])?;
+        uses("--height", a.height.is_some(), &["rasterize", "loss"])?;
+        uses("--count", a.count.is_some(), &["rasterize", "deform"])?;
+        uses("--gradient", a.gradient.is_some(), &["rasterize"])?;
+        uses("--field", a.field.is_some(), &["deform"])?;
+        uses("--depth", a.depth.is_some(), &["deform"])?;
+        uses("--hidden", a.hidden.is_some(), &["deform"])?;
+        spec.width = a.width.unwrap_or(spec.width);
+        spec.height = a.height.unwrap_or(spec.height);
+        spec.count = a.count.unwrap_or(spec.count);
+        if let Some(g) = &a.gradient {
+            spec.gradient = GradientMode::from_name(g)?;
+        }
+        if let Some(f) = &a.field {
+            spec.field = FieldKind::parse(f)?;
+        }
+        spec.depth = a.depth;
+        spec.hidden = a.hidden;
+        let mut case = new_case(&spec)?;
+        case.path = a.output.clone();
+        case.save(&a.output)
+    })())
+}
+
+fn regen_golden(dir: &Path) -> ExitCode {
+    exit_code((|| -> liquid_splat::Result<()> {
+        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+        for (name, bytes) in golden_files()? {
+            let path = dir.join(&name);
+            liquid_splat::io::write_atomic(&path, &bytes)?;
+            println!("{} ({} bytes)", path.display(), bytes.len());
+        }
+        Ok(())
+    })())
 }
 
 fn run_case(input: &std::path::Path, output: &std::path::Path) -> ExitCode {

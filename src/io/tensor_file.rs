@@ -7,7 +7,7 @@
 
 use crate::error::{Error, Result};
 use crate::math::Real;
-use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use safetensors::tensor::{Dtype, SafeTensors};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
@@ -154,48 +154,87 @@ impl TensorFile {
         Ok(out)
     }
 
-    /// Serialise to safetensors bytes (deterministic: sorted names).
+    /// Serialise to safetensors bytes. Deterministic: the header lists
+    /// `__metadata__` first with its keys sorted, then the tensors in data
+    /// order (F64 before F32 and I32, then by name, as the `safetensors`
+    /// crate lays them out); the header is padded with spaces to a multiple
+    /// of 8 bytes. (The `safetensors` crate's own writer emits metadata in
+    /// hash-map order, which changes from run to run.)
     pub fn to_bytes(&self) -> Result<Vec<u8>> {
-        let bufs: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = self
-            .tensors
-            .iter()
-            .map(|(name, t)| {
-                let (dt, bytes) = match &t.data {
-                    TensorData::F32(v) => {
-                        (Dtype::F32, v.iter().flat_map(|x| x.to_le_bytes()).collect())
-                    }
-                    TensorData::F64(v) => {
-                        (Dtype::F64, v.iter().flat_map(|x| x.to_le_bytes()).collect())
-                    }
-                    TensorData::I32(v) => {
-                        (Dtype::I32, v.iter().flat_map(|x| x.to_le_bytes()).collect())
-                    }
-                };
-                (name.clone(), dt, t.shape.clone(), bytes)
-            })
-            .collect();
-        let mut views = Vec::with_capacity(bufs.len());
-        for (name, dt, shape, bytes) in &bufs {
-            let v = TensorView::new(*dt, shape.clone(), bytes).map_err(|e| Error::Tensor {
-                context: self.ctx(),
-                name: name.clone(),
-                expected: "data length matching its shape".into(),
-                found: format!("{e}"),
-            })?;
-            views.push((name.clone(), v));
+        fn align(d: &TensorData) -> u8 {
+            match d {
+                TensorData::F64(_) => 0,
+                TensorData::F32(_) => 1,
+                TensorData::I32(_) => 2,
+            }
         }
-        let meta = if self.metadata.is_empty() {
-            None
-        } else {
-            Some(
-                self.metadata
+        let mut order: Vec<(&String, &Tensor)> = self.tensors.iter().collect();
+        order.sort_by(|(ln, lt), (rn, rt)| align(&lt.data).cmp(&align(&rt.data)).then(ln.cmp(rn)));
+        let json = |s: &str| serde_json::to_string(s).expect("a string always serialises");
+        let mut header = String::from("{");
+        if !self.metadata.is_empty() {
+            header.push_str("\"__metadata__\":{");
+            for (i, (k, v)) in self.metadata.iter().enumerate() {
+                if i > 0 {
+                    header.push(',');
+                }
+                header.push_str(&format!("{}:{}", json(k), json(v)));
+            }
+            header.push('}');
+        }
+        let mut offset = 0usize;
+        for (i, (name, t)) in order.iter().enumerate() {
+            let elems: usize = t.shape.iter().product();
+            if elems != t.data.len() {
+                return Err(Error::Tensor {
+                    context: self.ctx(),
+                    name: name.to_string(),
+                    expected: format!("{elems} elements for shape {}", shape_str(&t.shape)),
+                    found: format!("{} elements", t.data.len()),
+                });
+            }
+            let bytes = elems
+                * match t.data {
+                    TensorData::F64(_) => 8,
+                    _ => 4,
+                };
+            if i > 0 || !self.metadata.is_empty() {
+                header.push(',');
+            }
+            header.push_str(&format!(
+                "{}:{{\"dtype\":\"{}\",\"shape\":[{}],\"data_offsets\":[{},{}]}}",
+                json(name),
+                t.data.dtype_name(),
+                t.shape
                     .iter()
-                    .map(|(k, v)| (k.clone(), v.clone()))
-                    .collect(),
-            )
-        };
-        safetensors::serialize(views, &meta)
-            .map_err(|e| Error::format(&self.path, format!("cannot serialise: {e}")))
+                    .map(|d| d.to_string())
+                    .collect::<Vec<_>>()
+                    .join(","),
+                offset,
+                offset + bytes
+            ));
+            offset += bytes;
+        }
+        header.push('}');
+        let mut header = header.into_bytes();
+        header.resize(header.len().div_ceil(8) * 8, b' ');
+        let mut out = Vec::with_capacity(8 + header.len() + offset);
+        out.extend_from_slice(&(header.len() as u64).to_le_bytes());
+        out.extend_from_slice(&header);
+        for (_, t) in order {
+            match &t.data {
+                TensorData::F32(v) => v
+                    .iter()
+                    .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+                TensorData::F64(v) => v
+                    .iter()
+                    .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+                TensorData::I32(v) => v
+                    .iter()
+                    .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+            }
+        }
+        Ok(out)
     }
 
     /// Write atomically to `path`.
@@ -392,6 +431,86 @@ mod tests {
         assert_eq!(g.metadata, f.metadata);
         assert_eq!(g.tensors, f.tensors);
         assert_eq!(g.to_bytes().unwrap(), bytes);
+    }
+
+    #[test]
+    fn bytes_match_the_safetensors_crate_and_do_not_depend_on_insertion_order() {
+        let mut f = TensorFile::new("mem");
+        for (k, v) in [
+            ("stage", "rasterize"),
+            ("b", "2"),
+            ("a", "x\"y"),
+            ("z", "é"),
+        ] {
+            f.set_meta(k, v);
+        }
+        f.insert_real::<f32>("w", vec![2], &[1.0, 2.0]);
+        f.insert_real::<f64>("v", vec![1, 3], &[0.5, -1.0, 3.0]);
+        f.insert_i32("u", vec![], vec![7]);
+        f.insert_real::<f32>("e", vec![0, 3], &[]);
+        let bytes = f.to_bytes().unwrap();
+        // The reference writer lays out the same data section.
+        let raw: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = vec![
+            (
+                "w".into(),
+                Dtype::F32,
+                vec![2],
+                [1.0f32, 2.0].iter().flat_map(|x| x.to_le_bytes()).collect(),
+            ),
+            (
+                "v".into(),
+                Dtype::F64,
+                vec![1, 3],
+                [0.5f64, -1.0, 3.0]
+                    .iter()
+                    .flat_map(|x| x.to_le_bytes())
+                    .collect(),
+            ),
+            ("u".into(), Dtype::I32, vec![], 7i32.to_le_bytes().to_vec()),
+            ("e".into(), Dtype::F32, vec![0, 3], vec![]),
+        ];
+        let views = raw.iter().map(|(n, d, s, b)| {
+            (
+                n.clone(),
+                safetensors::tensor::TensorView::new(*d, s.clone(), b).unwrap(),
+            )
+        });
+        let theirs = safetensors::serialize(views, &None).unwrap();
+        let their_n = u64::from_le_bytes(theirs[..8].try_into().unwrap()) as usize;
+        let st = SafeTensors::deserialize(&bytes).unwrap();
+        assert_eq!(st.names().len(), 4);
+        let (n, meta) = SafeTensors::read_metadata(&bytes).unwrap();
+        assert_eq!(n % 8, 0);
+        let m = meta.metadata().clone().unwrap();
+        assert_eq!(m.len(), 4);
+        assert_eq!(m["a"], "x\"y");
+        assert_eq!(m["z"], "é");
+        assert_eq!(&bytes[8 + n..], &theirs[8 + their_n..]);
+        let header = std::str::from_utf8(&bytes[8..8 + n]).unwrap();
+        assert!(
+            header.starts_with(
+                r#"{"__metadata__":{"a":"x\"y","b":"2","stage":"rasterize","z":"é"},"v":"#
+            ),
+            "{header}"
+        );
+        // Same content inserted in another order: same bytes.
+        let mut g = TensorFile::new("other");
+        g.insert_real::<f32>("e", vec![0, 3], &[]);
+        g.insert_i32("u", vec![], vec![7]);
+        g.insert_real::<f64>("v", vec![1, 3], &[0.5, -1.0, 3.0]);
+        g.insert_real::<f32>("w", vec![2], &[1.0, 2.0]);
+        for (k, v) in [
+            ("z", "é"),
+            ("a", "x\"y"),
+            ("stage", "rasterize"),
+            ("b", "2"),
+        ] {
+            g.set_meta(k, v);
+        }
+        assert_eq!(g.to_bytes().unwrap(), bytes);
+        let back = TensorFile::from_bytes(Path::new("mem"), &bytes).unwrap();
+        assert_eq!(back.tensors, f.tensors);
+        assert_eq!(back.metadata, f.metadata);
     }
 
     #[test]

@@ -104,6 +104,18 @@ pub fn cov3d_vjp<T: Real>(
     q: [T; 4],
     grad_cov: [T; 6],
 ) -> ([T; 3], [T; 4]) {
+    let (gs, gq) = cov3d_vjp_scaled(scale, modifier, q, grad_cov);
+    (gs.map(|g| modifier * g), gq)
+}
+
+/// Backward of [`cov3d`] as upstream returns it: `(dL/d(modifier·scale),
+/// dL/dq)`, i.e. the scale gradient without the factor `modifier`.
+pub fn cov3d_vjp_scaled<T: Real>(
+    scale: [T; 3],
+    modifier: T,
+    q: [T; 4],
+    grad_cov: [T; 6],
+) -> ([T; 3], [T; 4]) {
     let rot = quat_to_rotmat(q);
     let (s, m) = m_matrix(scale, modifier, &rot);
     // dΣ as a symmetric matrix whose entries are the per-position derivatives.
@@ -125,7 +137,7 @@ pub fn cov3d_vjp<T: Real>(
     let mut gs = [T::ZERO; 3];
     let mut gr = [[T::ZERO; 3]; 3];
     for i in 0..3 {
-        gs[i] = modifier * (gm[i][0] * rot[0][i] + gm[i][1] * rot[1][i] + gm[i][2] * rot[2][i]);
+        gs[i] = gm[i][0] * rot[0][i] + gm[i][1] * rot[1][i] + gm[i][2] * rot[2][i];
         for j in 0..3 {
             gr[j][i] = s[i] * gm[i][j];
         }

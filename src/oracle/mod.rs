@@ -9,6 +9,8 @@
 //! - [`rasterize`]: the Inria rasterizer's forward and backward.
 //! - [`deform`]: the MLP and CfC deformation fields' forward and backward.
 //! - [`loss`]: L1 + SSIM training loss and its gradient.
+//! - [`new`]: seeded random, well-formed case files for every stage, and
+//!   the golden fixtures (`fixtures/cases/`).
 //! - [`compare`](mod@compare): tensor-by-tensor comparison of an expected case output with
 //!   an actual one, with a report richer than a max-abs number (relative L2,
 //!   cosine similarity, signed bias, ULP distance, NaN/Inf counts, the worst
@@ -17,6 +19,7 @@
 pub mod compare;
 pub mod deform;
 pub mod loss;
+pub mod new;
 pub mod rasterize;
 
 pub use compare::{

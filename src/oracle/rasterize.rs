@@ -7,13 +7,15 @@
 //! layout), `campos [3]`, `bg [3]`, `grad_out_color [3,H,W]`, optional
 //! `grad_out_depth [1,H,W]`. Metadata: `stage=rasterize`, `image_height`,
 //! `image_width`, `tanfovx`, `tanfovy`, `scale_modifier`, `sh_degree`
-//! (required with `shs`), optional `gradient` (`exact`, the default). The
-//! floating-point dtype of the tensors (all F32 or all F64) selects the precision.
+//! (required with `shs`), optional `gradient` (`exact`, the default, or
+//! `inria`: see [`GradientMode`]). The floating-point dtype of the tensors
+//! (all F32 or all F64) selects the precision.
 //!
 //! Outputs: `color`, `depth`, `radii` (I32), `final_T`, `n_contrib` (I32),
 //! `means2D [N,2]`, `grad_means3D`, `grad_means2D [N,3]`, `grad_shs` or
 //! `grad_colors_precomp`, `grad_opacities [N,1]`, `grad_scales` and
-//! `grad_rotations` or `grad_cov3D_precomp`.
+//! `grad_rotations` or `grad_cov3D_precomp`. The output's metadata is the
+//! case's, with `gradient` set to the mode used.
 
 use crate::camera::RasterCamera;
 use crate::error::{Error, Result};
@@ -55,15 +57,15 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
             format!("`{stage}`, expected `{STAGE}`"),
         ));
     }
-    let mode = match case.meta_or::<String>("gradient", "exact".into())?.as_str() {
-        "exact" => GradientMode::Exact,
-        other => {
-            return Err(Error::field(
+    let mode = match case.metadata.get("gradient") {
+        None => GradientMode::Exact,
+        Some(name) => GradientMode::from_name(name.trim()).map_err(|_| {
+            Error::field(
                 &case.path,
-                "gradient",
-                format!("`{other}` is not a supported mode (exact)"),
-            ))
-        }
+                "__metadata__.gradient",
+                format!("`{name}` is not a supported mode (exact, inria)"),
+            )
+        })?,
     };
     let h: usize = case.meta_parse("image_height")?;
     let w: usize = case.meta_parse("image_width")?;
@@ -163,6 +165,7 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
 
     let mut res = TensorFile::new(case.path.clone());
     res.metadata = case.metadata.clone();
+    res.set_meta("gradient", mode.name());
     res.insert_real("color", vec![3, h, w], &out.color);
     res.insert_real("depth", vec![1, h, w], &out.depth);
     res.insert_i32("radii", vec![n], out.radii.clone());

@@ -28,7 +28,8 @@
 //!   rasterize it if its tile rectangle is non-empty, possible only for an
 //!   indefinite covariance).
 //! - Per-Gaussian gradient sums have a fixed order instead of atomics.
-//! - `GradientMode::Exact` is the true derivative (see its documentation).
+//! - `GradientMode::Exact` is the true derivative (see its documentation);
+//!   `GradientMode::Inria` reproduces upstream's backward formulas instead.
 //!
 //! ## Determinism
 //! Forward: parallel over Gaussians (independent) and over tiles (each tile
@@ -46,7 +47,7 @@ pub(crate) mod tiles;
 
 use crate::camera::RasterCamera;
 use crate::error::{Error, Result};
-use crate::math::covariance::{cov3d, cov3d_vjp};
+use crate::math::covariance::{cov3d, cov3d_vjp, cov3d_vjp_scaled};
 use crate::math::sh::{sh_to_color, sh_to_color_vjp, ShColor, MAX_SH_DEGREE};
 use crate::math::Real;
 use project::{Intrinsics, Projected, ProjectedGrad};
@@ -176,10 +177,71 @@ pub enum GradientMode {
     /// `t.x/t.z`, zero `t.x` gradient and the correct `t.z` term (upstream's is
     /// twice too large); transmittances from forward products, not division;
     /// `1/det²` exactly; the depth output differentiated (w.r.t. `z` and every
-    /// alpha). Hard thresholds (power > 0, alpha < 1/255, transmittance stop,
-    /// tiles, culling) are constants almost everywhere and contribute nothing.
+    /// alpha); the scale gradient is `d/d(scale)` (includes `scale_modifier`).
+    /// Hard thresholds (power > 0, alpha < 1/255, transmittance stop, tiles,
+    /// culling) are constants almost everywhere and contribute nothing.
     #[default]
     Exact,
+    /// The Inria rasterizer's backward formulas as written (`backward.cu` of
+    /// graphdeco-inria/diff-gaussian-rasterization @ 59f5f77, with the
+    /// forward-only depth output of the fork the D-3DGS paper pins), so a port
+    /// of that CUDA code can be compared tightly. Differences from
+    /// [`GradientMode::Exact`], each a property of upstream, not a choice:
+    ///
+    /// 1. **Alpha clamp ignored**: where `o·G > 0.99` the forward uses 0.99
+    ///    but the backward still uses `dα/dG = o`, `dα/do = G`.
+    /// 2. **Transmittance recovered by division**: walking back to front from
+    ///    the stored final `T`, `T ← T/(1 − α)`; the background enters as
+    ///    `−T_final/(1 − α)·(bg·g)` per Gaussian. Same value as exact up to
+    ///    rounding, which grows with `α` near 0.99.
+    /// 3. **Tangent clamp, `t.z` term twice too large**: when `|t.x/t.z|` is
+    ///    clamped, `dL/dt.x = 0` (correct) but `dL/dt.z` uses
+    ///    `2·fx·tx'/tz³·dL/dJ02` with the clamped `tx' = ±lim·tz`, where the
+    ///    true term is `fx·tx'/tz³·dL/dJ02`; likewise for y. Only
+    ///    `grad_means3D` changes.
+    /// 4. **Conic inverse regularised**: `1/(det² + 1e-7)` in place of
+    ///    `1/det²` (relative change `1e-7/det²`, at most about 1.2e-5 since
+    ///    the 0.3 dilation keeps `det ≥ 0.09`). Affects the gradients that
+    ///    flows through the conic: means3D, scales and rotations or cov3D.
+    /// 5. **No depth gradient**: the depth image is forward-only upstream, so
+    ///    `grad_depth` is ignored.
+    /// 6. **Scale gradient without `scale_modifier`**: the returned gradient
+    ///    is `d/d(scale_modifier·scale)`; equal to exact when the modifier is 1.
+    ///
+    /// Same mathematics, different rounding (kept to follow upstream's order):
+    /// the `means2D` gradient is scaled to NDC units (`× W/2, H/2`) per pixel
+    /// before summing; the conic's `B` gradient is accumulated as half its
+    /// value and doubled in the 2D-covariance formulas, which use `det − a·c`
+    /// for `−b²`. Hard thresholds and the terminating Gaussian are treated as
+    /// in exact mode. Sums over pixels keep the deterministic order of exact
+    /// mode (upstream uses atomics, whose order is not reproducible).
+    Inria,
+}
+
+impl GradientMode {
+    /// Every mode, in a fixed order.
+    pub const ALL: [GradientMode; 2] = [GradientMode::Exact, GradientMode::Inria];
+
+    /// The mode's name in case-file metadata (`gradient=...`) and on the CLI.
+    pub fn name(self) -> &'static str {
+        match self {
+            GradientMode::Exact => "exact",
+            GradientMode::Inria => "inria",
+        }
+    }
+
+    /// The mode called `name` (see [`GradientMode::name`]).
+    pub fn from_name(name: &str) -> Result<Self> {
+        Self::ALL
+            .into_iter()
+            .find(|m| m.name() == name)
+            .ok_or_else(|| {
+                Error::invalid(
+                    "gradient mode",
+                    format!("`{name}` is not one of: exact, inria"),
+                )
+            })
+    }
 }
 
 /// Gradients of the rasterizer's inputs.
@@ -456,8 +518,9 @@ fn gather<T: Real>(state: &ForwardState<T>, opacities: &[T], tile: usize) -> Vec
 
 /// The backward pass: gradients of `<grad_color, color> + <grad_depth, depth>`
 /// with respect to every input (`grad_color` `[3,H,W]`, `grad_depth`
-/// `[1,H,W]` or `None` for zero). `input` must be the one `state` was
-/// computed from; lengths are checked.
+/// `[1,H,W]` or `None` for zero), differentiated as `mode` says
+/// ([`GradientMode::Inria`] ignores `grad_depth`). `input` must be the one
+/// `state` was computed from; lengths are checked.
 pub fn rasterize_backward<T: Real>(
     input: &RasterInput<T>,
     state: &ForwardState<T>,
@@ -624,7 +687,11 @@ pub fn rasterize_backward<T: Real>(
             gm3.copy_from_slice(&gmean);
             match scale_rot {
                 Some((scales, rotations, modifier)) => {
-                    let (gs, gq) = cov3d_vjp(
+                    let vjp = match mode {
+                        GradientMode::Exact => cov3d_vjp,
+                        GradientMode::Inria => cov3d_vjp_scaled,
+                    };
+                    let (gs, gq) = vjp(
                         [scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]],
                         modifier,
                         std::array::from_fn(|q| rotations[4 * i + q]),

@@ -11,7 +11,8 @@
 //! 7. tile rectangle, cull if empty.
 //!
 //! The backward is the exact derivative of the forward as computed (see
-//! [`super::GradientMode::Exact`]).
+//! [`super::GradientMode::Exact`]), or upstream's formulas
+//! ([`super::GradientMode::Inria`]).
 
 use super::{GradientMode, BLOCK};
 use crate::math::covariance::sym3;
@@ -247,6 +248,9 @@ pub(crate) struct ProjectedGrad<T> {
 
 /// Backward of [`project`] for a visible Gaussian: returns
 /// `(dL/dmean (projection, EWA and depth paths), dL/dcov3d slots, dL/dndc)`.
+/// In [`GradientMode::Inria`], `g.xy` is already in NDC units, `g.conic[1]`
+/// is half of dL/dB, `g.depth` is ignored, and the conic and tangent-clamp
+/// formulas are upstream's (see the mode's documentation).
 pub(crate) fn project_vjp<T: Real>(
     k: &Intrinsics<T>,
     mean: [T; 3],
@@ -255,18 +259,33 @@ pub(crate) fn project_vjp<T: Real>(
     g: &ProjectedGrad<T>,
     mode: GradientMode,
 ) -> ([T; 3], [T; 6], [T; 2]) {
-    match mode {
-        GradientMode::Exact => {}
-    }
+    let inria = mode == GradientMode::Inria;
     let [a, b, c] = fwd.cov2d;
-    // Conic (A, B, C) = (c, −b, a)/det, det = ac − b².
-    let det = a * c - b * b;
-    let inv2 = T::ONE / (det * det);
     let [ga, gb, gc] = g.conic;
     let two = T::from_f64(2.0);
-    let da = (-(c * c) * ga + b * c * gb - b * b * gc) * inv2;
-    let db = (two * b * c * ga - (det + two * b * b) * gb + two * a * b * gc) * inv2;
-    let dc = (-(b * b) * ga + a * b * gb - a * a * gc) * inv2;
+    let (da, db, dc) = if inria {
+        // Upstream computeCov2DCUDA: `gb` is half of dL/dB; 1/(det² + 1e-7).
+        let denom = a * c - b * b;
+        let denom2inv = T::ONE / (denom * denom + T::from_f64(1e-7));
+        if denom2inv == T::ZERO {
+            (T::ZERO, T::ZERO, T::ZERO)
+        } else {
+            (
+                denom2inv * (-c * c * ga + two * b * c * gb + (denom - a * c) * gc),
+                denom2inv * two * (b * c * ga - (denom + two * b * b) * gb + a * b * gc),
+                denom2inv * (-a * a * gc + two * a * b * gb + (denom - a * c) * ga),
+            )
+        }
+    } else {
+        // Conic (A, B, C) = (c, −b, a)/det, det = ac − b².
+        let det = a * c - b * b;
+        let inv2 = T::ONE / (det * det);
+        (
+            (-(c * c) * ga + b * c * gb - b * b * gc) * inv2,
+            (two * b * c * ga - (det + two * b * b) * gb + two * a * b * gc) * inv2,
+            (-(b * b) * ga + a * b * gb - a * a * gc) * inv2,
+        )
+    };
 
     let t = [
         transform(&k.view, mean, 0),
@@ -308,14 +327,15 @@ pub(crate) fn project_vjp<T: Real>(
     let tz2 = tz * tz;
     let tz3 = tz2 * tz;
     // J02 = −fx·tx'/tz² with tx' = tx (unclamped) or ±lim·tz (clamped):
-    // ∂J02/∂tz is 2·fx·tx'/tz³ unclamped and fx·tx'/tz³ clamped.
+    // ∂J02/∂tz is 2·fx·tx'/tz³ unclamped and fx·tx'/tz³ clamped. Upstream
+    // (inria mode) uses the unclamped factor 2 in both cases.
     let (mx, kx) = if fwd.clamped_x {
-        (T::ZERO, T::ONE)
+        (T::ZERO, if inria { two } else { T::ONE })
     } else {
         (T::ONE, two)
     };
     let (my, ky) = if fwd.clamped_y {
-        (T::ZERO, T::ONE)
+        (T::ZERO, if inria { two } else { T::ONE })
     } else {
         (T::ONE, two)
     };
@@ -324,16 +344,21 @@ pub(crate) fn project_vjp<T: Real>(
     let dtz = -k.fx * tz2 * dj00 - k.fy * tz2 * dj11
         + kx * k.fx * e.tx * tz3 * dj02
         + ky * k.fy * e.ty * tz3 * dj12
-        + g.depth;
+        + if inria { T::ZERO } else { g.depth };
     let dt = [dtx, dty, dtz];
     let mut gmean: [T; 3] =
         std::array::from_fn(|j| k.wr(0, j) * dt[0] + k.wr(1, j) * dt[1] + k.wr(2, j) * dt[2]);
 
-    // Pixel = ((ndc + 1)·S − 1)/2, so d pixel / d ndc = S/2.
-    let gndc = [
-        g.xy[0] * T::from_f64(0.5 * k.width as f64),
-        g.xy[1] * T::from_f64(0.5 * k.height as f64),
-    ];
+    // Pixel = ((ndc + 1)·S − 1)/2, so d pixel / d ndc = S/2. Inria mode
+    // accumulates the centre gradient in NDC units already.
+    let gndc = if inria {
+        g.xy
+    } else {
+        [
+            g.xy[0] * T::from_f64(0.5 * k.width as f64),
+            g.xy[1] * T::from_f64(0.5 * k.height as f64),
+        ]
+    };
     // ndc = p_hom.xy · m_w, m_w = 1/(p_hom.w + 1e-7).
     let m = &k.proj;
     let hx = transform(m, mean, 0);

@@ -17,7 +17,9 @@ use super::GradientMode;
 use crate::math::Real;
 
 /// Per list entry gradient: colour (3), pixel centre (2), conic (3),
-/// opacity (1), depth (1).
+/// opacity (1), depth (1). In [`GradientMode::Inria`] the centre gradient is
+/// already in NDC units and the conic's `B` slot holds half of `dL/dB`, as
+/// upstream accumulates them.
 pub(crate) type EntryGrad<T> = [T; 10];
 
 /// Backward of one tile. `grads` has one slot per list entry of the tile and
@@ -35,9 +37,6 @@ pub(crate) fn tile_vjp<T: Real>(
     mode: GradientMode,
     grads: &mut [EntryGrad<T>],
 ) {
-    match mode {
-        GradientMode::Exact => {}
-    }
     let [x0, x1, y0, y1] = bounds;
     let hw = width * height;
     let mut hits: Vec<(usize, Hit<T>, T)> = Vec::with_capacity(splats.len());
@@ -68,6 +67,14 @@ pub(crate) fn tile_vjp<T: Real>(
                 hits.push((j, h, t));
                 t = test_t;
             }
+            if mode == GradientMode::Inria {
+                let ndc_scale = [
+                    T::from_f64(0.5 * width as f64),
+                    T::from_f64(0.5 * height as f64),
+                ];
+                inria_pixel(splats, &hits, t, g, bg, ndc_scale, grads);
+                continue;
+            }
             // Backward walk.
             let mut r = g[0] * bg[0] + g[1] * bg[1] + g[2] * bg[2];
             for &(j, h, t_i) in hits.iter().rev() {
@@ -95,5 +102,61 @@ pub(crate) fn tile_vjp<T: Real>(
                 e[7] += gp * (-half * h.dy * h.dy);
             }
         }
+    }
+}
+
+/// One pixel's backward in [`GradientMode::Inria`]: upstream `renderCUDA`
+/// backward as written. `hits` are the blended entries front to back,
+/// `t_final` the pixel's final transmittance. Transmittance is recovered by
+/// division, the alpha clamp is ignored, the depth image has no gradient, the
+/// centre gradient is scaled to NDC per pixel and the conic's `B` gradient is
+/// accumulated at half its value.
+fn inria_pixel<T: Real>(
+    splats: &[Splat<T>],
+    hits: &[(usize, Hit<T>, T)],
+    t_final: T,
+    g: [T; 3],
+    bg: [T; 3],
+    ndc_scale: [T; 2],
+    grads: &mut [EntryGrad<T>],
+) {
+    let half = T::from_f64(0.5);
+    let mut t = t_final;
+    let mut accum = [T::ZERO; 3];
+    let mut last_alpha = T::ZERO;
+    let mut last_color = [T::ZERO; 3];
+    let mut bg_dot = T::ZERO;
+    for ch in 0..3 {
+        bg_dot += bg[ch] * g[ch];
+    }
+    for &(j, h, _) in hits.iter().rev() {
+        let s = &splats[j];
+        let alpha = h.alpha;
+        t /= T::ONE - alpha;
+        let dchannel_dcolor = alpha * t;
+        let mut dl_dalpha = T::ZERO;
+        let e = &mut grads[j];
+        for ch in 0..3 {
+            let c = s.color[ch];
+            accum[ch] = last_alpha * last_color[ch] + (T::ONE - last_alpha) * accum[ch];
+            last_color[ch] = c;
+            dl_dalpha += (c - accum[ch]) * g[ch];
+            e[ch] += dchannel_dcolor * g[ch];
+        }
+        dl_dalpha *= t;
+        last_alpha = alpha;
+        dl_dalpha += (-t_final / (T::ONE - alpha)) * bg_dot;
+        let dl_dg = s.opacity * dl_dalpha;
+        let gdx = h.g * h.dx;
+        let gdy = h.g * h.dy;
+        let [ca, cb, cc] = s.conic;
+        let dg_ddelx = -gdx * ca - gdy * cb;
+        let dg_ddely = -gdy * cc - gdx * cb;
+        e[3] += dl_dg * dg_ddelx * ndc_scale[0];
+        e[4] += dl_dg * dg_ddely * ndc_scale[1];
+        e[5] += -half * gdx * h.dx * dl_dg;
+        e[6] += -half * gdx * h.dy * dl_dg;
+        e[7] += -half * gdy * h.dy * dl_dg;
+        e[8] += h.g * dl_dalpha;
     }
 }

@@ -1,0 +1,357 @@
+//! Seeded random, well-formed case files for every stage ([`new_case`]), and
+//! the golden fixtures built from them ([`golden_files`]).
+//!
+//! A generated case holds the stage's inputs only (tensors and metadata);
+//! [`super::run_case`] computes the outputs. The same spec and seed always
+//! give the same bytes. Values are drawn in f64 from [`Rng`] streams and
+//! rounded once to the requested precision (the rasterizer's camera matrices
+//! are formed in that precision, as upstream forms them in f32).
+
+use super::{deform, loss, rasterize, run_case, STAGES};
+use crate::deform::{Field, FieldConfig, FieldKind};
+use crate::error::{Error, Result};
+use crate::io::TensorFile;
+use crate::math::{Precision, Real, Rng};
+use crate::render::scene::{random_scene, SceneSpec, SCENE_SH_STRIDE};
+use crate::render::GradientMode;
+
+/// What to generate. Fields a stage does not use are ignored by it; see
+/// [`CaseSpec::new`] for the defaults.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CaseSpec {
+    /// `rasterize`, `deform` or `loss`.
+    pub stage: String,
+    pub precision: Precision,
+    pub seed: u64,
+    /// Image size (rasterize, loss).
+    pub width: usize,
+    pub height: usize,
+    /// Gaussians (rasterize: in view, plus one beside it whose tangent clamp
+    /// is active; deform: points).
+    pub count: usize,
+    /// Rasterize: metadata `gradient`.
+    pub gradient: GradientMode,
+    /// Deform: field kind.
+    pub field: FieldKind,
+    /// Deform: depth D (MLP trunk layers or CfC cells); `None` = small default.
+    pub depth: Option<usize>,
+    /// Deform: width W (MLP trunk or CfC hidden size); `None` = small default.
+    pub hidden: Option<usize>,
+}
+
+/// Defaults for generated deform cases, small so files stay small: the MLP
+/// has depth 4 and width 32, the CfC field 2 cells of width 16 with a
+/// 16-unit backbone (the timenet is always 1→256→30).
+pub const SMALL_MLP: (usize, usize) = (4, 32);
+/// See [`SMALL_MLP`].
+pub const SMALL_CFC: (usize, usize) = (2, 16);
+
+impl CaseSpec {
+    /// Defaults: f64, seed 0, 32×24 pixels, 8 Gaussians, gradient `exact`,
+    /// field `mlp`, small field size.
+    pub fn new(stage: &str) -> Self {
+        CaseSpec {
+            stage: stage.to_string(),
+            precision: Precision::F64,
+            seed: 0,
+            width: 32,
+            height: 24,
+            count: 8,
+            gradient: GradientMode::Exact,
+            field: FieldKind::Mlp,
+            depth: None,
+            hidden: None,
+        }
+    }
+}
+
+/// A seeded random case for `spec.stage`.
+pub fn new_case(spec: &CaseSpec) -> Result<TensorFile> {
+    match spec.precision {
+        Precision::F32 => new_typed::<f32>(spec),
+        Precision::F64 => new_typed::<f64>(spec),
+    }
+}
+
+fn new_typed<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+    if spec.width == 0 || spec.height == 0 || spec.width * spec.height > 1 << 22 {
+        return Err(Error::invalid(
+            "image size",
+            format!(
+                "{}x{} (each side at least 1, at most 4 Mpixel)",
+                spec.width, spec.height
+            ),
+        ));
+    }
+    if spec.count > 1 << 20 {
+        return Err(Error::invalid(
+            "count",
+            format!("{} (at most 1048576)", spec.count),
+        ));
+    }
+    let mut f = match spec.stage.as_str() {
+        s if s == rasterize::STAGE => new_rasterize::<T>(spec)?,
+        s if s == deform::STAGE => new_deform::<T>(spec)?,
+        s if s == loss::STAGE => new_loss::<T>(spec)?,
+        other => {
+            return Err(Error::invalid(
+                "stage",
+                format!("`{other}` (known: {})", STAGES.join(", ")),
+            ))
+        }
+    };
+    f.set_meta("stage", &spec.stage);
+    f.set_meta("seed", spec.seed);
+    Ok(f)
+}
+
+/// Stream indices, so each tensor's draws are independent of the others' sizes.
+const STREAM_GRAD: u64 = 1 << 40;
+const STREAM_INPUT: u64 = 2 << 40;
+
+fn normals(seed: u64, stream: u64, n: usize, sd: f64) -> Vec<f64> {
+    let mut r = Rng::stream(seed, stream);
+    (0..n).map(|_| sd * r.normal()).collect()
+}
+
+fn uniforms(seed: u64, stream: u64, n: usize, lo: f64, hi: f64) -> Vec<f64> {
+    let mut r = Rng::stream(seed, stream);
+    (0..n).map(|_| r.uniform_range(lo, hi)).collect()
+}
+
+fn to_t<T: Real>(v: &[f64]) -> Vec<T> {
+    v.iter().map(|&x| T::from_f64(x)).collect()
+}
+
+/// Shortest decimal that parses back to the same f64.
+fn exact_decimal(v: f64) -> String {
+    format!("{v:?}")
+}
+
+fn new_rasterize<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+    let mut ss = SceneSpec::small(spec.count, spec.seed);
+    ss.width = spec.width;
+    ss.height = spec.height;
+    ss.off_axis = 1;
+    let scene = random_scene(&ss)?.cast::<T>();
+    let n = scene.len();
+    let rc = &scene.raster_camera;
+    let (h, w) = (spec.height, spec.width);
+    let mut f = TensorFile::new(format!("{}.safetensors", spec.stage));
+    f.set_meta("image_height", h);
+    f.set_meta("image_width", w);
+    f.set_meta("tanfovx", exact_decimal(rc.tanfovx.to_f64()));
+    f.set_meta("tanfovy", exact_decimal(rc.tanfovy.to_f64()));
+    f.set_meta(
+        "scale_modifier",
+        exact_decimal(scene.scale_modifier.to_f64()),
+    );
+    f.set_meta("sh_degree", scene.sh_degree);
+    f.set_meta("gradient", spec.gradient.name());
+    f.insert_real("means3D", vec![n, 3], &scene.means3d);
+    f.insert_real("shs", vec![n, SCENE_SH_STRIDE, 3], &scene.sh);
+    f.insert_real("opacities", vec![n, 1], &scene.opacities);
+    f.insert_real("scales", vec![n, 3], &scene.scales);
+    f.insert_real("rotations", vec![n, 4], &scene.rotations);
+    f.insert_real("viewmatrix", vec![4, 4], &rc.viewmatrix);
+    f.insert_real("projmatrix", vec![4, 4], &rc.projmatrix);
+    f.insert_real("campos", vec![3], &rc.campos);
+    f.insert_real("bg", vec![3], &scene.background);
+    let gc = normals(spec.seed, STREAM_GRAD, 3 * h * w, 1.0);
+    let gd = normals(spec.seed, STREAM_GRAD + 1, h * w, 0.1);
+    f.insert_real("grad_out_color", vec![3, h, w], &to_t::<T>(&gc));
+    f.insert_real("grad_out_depth", vec![1, h, w], &to_t::<T>(&gd));
+    Ok(f)
+}
+
+fn new_deform<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+    let mut config = FieldConfig::new(spec.field);
+    let (d, wd) = match spec.field {
+        FieldKind::Mlp => SMALL_MLP,
+        FieldKind::Cfc => {
+            config.backbone_units = 16;
+            SMALL_CFC
+        }
+    };
+    config.depth = spec.depth.unwrap_or(d);
+    config.width = spec.hidden.unwrap_or(wd);
+    let field = Field::<f64>::new(config, spec.seed)?;
+    let weights = field.to_tensor_file();
+    let mut f = TensorFile::new(format!("{}.safetensors", spec.stage));
+    f.metadata = weights.metadata.clone();
+    for (name, t) in &weights.tensors {
+        f.insert_real(name, t.shape.clone(), &to_t::<T>(&t.data.to_f64()));
+    }
+    let n = spec.count;
+    let xyz = uniforms(spec.seed, STREAM_INPUT, 3 * n, -1.5, 1.5);
+    let t = uniforms(spec.seed, STREAM_INPUT + 1, n, 0.0, 1.0);
+    f.insert_real("xyz", vec![n, 3], &to_t::<T>(&xyz));
+    f.insert_real("t", vec![n, 1], &to_t::<T>(&t));
+    for (k, (name, width)) in [
+        ("grad_d_xyz", 3),
+        ("grad_d_rotation", 4),
+        ("grad_d_scaling", 3),
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        let g = normals(spec.seed, STREAM_GRAD + k as u64, width * n, 1.0);
+        f.insert_real(name, vec![n, width], &to_t::<T>(&g));
+    }
+    Ok(f)
+}
+
+fn new_loss<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+    let (h, w) = (spec.height, spec.width);
+    let gt = uniforms(spec.seed, STREAM_INPUT, 3 * h * w, 0.0, 1.0);
+    let noise = normals(spec.seed, STREAM_INPUT + 1, 3 * h * w, 0.1);
+    // A render near the ground truth, not clamped (the loss does not clamp).
+    let image: Vec<f64> = gt.iter().zip(&noise).map(|(g, e)| g + e).collect();
+    let mut f = TensorFile::new(format!("{}.safetensors", spec.stage));
+    f.set_meta("lambda_dssim", exact_decimal(crate::loss::LAMBDA_DSSIM));
+    f.insert_real("image", vec![3, h, w], &to_t::<T>(&image));
+    f.insert_real("gt", vec![3, h, w], &to_t::<T>(&gt));
+    Ok(f)
+}
+
+/// One golden fixture: a stage, a name suffix, and how its spec departs from
+/// [`CaseSpec::new`]. Each entry is generated in f32 and f64.
+#[derive(Clone, Copy, Debug)]
+pub struct GoldenEntry {
+    pub stage: &'static str,
+    /// Appended to the file name after the dtype (`<stage>_<dtype>_<variant>`).
+    pub variant: Option<&'static str>,
+    pub configure: fn(&mut CaseSpec),
+}
+
+fn keep(_: &mut CaseSpec) {}
+fn exact(s: &mut CaseSpec) {
+    s.gradient = GradientMode::Exact;
+}
+fn inria(s: &mut CaseSpec) {
+    s.gradient = GradientMode::Inria;
+}
+fn mlp(s: &mut CaseSpec) {
+    s.field = FieldKind::Mlp;
+}
+fn cfc(s: &mut CaseSpec) {
+    s.field = FieldKind::Cfc;
+}
+
+/// The golden fixtures, in order. Adding a stage is one entry here.
+pub const GOLDEN: &[GoldenEntry] = &[
+    GoldenEntry {
+        stage: rasterize::STAGE,
+        variant: Some("exact"),
+        configure: exact,
+    },
+    GoldenEntry {
+        stage: rasterize::STAGE,
+        variant: Some("inria"),
+        configure: inria,
+    },
+    GoldenEntry {
+        stage: deform::STAGE,
+        variant: Some("mlp"),
+        configure: mlp,
+    },
+    GoldenEntry {
+        stage: deform::STAGE,
+        variant: Some("cfc"),
+        configure: cfc,
+    },
+    GoldenEntry {
+        stage: loss::STAGE,
+        variant: None,
+        configure: keep,
+    },
+];
+
+/// Seed of every golden fixture.
+pub const GOLDEN_SEED: u64 = 2024;
+
+/// Every golden file as `(file name, bytes)`: for each [`GOLDEN`] entry and
+/// each precision, `<name>.input.safetensors` (from [`new_case`]) and
+/// `<name>.expected.safetensors` (from [`run_case`]), `<name>` being
+/// `<stage>_<dtype>[_<variant>]`.
+pub fn golden_files() -> Result<Vec<(String, Vec<u8>)>> {
+    let mut out = Vec::new();
+    for entry in GOLDEN {
+        for precision in [Precision::F32, Precision::F64] {
+            let mut spec = CaseSpec::new(entry.stage);
+            spec.precision = precision;
+            spec.seed = GOLDEN_SEED;
+            (entry.configure)(&mut spec);
+            let name = match entry.variant {
+                Some(v) => format!("{}_{}_{}", entry.stage, precision, v),
+                None => format!("{}_{}", entry.stage, precision),
+            };
+            let mut input = new_case(&spec)?;
+            input.path = format!("{name}.input.safetensors").into();
+            let mut expected = run_case(&input)?;
+            expected.path = format!("{name}.expected.safetensors").into();
+            out.push((input.path.display().to_string(), input.to_bytes()?));
+            out.push((expected.path.display().to_string(), expected.to_bytes()?));
+        }
+    }
+    Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_stage_generates_a_case_that_runs() {
+        for stage in STAGES {
+            for precision in [Precision::F32, Precision::F64] {
+                let mut spec = CaseSpec::new(stage);
+                spec.precision = precision;
+                spec.seed = 9;
+                spec.width = 20;
+                spec.height = 17;
+                spec.count = 5;
+                let case = new_case(&spec).unwrap();
+                assert_eq!(case.precision().unwrap(), precision);
+                let out = run_case(&case).unwrap();
+                assert!(!out.tensors.is_empty());
+                // Deterministic.
+                assert_eq!(
+                    new_case(&spec).unwrap().to_bytes().unwrap(),
+                    case.to_bytes().unwrap()
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn seeds_and_options_change_the_case() {
+        let a = new_case(&CaseSpec::new("rasterize")).unwrap();
+        let mut s = CaseSpec::new("rasterize");
+        s.seed = 1;
+        let b = new_case(&s).unwrap();
+        assert_ne!(a.tensors["means3D"], b.tensors["means3D"]);
+        let mut s = CaseSpec::new("deform");
+        s.field = FieldKind::Cfc;
+        let c = new_case(&s).unwrap();
+        assert_eq!(c.meta("field").unwrap(), "cfc");
+        assert!(c.contains("cells.1.ff1.weight") && !c.contains("cells.2.ff1.weight"));
+        let mut s = CaseSpec::new("rasterize");
+        s.gradient = GradientMode::Inria;
+        assert_eq!(new_case(&s).unwrap().meta("gradient").unwrap(), "inria");
+    }
+
+    #[test]
+    fn bad_specs_are_errors() {
+        assert!(new_case(&CaseSpec::new("nope"))
+            .unwrap_err()
+            .to_string()
+            .contains("rasterize"));
+        let mut s = CaseSpec::new("loss");
+        s.width = 0;
+        assert!(new_case(&s).is_err());
+        let mut s = CaseSpec::new("deform");
+        s.depth = Some(1);
+        assert!(new_case(&s).is_err(), "MLP depth must be >= 3");
+    }
+}
