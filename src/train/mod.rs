@@ -16,4 +16,4 @@ pub mod trainer;
 
 pub use config::{Schedule, TrainConfig};
 pub use run::{run, CurvePoint, Event, RunOptions, RunSummary};
-pub use trainer::{StageTimes, StepReport, Trainer, View, ViewMetrics};
+pub use trainer::{Gradients, StageTimes, StepReport, Trainer, View, ViewMetrics};

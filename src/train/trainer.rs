@@ -19,7 +19,7 @@ use crate::deform::{Field, FieldCache};
 use crate::densify::{densify_and_prune, reset_opacity, DensifyReport, DensifyStats};
 use crate::error::{Error, Result};
 use crate::gaussians::Gaussians;
-use crate::loss::{loss_and_grad, metrics};
+use crate::loss::{loss_and_grad, metrics, LossOutput};
 use crate::math::{Real, Rng};
 use crate::optim::{AdamState, GaussianOptimizer, StepGroups};
 use crate::render::{
@@ -156,6 +156,21 @@ pub struct Trainer<T> {
     pub background: [f64; 3],
 }
 
+/// Loss and gradients of one view ([`Trainer::gradients`]).
+#[derive(Clone, Debug)]
+pub struct Gradients<T> {
+    pub loss: LossOutput<T>,
+    /// The render `[3, H, W]`.
+    pub image: Vec<T>,
+    pub radii: Vec<i32>,
+    /// `[N, 3]` NDC means2D gradient (densification statistic).
+    pub grad_means2d: Vec<T>,
+    /// Gradients of the canonical raw parameters (same layout).
+    pub gaussians: Gaussians<T>,
+    /// Gradient of the field weights; `None` with the field off.
+    pub field: Option<Vec<T>>,
+}
+
 /// The forward pass of one view, kept for the backward.
 struct Forward<T> {
     offsets: Option<(Offsets<T>, FieldCache<T>)>,
@@ -235,10 +250,51 @@ impl<T: Real> Trainer<T> {
             time += noise;
         }
 
-        // Forward: field, deformed Gaussians, rasterizer, loss.
+        let (g, mut times) = self.gradients(view, time, self.field_active(it))?;
+        let mut clock = Lap(Instant::now());
+
+        // Densification, then Adam with the rates of iteration it − 1.
+        let (densify, reset, groups) = self.densify(it, &g.radii, &g.grad_means2d)?;
+        times.densify = clock.lap();
+        if it < self.config.iterations {
+            let step = it as i64 - 1;
+            if groups != StepGroups::None {
+                let lrs = self.config.lr.gaussian(step);
+                self.optimizer
+                    .step(&mut self.gaussians, &g.gaussians, &lrs, groups)?;
+            }
+            if let Some(fg) = &g.field {
+                let lr = self.config.lr.deform(step);
+                self.field_optimizer.step(self.field.params_mut(), fg, lr)?;
+            }
+        }
+        times.optimizer = clock.lap();
+        self.iteration = it;
+        Ok(StepReport {
+            iteration: it,
+            loss: g.loss.loss.to_f64(),
+            l1: g.loss.l1.to_f64(),
+            psnr: metrics::psnr_raw(&g.image, &view.image).to_f64(),
+            view: pick.index,
+            gaussians: self.gaussians.len(),
+            densify,
+            opacity_reset: reset,
+            times,
+        })
+    }
+
+    /// Loss and the gradient of every canonical parameter and field weight
+    /// for one view at `time` (exact gradient mode), changing nothing: the
+    /// forward and backward half of [`step`](Self::step).
+    pub fn gradients(
+        &self,
+        view: &View<T>,
+        time: f64,
+        field_on: bool,
+    ) -> Result<(Gradients<T>, StageTimes)> {
         let mut times = StageTimes::default();
         let mut clock = Lap(Instant::now());
-        let fwd = self.forward(time, self.field_active(it))?;
+        let fwd = self.forward(time, field_on)?;
         times.field_forward = clock.lap();
         let input = self.raster_input(&fwd, &view.camera);
         let (out, state) = rasterize(&input)?;
@@ -248,13 +304,13 @@ impl<T: Real> Trainer<T> {
             &view.image,
             view.height,
             view.width,
-            cfg.lambda_dssim,
+            self.config.lambda_dssim,
         )?;
         times.loss = clock.lap();
 
         // Backward, stage by stage in reverse.
         let rg = rasterize_backward(&input, &state, &grad_image, None, GradientMode::Exact)?;
-        let (grads, grad_offsets) = deform_gaussians_vjp(
+        let (gaussians, grad_offsets) = deform_gaussians_vjp(
             &self.gaussians,
             &rg.means3d,
             &rg.colors,
@@ -263,40 +319,22 @@ impl<T: Real> Trainer<T> {
             &rg.opacities,
         );
         times.raster_backward = clock.lap();
-        let field_grad = match &fwd.offsets {
+        let field = match &fwd.offsets {
             Some((_, cache)) => Some(self.field.backward(cache, &grad_offsets)?.0),
             None => None,
         };
         times.field_backward = clock.lap();
-
-        // Densification, then Adam with the rates of iteration it − 1.
-        let (densify, reset, groups) = self.densify(it, &out, &rg.means2d)?;
-        times.densify = clock.lap();
-        if it < self.config.iterations {
-            let step = it as i64 - 1;
-            if groups != StepGroups::None {
-                let lrs = self.config.lr.gaussian(step);
-                self.optimizer
-                    .step(&mut self.gaussians, &grads, &lrs, groups)?;
-            }
-            if let Some(g) = field_grad {
-                let lr = self.config.lr.deform(step);
-                self.field_optimizer.step(self.field.params_mut(), &g, lr)?;
-            }
-        }
-        times.optimizer = clock.lap();
-        self.iteration = it;
-        Ok(StepReport {
-            iteration: it,
-            loss: loss.loss.to_f64(),
-            l1: loss.l1.to_f64(),
-            psnr: metrics::psnr_raw(&out.color, &view.image).to_f64(),
-            view: pick.index,
-            gaussians: self.gaussians.len(),
-            densify,
-            opacity_reset: reset,
+        Ok((
+            Gradients {
+                loss,
+                image: out.color,
+                radii: out.radii,
+                grad_means2d: rg.means2d,
+                gaussians,
+                field,
+            },
             times,
-        })
+        ))
     }
 
     /// Field (if `active`) and the rasterizer's inputs at `time`.
@@ -346,14 +384,14 @@ impl<T: Real> Trainer<T> {
     fn densify(
         &mut self,
         it: u64,
-        out: &RasterOutput<T>,
+        radii: &[i32],
         grad_means2d: &[T],
     ) -> Result<(Option<DensifyReport>, bool, StepGroups)> {
         let s = &self.config.schedule;
         if it >= s.densify_until {
             return Ok((None, false, StepGroups::All));
         }
-        self.stats.update(&out.radii, grad_means2d)?;
+        self.stats.update(radii, grad_means2d)?;
         let mut report = None;
         if it > s.densify_from && it % s.densification_interval == 0 {
             let seed = Rng::stream(self.config.seed ^ STREAM_SPLIT, it).next_u64();
