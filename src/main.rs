@@ -39,6 +39,8 @@ enum Command {
     Inspect(cli::data::InspectArgs),
     /// Generate a built-in synthetic dynamic scene (bouncing, swing, blob) on disk.
     Synth(cli::data::SynthArgs),
+    /// Parameters and MACs of a deformation field (ptflops conventions).
+    Count(cli::count::CountArgs),
     /// Throughput measurements.
     Bench {
         #[command(subcommand)]
@@ -72,6 +74,7 @@ fn main() -> ExitCode {
         Command::Case { command } => cli::case::run(command),
         Command::Gradcheck { what } => report(cli::gradcheck::run(what)),
         Command::Bench { what } => report(cli::bench::run(what)),
+        Command::Count(a) => report(cli::count::run(a)),
         Command::Inspect(a) => report(cli::data::inspect(a)),
         Command::Synth(a) => report(cli::data::synth(a)),
     }

@@ -1,6 +1,9 @@
 //! `liquid-splat bench ...`: throughput measurements (never asserted in tests).
 
 use clap::Subcommand;
+use liquid_splat::deform::count::{macs_per_gaussian, MacConvention};
+use liquid_splat::deform::{Deformation, Field, FieldConfig, FieldKind};
+use liquid_splat::math::{gradcheck::cotangent, Real, Rng};
 use liquid_splat::render::{self, scene};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -13,12 +16,31 @@ pub enum BenchWhat {
         #[arg(long, default_value_t = 3)]
         reps: usize,
     },
+    /// Deformation fields forward and forward+backward (MLP D8 W256, CfC D6 W128), f32.
+    Deform {
+        /// Number of Gaussians.
+        #[arg(long, default_value_t = 20_000)]
+        n: usize,
+        /// Repetitions per measurement (the median is reported).
+        #[arg(long, default_value_t = 5)]
+        reps: usize,
+        /// Run in f64 instead of f32.
+        #[arg(long)]
+        f64: bool,
+    },
 }
 
 /// Run a `bench` subcommand.
 pub fn run(what: BenchWhat) -> liquid_splat::Result<ExitCode> {
     match what {
         BenchWhat::Raster { reps } => bench_raster(reps),
+        BenchWhat::Deform { n, reps, f64 } => {
+            if f64 {
+                bench_deform::<f64>(n, reps)
+            } else {
+                bench_deform::<f32>(n, reps)
+            }
+        }
     }
 }
 
@@ -82,5 +104,81 @@ fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
         }
     }
     println!("(pairs: pixels x entries of their tile list, an upper bound on evaluated pairs; f32, SH degree 3)");
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Seeded inputs of the deform benchmark: positions in [-1.3, 1.3]³, times in [0, 1].
+fn deform_inputs<T: Real>(n: usize) -> (Vec<T>, Vec<T>, Deformation<T>) {
+    let mut r = Rng::new(11);
+    let xyz = (0..3 * n)
+        .map(|_| T::from_f64(r.uniform_range(-1.3, 1.3)))
+        .collect();
+    let t = (0..n).map(|_| T::from_f64(r.uniform())).collect();
+    let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
+    let g = Deformation {
+        d_xyz: cast(cotangent(12, 3 * n)),
+        d_rotation: cast(cotangent(13, 4 * n)),
+        d_scaling: cast(cotangent(14, 3 * n)),
+    };
+    (xyz, t, g)
+}
+
+fn bench_deform<T: Real>(n: usize, reps: usize) -> liquid_splat::Result<ExitCode> {
+    let reps = reps.max(1);
+    if n == 0 {
+        return Err(liquid_splat::Error::invalid("n", "must be at least 1"));
+    }
+    println!(
+        "threads: {} (rayon pool; machine reports {} available); precision {}; N = {n}; median of {reps}",
+        rayon::current_num_threads(),
+        std::thread::available_parallelism().map_or(1, |n| n.get()),
+        T::PRECISION,
+    );
+    println!(
+        "matrix kernel path: {:?}",
+        liquid_splat::deform::matmul::kernel_path()
+    );
+    println!(
+        "{:<16} {:>11} {:>10} {:>16} {:>11} {:>10}",
+        "field", "forward ms", "GFLOP/s", "fwd+bwd ms", "GFLOP/s", "backward ms"
+    );
+    let (xyz, t, g) = deform_inputs::<T>(n);
+    for (name, config) in [
+        ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
+        ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
+    ] {
+        let field = Field::<T>::new(config, 0)?;
+        // FLOPs: 2 per ptflops-aten MAC (every Linear's in·out + out) per Gaussian;
+        // forward+backward counts 3× that (forward, weight and input gradients).
+        let flop = 2.0 * macs_per_gaussian(&config, MacConvention::Aten)? as f64 * n as f64;
+        // One warm-up pass (allocations, page faults), not timed.
+        let (_, cache) = field.forward(&xyz, &t)?;
+        field.backward(&cache, &g)?;
+        drop(cache);
+        let mut fwd = Vec::new();
+        let mut both = Vec::new();
+        let mut bwd = Vec::new();
+        for _ in 0..reps {
+            let t0 = Instant::now();
+            let (_, cache) = field.forward(&xyz, &t)?;
+            let t1 = Instant::now();
+            field.backward(&cache, &g)?;
+            let t2 = Instant::now();
+            fwd.push((t1 - t0).as_secs_f64());
+            bwd.push((t2 - t1).as_secs_f64());
+            both.push((t2 - t0).as_secs_f64());
+        }
+        let (f, b, fb) = (median(fwd), median(bwd), median(both));
+        println!(
+            "{:<16} {:>11.1} {:>10.1} {:>16.1} {:>11.1} {:>10.1}",
+            name,
+            f * 1e3,
+            flop / f / 1e9,
+            fb * 1e3,
+            3.0 * flop / fb / 1e9,
+            b * 1e3
+        );
+    }
+    println!("(GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs)");
     Ok(ExitCode::SUCCESS)
 }

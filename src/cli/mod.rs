@@ -3,5 +3,6 @@
 
 pub mod bench;
 pub mod case;
+pub mod count;
 pub mod data;
 pub mod gradcheck;
