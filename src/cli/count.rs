@@ -141,15 +141,25 @@ pub fn run(a: CountArgs) -> liquid_splat::Result<ExitCode> {
             "macs": macs,
             "default_convention": convention_key(MacConvention::Pytorch),
         });
-        println!("{}", serde_json::to_string_pretty(&v).expect("JSON of plain values"));
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&v).expect("JSON of plain values")
+        );
         return Ok(ExitCode::SUCCESS);
     }
     println!("field: {arch}");
-    println!("parameters: {} ({:.4} M)", grouped(params), params as f64 / 1e6);
+    println!(
+        "parameters: {} ({:.4} M)",
+        grouped(params),
+        params as f64 / 1e6
+    );
     println!("gaussians: {}", grouped(n));
     println!("MACs (ptflops conventions, UPSTREAM §8.3; a Linear layer counts in·out + out per Gaussian;");
     println!("      sin/cos, tanh, sigmoid and element-wise arithmetic count 0):");
-    println!("  {:<52} {:>16} {:>22}", "convention", "per Gaussian", "total");
+    println!(
+        "  {:<52} {:>16} {:>22}",
+        "convention", "per Gaussian", "total"
+    );
     for (conv, per, total) in &rows {
         let mark = if *conv == MacConvention::Pytorch {
             " (ptflops 0.7.4+ default)"
