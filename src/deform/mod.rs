@@ -33,6 +33,7 @@ pub mod activation;
 pub mod cfc;
 pub mod count;
 pub mod encoding;
+pub mod fastmath;
 pub mod linear;
 pub mod matmul;
 pub mod mlp;
