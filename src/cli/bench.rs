@@ -139,8 +139,8 @@ fn bench_deform<T: Real>(n: usize, reps: usize) -> liquid_splat::Result<ExitCode
         liquid_splat::deform::matmul::kernel_path()
     );
     println!(
-        "{:<16} {:>11} {:>10} {:>16} {:>11} {:>10}",
-        "field", "forward ms", "GFLOP/s", "fwd+bwd ms", "GFLOP/s", "backward ms"
+        "{:<16} {:>11} {:>10} {:>16} {:>11} {:>12} {:>18}",
+        "field", "forward ms", "GFLOP/s", "fwd+bwd ms", "GFLOP/s", "backward ms", "min fwd / fwd+bwd"
     );
     let (xyz, t, g) = deform_inputs::<T>(n);
     for (name, config) in [
@@ -168,17 +168,20 @@ fn bench_deform<T: Real>(n: usize, reps: usize) -> liquid_splat::Result<ExitCode
             bwd.push((t2 - t1).as_secs_f64());
             both.push((t2 - t0).as_secs_f64());
         }
+        let min = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
+        let (fmin, fbmin) = (min(&fwd), min(&both));
         let (f, b, fb) = (median(fwd), median(bwd), median(both));
         println!(
-            "{:<16} {:>11.1} {:>10.1} {:>16.1} {:>11.1} {:>10.1}",
+            "{:<16} {:>11.1} {:>10.1} {:>16.1} {:>11.1} {:>12.1} {:>18}",
             name,
             f * 1e3,
             flop / f / 1e9,
             fb * 1e3,
             3.0 * flop / fb / 1e9,
-            b * 1e3
+            b * 1e3,
+            format!("{:.1} / {:.1}", fmin * 1e3, fbmin * 1e3)
         );
     }
-    println!("(GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs)");
+    println!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs)");
     Ok(ExitCode::SUCCESS)
 }
