@@ -107,6 +107,32 @@ fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
+/// CPU time of the whole process (all threads) in seconds; `None` where not
+/// available. On a shared machine, CPU time ÷ threads estimates the wall
+/// time the same work would take with the cores to itself.
+fn process_cpu_seconds() -> Option<f64> {
+    #[cfg(target_os = "linux")]
+    {
+        #[repr(C)]
+        struct Timespec {
+            sec: i64,
+            nsec: i64,
+        }
+        extern "C" {
+            fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
+        }
+        const CLOCK_PROCESS_CPUTIME_ID: i32 = 2;
+        let mut ts = Timespec { sec: 0, nsec: 0 };
+        // SAFETY: clock_gettime writes one timespec (two 64-bit fields on
+        // 64-bit Linux) into the buffer we own.
+        let rc = unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+        if rc == 0 && cfg!(target_pointer_width = "64") {
+            return Some(ts.sec as f64 + ts.nsec as f64 * 1e-9);
+        }
+    }
+    None
+}
+
 /// Seeded inputs of the deform benchmark: positions in [-1.3, 1.3]³, times in [0, 1].
 fn deform_inputs<T: Real>(n: usize) -> (Vec<T>, Vec<T>, Deformation<T>) {
     let mut r = Rng::new(11);
@@ -139,8 +165,15 @@ fn bench_deform<T: Real>(n: usize, reps: usize) -> liquid_splat::Result<ExitCode
         liquid_splat::deform::matmul::kernel_path()
     );
     println!(
-        "{:<16} {:>11} {:>10} {:>16} {:>11} {:>12} {:>18}",
-        "field", "forward ms", "GFLOP/s", "fwd+bwd ms", "GFLOP/s", "backward ms", "min fwd / fwd+bwd"
+        "{:<16} {:>11} {:>10} {:>16} {:>11} {:>12} {:>18} {:>22}",
+        "field",
+        "forward ms",
+        "GFLOP/s",
+        "fwd+bwd ms",
+        "GFLOP/s",
+        "backward ms",
+        "min fwd / fwd+bwd",
+        "CPU/threads fwd / f+b"
     );
     let (xyz, t, g) = deform_inputs::<T>(n);
     for (name, config) in [
@@ -158,30 +191,51 @@ fn bench_deform<T: Real>(n: usize, reps: usize) -> liquid_splat::Result<ExitCode
         let mut fwd = Vec::new();
         let mut both = Vec::new();
         let mut bwd = Vec::new();
+        let (mut cpu_f, mut cpu_b) = (Vec::new(), Vec::new());
         for _ in 0..reps {
+            let c0 = process_cpu_seconds();
             let t0 = Instant::now();
             let (_, cache) = field.forward(&xyz, &t)?;
             let t1 = Instant::now();
+            let c1 = process_cpu_seconds();
             field.backward(&cache, &g)?;
             let t2 = Instant::now();
+            let c2 = process_cpu_seconds();
+            drop(cache);
             fwd.push((t1 - t0).as_secs_f64());
             bwd.push((t2 - t1).as_secs_f64());
             both.push((t2 - t0).as_secs_f64());
+            if let (Some(c0), Some(c1), Some(c2)) = (c0, c1, c2) {
+                cpu_f.push(c1 - c0);
+                cpu_b.push(c2 - c0);
+            }
         }
+        let threads = rayon::current_num_threads() as f64;
+        let cpu = if cpu_f.is_empty() {
+            "n/a".to_string()
+        } else {
+            format!(
+                "{:.1} / {:.1}",
+                median(cpu_f) / threads * 1e3,
+                median(cpu_b) / threads * 1e3
+            )
+        };
         let min = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
         let (fmin, fbmin) = (min(&fwd), min(&both));
         let (f, b, fb) = (median(fwd), median(bwd), median(both));
         println!(
-            "{:<16} {:>11.1} {:>10.1} {:>16.1} {:>11.1} {:>12.1} {:>18}",
+            "{:<16} {:>11.1} {:>10.1} {:>16.1} {:>11.1} {:>12.1} {:>18} {:>22}",
             name,
             f * 1e3,
             flop / f / 1e9,
             fb * 1e3,
             3.0 * flop / fb / 1e9,
             b * 1e3,
-            format!("{:.1} / {:.1}", fmin * 1e3, fbmin * 1e3)
+            format!("{:.1} / {:.1}", fmin * 1e3, fbmin * 1e3),
+            cpu
         );
     }
-    println!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs)");
+    println!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs;");
+    println!(" CPU/threads: median process CPU time / threads, the wall time with idle cores if the threads never wait; includes spin-waiting)");
     Ok(ExitCode::SUCCESS)
 }
