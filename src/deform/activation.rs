@@ -6,9 +6,9 @@
 //! with 0.666 as upstream writes it, not 2/3). `sigmoid` is used by the CfC
 //! gate and is not selectable as a backbone activation.
 //!
-//! `exp`, `tanh` and `sigmoid` come from [`fastmath`] (its own vectorisable
-//! functions in f32, libm in f64), in the forward and the derivative alike;
-//! `erf` is libm's. The slice loops are compiled for AVX-512, AVX2 and the
+//! `exp`, `erf`, `tanh` and `sigmoid` come from [`fastmath`] (its own
+//! vectorisable functions in f32, libm in f64), in the forward and the
+//! derivative alike. The slice loops are compiled for AVX-512, AVX2 and the
 //! baseline and picked at run time (same bits on every path).
 
 use super::fastmath::{self, multiversion};
@@ -78,7 +78,7 @@ impl Activation {
                 }
             }
             Activation::Gelu => {
-                half * x * (T::ONE + (x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)).erf())
+                half * x * (T::ONE + fastmath::erf(x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)))
             }
             Activation::Silu => x * fastmath::sigmoid(x),
             Activation::Tanh => fastmath::tanh(x),
@@ -104,7 +104,7 @@ impl Activation {
             Activation::Gelu => {
                 // Φ(x) + x·φ(x), φ(x) = e^{−x²/2}/√(2π).
                 let cdf =
-                    half * (T::ONE + (x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)).erf());
+                    half * (T::ONE + fastmath::erf(x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)));
                 let pdf = fastmath::exp(-(half * x * x)) * T::from_f64(0.398_942_280_401_432_7);
                 cdf + x * pdf
             }

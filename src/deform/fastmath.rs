@@ -1,8 +1,8 @@
-//! Vectorisable, deterministic `exp`, `tanh` and `sigmoid` for the f32
+//! Vectorisable, deterministic `exp`, `erf`, `tanh` and `sigmoid` for the f32
 //! deformation fields, written in plain arithmetic (no libm, no FMA).
 //!
 //! **Decision (deform DECISIONS).** In f32 the deformation fields evaluate
-//! every `exp`, `tanh` and `sigmoid` of their activations and of the CfC
+//! every `exp`, `erf`, `tanh` and `sigmoid` of their activations and of the CfC
 //! cell — forward and backward alike — with the functions of this module and
 //! nothing else; f64 keeps the pinned libm of [`Real`] (it is the
 //! gradient-check and reference precision). Why: libm's scalar `tanhf` costs
@@ -14,7 +14,7 @@
 //! exact, so a lane of an AVX-512, AVX2 or SSE2 loop and a scalar call give
 //! the same bits. Rust never fuses `a*b + c` into an FMA.
 //!
-//! Algorithms (the Cephes `expf`/`tanhf` coefficients):
+//! Algorithms (the Cephes `expf`/`tanhf`/`erff` coefficients):
 //! - `exp`: `x` clamped to [−104, 89] (outside, the result is 0 or +∞
 //!   anyway), `k = round(x·log₂e)` (by adding and subtracting 1.5·2²³),
 //!   `r = (x − k·ln2_hi) − k·ln2_lo` (Cody–Waite, `k·ln2_hi` exact),
@@ -24,10 +24,14 @@
 //! - `tanh`: `|x| < 0.625`: `x + x·x²·P₄(x²)`; otherwise
 //!   `sign(x)·(1 − 2/(e^{2|x|} + 1))`.
 //! - `sigmoid(x) = 1/(1 + exp(−x))`.
+//! - `erf`: `|x| < 1`: `x·T₆(x²)`; otherwise `sign(x)·(1 − erfc|x|)` with
+//!   `erfc a = e^{−a²}·(1/a)·P₈(1/a²)` (`R₇` for `a ≥ 2`), `a` capped at 10.
 //!
 //! Accuracy against the correctly rounded value (tested on a dense sweep
 //! against libm in f64, `tests` below): `exp` ≤ 1 ulp, `tanh` ≤ 1 ulp,
-//! `sigmoid` ≤ 2 ulp for normal results; libm's own f32 functions are ≤ 1 ulp.
+//! `sigmoid` ≤ 2 ulp, `erf` ≤ 2 ulp for normal results (libm's own f32
+//! functions are ≤ 1 ulp). A rounding difference of this size is far below
+//! the f32 tolerance of the oracle comparisons with PyTorch.
 
 use crate::math::Real;
 use std::any::TypeId;
@@ -36,6 +40,7 @@ use std::any::TypeId;
 pub const EXP_MAX_ULP: u32 = 1;
 pub const TANH_MAX_ULP: u32 = 1;
 pub const SIGMOID_MAX_ULP: u32 = 2;
+pub const ERF_MAX_ULP: u32 = 2;
 
 /// `e^x` in f32.
 #[inline(always)]
@@ -51,7 +56,9 @@ pub fn exp_f32(x: f32) -> f32 {
     } else {
         x
     };
-    let kf = (xc * LOG2E + ROUND) - ROUND;
+    // t holds round(xc·log₂e) in its low mantissa bits (|k| ≤ 151 < 2²²).
+    let t = xc * LOG2E + ROUND;
+    let kf = t - ROUND;
     let r = (xc - kf * LN2_HI) - kf * LN2_LO;
     let z = r * r;
     let p = (((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r
@@ -63,12 +70,13 @@ pub fn exp_f32(x: f32) -> f32 {
         * z
         + r
         + 1.0;
-    // NaN converts to 0 (Rust's saturating cast): p is NaN then anyway.
-    let k = kf as i32;
+    // k from the bits of t (exact; integer ops that vectorise, wrapping so
+    // that no overflow check breaks the vector loop; for NaN, p is NaN).
+    let k = (t.to_bits() as i32).wrapping_sub(ROUND.to_bits() as i32);
     let k1 = k >> 1;
-    let k2 = k - k1;
-    let s1 = f32::from_bits(((k1 + 127) as u32) << 23);
-    let s2 = f32::from_bits(((k2 + 127) as u32) << 23);
+    let k2 = k.wrapping_sub(k1);
+    let s1 = f32::from_bits((k1.wrapping_add(127) as u32).wrapping_shl(23));
+    let s2 = f32::from_bits((k2.wrapping_add(127) as u32).wrapping_shl(23));
     p * s1 * s2
 }
 
@@ -89,6 +97,66 @@ pub fn tanh_f32(x: f32) -> f32 {
     // Both have the sign of x (copysign also makes tanh(−0) = −0).
     if a < 0.625 {
         small.copysign(x)
+    } else {
+        large.copysign(x)
+    }
+}
+
+/// Evaluate `c[0]·x^(n−1) + … + c[n−1]` by Horner's rule, left to right.
+#[inline(always)]
+fn horner(x: f32, c: &[f32]) -> f32 {
+    let mut y = c[0];
+    for &ci in &c[1..] {
+        y = y * x + ci;
+    }
+    y
+}
+
+/// `erf x` in f32.
+#[inline(always)]
+pub fn erf_f32(x: f32) -> f32 {
+    const T: [f32; 7] = [
+        7.853_861_4e-5,
+        -8.010_193_6e-4,
+        5.188_327_7e-3,
+        -2.685_381_2e-2,
+        1.128_358_5e-1,
+        -3.761_262_6e-1,
+        1.128_379_2,
+    ];
+    const P: [f32; 9] = [
+        2.326_82e-2,
+        -1.387_039_4e-1,
+        3.687_424_7e-1,
+        -5.824_733e-1,
+        6.210_004_6e-1,
+        -4.944_515_3e-1,
+        3.404_879_9e-1,
+        -2.741_127e-1,
+        5.638_259_4e-1,
+    ];
+    const R: [f32; 8] = [
+        -1.047_766_4e1,
+        1.297_72e1,
+        -7.495_518_7,
+        2.921_019,
+        -1.015_265_3,
+        4.218_463_4e-1,
+        -2.820_767_4e-1,
+        5.641_895e-1,
+    ];
+    let a = x.abs();
+    // |x| < 1: x·T(x²).
+    let small = x * horner(x * x, &T);
+    // |x| ≥ 1: 1 − erfc|x|, erfc a = e^{−a²}·(1/a)·P(1/a²) (R for a ≥ 2).
+    let ac = if a > 10.0 { 10.0 } else { a };
+    let q = 1.0 / ac;
+    let y = q * q;
+    let p = if ac < 2.0 { horner(y, &P) } else { horner(y, &R) };
+    let erfc = exp_f32(-(ac * ac)) * q * p;
+    let large = 1.0 - erfc;
+    if a < 1.0 {
+        small
     } else {
         large.copysign(x)
     }
@@ -124,6 +192,16 @@ pub fn exp<T: Real>(x: T) -> T {
         from_f32(exp_f32(to_f32(x)))
     } else {
         x.exp()
+    }
+}
+
+/// `erf x` as the fields compute it: this module's f32 function, libm in f64.
+#[inline(always)]
+pub fn erf<T: Real>(x: T) -> T {
+    if is_f32::<T>() {
+        from_f32(erf_f32(to_f32(x)))
+    } else {
+        x.erf()
     }
 }
 
@@ -268,6 +346,21 @@ mod tests {
             let got = exp_f32(x) as f64;
             assert!((got - want).abs() <= 1.5 * f32::from_bits(1) as f64, "{x}");
         }
+    }
+
+    #[test]
+    fn erf_error_bound() {
+        let mut worst = 0;
+        for x in bits_sweep(-6.0, 6.0, 61).into_iter().chain(sweep(-6.0, 6.0, 2_000_000)) {
+            let e = ulp(erf_f32(x), libm::erf(x as f64));
+            assert!(e <= ERF_MAX_ULP, "erf({x:e}) = {} vs {}", erf_f32(x), libm::erf(x as f64));
+            worst = worst.max(e);
+        }
+        assert_eq!(worst, ERF_MAX_ULP, "the documented erf bound is tight");
+        assert_eq!(erf_f32(0.0), 0.0);
+        assert_eq!(erf_f32(30.0), 1.0);
+        assert_eq!(erf_f32(f32::NEG_INFINITY), -1.0);
+        assert!(erf_f32(f32::NAN).is_nan());
     }
 
     #[test]
