@@ -27,6 +27,9 @@ pub enum BenchWhat {
         /// Run in f64 instead of f32.
         #[arg(long)]
         f64: bool,
+        /// Only this field (mlp or cfc); both by default.
+        #[arg(long)]
+        field: Option<String>,
     },
 }
 
@@ -34,11 +37,17 @@ pub enum BenchWhat {
 pub fn run(what: BenchWhat) -> liquid_splat::Result<ExitCode> {
     match what {
         BenchWhat::Raster { reps } => bench_raster(reps),
-        BenchWhat::Deform { n, reps, f64 } => {
+        BenchWhat::Deform {
+            n,
+            reps,
+            f64,
+            field,
+        } => {
+            let only = field.as_deref().map(FieldKind::parse).transpose()?;
             if f64 {
-                bench_deform::<f64>(n, reps)
+                bench_deform::<f64>(n, reps, only)
             } else {
-                bench_deform::<f32>(n, reps)
+                bench_deform::<f32>(n, reps, only)
             }
         }
     }
@@ -149,7 +158,11 @@ fn deform_inputs<T: Real>(n: usize) -> (Vec<T>, Vec<T>, Deformation<T>) {
     (xyz, t, g)
 }
 
-fn bench_deform<T: Real>(n: usize, reps: usize) -> liquid_splat::Result<ExitCode> {
+fn bench_deform<T: Real>(
+    n: usize,
+    reps: usize,
+    only: Option<FieldKind>,
+) -> liquid_splat::Result<ExitCode> {
     let reps = reps.max(1);
     if n == 0 {
         return Err(liquid_splat::Error::invalid("n", "must be at least 1"));
@@ -180,6 +193,9 @@ fn bench_deform<T: Real>(n: usize, reps: usize) -> liquid_splat::Result<ExitCode
         ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
         ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
     ] {
+        if only.is_some_and(|k| k != config.kind) {
+            continue;
+        }
         let field = Field::<T>::new(config, 0)?;
         // FLOPs: 2 per ptflops-aten MAC (every Linear's in·out + out) per Gaussian;
         // forward+backward counts 3× that (forward, weight and input gradients).
