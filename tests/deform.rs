@@ -531,6 +531,59 @@ fn forward_matches_scalar_reimplementation() {
 
 // ---- determinism, files, oracle ----
 
+/// The same bits whichever instruction set the matrix and element-wise
+/// kernels run on (AVX-512, AVX2, baseline SSE2), for every activation's
+/// f32 transcendental functions (exp, erf, tanh, sigmoid).
+#[test]
+fn fields_are_bit_identical_across_cpu_paths() {
+    use liquid_splat::deform::fastmath::{force_isa, Isa};
+    let n = 700;
+    for cfg in [
+        config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu),
+        config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::Silu),
+        config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::LecunTanh),
+        config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::Tanh),
+        config(FieldKind::Mlp, Variant::Synthetic, 4, 16, Activation::Relu),
+        six_dof(Variant::Real, 3),
+    ] {
+        let field = Field::<f32>::new(cfg, 9).unwrap();
+        let mut r = Rng::new(2);
+        let mut draw = |k: usize, lo: f64, hi: f64| -> Vec<f32> {
+            (0..k).map(|_| r.uniform_range(lo, hi) as f32).collect()
+        };
+        let xyz = draw(3 * n, -1.5, 1.5);
+        let t = draw(n, 0.0, 1.0);
+        let g = Deformation {
+            d_xyz: draw(3 * n, -1.0, 1.0),
+            d_rotation: draw(4 * n, -1.0, 1.0),
+            d_scaling: draw(3 * n, -1.0, 1.0),
+        };
+        let run = || {
+            let (d, c) = field.forward(&xyz, &t).unwrap();
+            let (gp, gt) = field.backward(&c, &g).unwrap();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            (
+                bits(&d.d_xyz),
+                bits(&d.d_rotation),
+                bits(&d.d_scaling),
+                bits(&gp),
+                bits(&gt),
+            )
+        };
+        assert!(force_isa(Some(Isa::Baseline)));
+        let base = run();
+        for isa in [Isa::Avx2, Isa::Avx512] {
+            if force_isa(Some(isa)) {
+                assert_eq!(base, run(), "{cfg:?} on {isa:?}");
+            } else {
+                eprintln!("{isa:?} not supported here: not compared");
+            }
+        }
+        force_isa(None);
+        assert_eq!(base, run(), "{cfg:?}");
+    }
+}
+
 #[test]
 fn fields_are_bit_identical_across_thread_counts() {
     let n = 1100; // more than two reduction chunks of 512 rows

@@ -78,7 +78,8 @@ impl Activation {
                 }
             }
             Activation::Gelu => {
-                half * x * (T::ONE + fastmath::erf(x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)))
+                half * x
+                    * (T::ONE + fastmath::erf(x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)))
             }
             Activation::Silu => x * fastmath::sigmoid(x),
             Activation::Tanh => fastmath::tanh(x),
@@ -103,8 +104,8 @@ impl Activation {
             }
             Activation::Gelu => {
                 // Φ(x) + x·φ(x), φ(x) = e^{−x²/2}/√(2π).
-                let cdf =
-                    half * (T::ONE + fastmath::erf(x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)));
+                let cdf = half
+                    * (T::ONE + fastmath::erf(x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2)));
                 let pdf = fastmath::exp(-(half * x * x)) * T::from_f64(0.398_942_280_401_432_7);
                 cdf + x * pdf
             }

@@ -130,8 +130,12 @@ impl CfcNet {
                 pres.push(pre);
             }
             let z = cur;
-            let mut gate = Stacked(&cell.heads).forward(p, &z, n);
-            cell_forward_fused(&mut gate, &mut h, t, w);
+            // The four heads, then the fused cell pass on each block of rows
+            // while it is in cache.
+            let gate = Stacked(&cell.heads).forward_then(p, &z, n, &mut h, w, |r0, g, hb| {
+                let rows = hb.len() / w;
+                cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
+            });
             cells.push(CellCache {
                 inputs,
                 pres,
@@ -217,16 +221,10 @@ impl CfcNet {
     }
 }
 
-/// The fused element-wise pass of a cell. `gate` holds the four head
-/// outputs per row (ff1 | ff2 | time_a | time_b, each W wide) on entry and
-/// tanh(ff1) | tanh(ff2) | time_a | σ on exit; `h` receives the new state.
-fn cell_forward_fused<T: Real>(gate: &mut [T], h: &mut [T], t: &[T], w: usize) {
-    gate.par_chunks_mut(4 * w * ROWS_PER_TASK)
-        .zip(h.par_chunks_mut(w * ROWS_PER_TASK))
-        .zip(t.par_chunks(ROWS_PER_TASK))
-        .for_each(|((g, h), t)| cell_forward_rows(g, h, t, w));
-}
-
+// The fused element-wise pass of a cell on a block of rows. `g` holds the
+// four head outputs per row (ff1 | ff2 | time_a | time_b, each W wide) on
+// entry and tanh(ff1) | tanh(ff2) | time_a | σ on exit; `h` receives the new
+// state; `t` is τ per row.
 multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [T], t: &[T], w: usize) => cell_forward_rows_body);
 
 #[inline(always)]

@@ -35,6 +35,7 @@
 
 use crate::math::Real;
 use std::any::TypeId;
+use std::sync::atomic::{AtomicU8, Ordering};
 
 /// Maximum errors in ulp asserted by the tests (see the module docs).
 pub const EXP_MAX_ULP: u32 = 1;
@@ -61,8 +62,7 @@ pub fn exp_f32(x: f32) -> f32 {
     let kf = t - ROUND;
     let r = (xc - kf * LN2_HI) - kf * LN2_LO;
     let z = r * r;
-    let p = (((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r
-        + 4.166_579_6e-2)
+    let p = (((((1.987_569_1e-4 * r + 1.398_199_9e-3) * r + 8.333_452e-3) * r + 4.166_579_6e-2)
         * r
         + 1.666_666_5e-1)
         * r
@@ -85,13 +85,12 @@ pub fn exp_f32(x: f32) -> f32 {
 pub fn tanh_f32(x: f32) -> f32 {
     let a = x.abs();
     let z = x * x;
-    let small = ((((-5.704_988_7e-3 * z + 2.063_908_9e-2) * z - 5.373_971_6e-2) * z
-        + 1.333_144_2e-1)
-        * z
-        - 3.333_328_2e-1)
-        * z
-        * x
-        + x;
+    let small =
+        ((((-5.704_988_7e-3 * z + 2.063_908_9e-2) * z - 5.373_971_6e-2) * z + 1.333_144_2e-1) * z
+            - 3.333_328_2e-1)
+            * z
+            * x
+            + x;
     let e = exp_f32(a + a);
     let large = 1.0 - 2.0 / (e + 1.0);
     // Both have the sign of x (copysign also makes tanh(−0) = −0).
@@ -152,7 +151,11 @@ pub fn erf_f32(x: f32) -> f32 {
     let ac = if a > 10.0 { 10.0 } else { a };
     let q = 1.0 / ac;
     let y = q * q;
-    let p = if ac < 2.0 { horner(y, &P) } else { horner(y, &R) };
+    let p = if ac < 2.0 {
+        horner(y, &P)
+    } else {
+        horner(y, &R)
+    };
     let erfc = exp_f32(-(ac * ac)) * q * p;
     let large = 1.0 - erfc;
     if a < 1.0 {
@@ -226,28 +229,63 @@ pub fn sigmoid<T: Real>(x: T) -> T {
     }
 }
 
-/// Which instruction set the element-wise loops of the fields are compiled
-/// for (all give the same bits; see the module docs).
+/// Which instruction set the element-wise loops and the matrix kernels of
+/// the fields run on (all give the same bits; see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Isa {
+pub enum Isa {
     Avx512,
     Avx2,
     Baseline,
 }
 
-/// The widest [`Isa`] this CPU supports.
-#[inline]
-pub(crate) fn isa() -> Isa {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::is_x86_feature_detected!("avx512f") {
-            return Isa::Avx512;
-        }
-        if std::is_x86_feature_detected!("avx2") {
-            return Isa::Avx2;
-        }
+/// 0: the widest the CPU supports; otherwise a pinned [`Isa`] (1 baseline,
+/// 2 AVX2, 3 AVX-512).
+static FORCED: AtomicU8 = AtomicU8::new(0);
+
+/// Pin the fields' kernels to `isa` (`None`: the widest available), for
+/// tests and benchmarks that compare paths; a path the CPU lacks is refused
+/// (returns false). Never changes results, only speed.
+pub fn force_isa(isa: Option<Isa>) -> bool {
+    let code = match isa {
+        None => 0,
+        Some(Isa::Baseline) => 1,
+        Some(Isa::Avx2) if supported(Isa::Avx2) => 2,
+        Some(Isa::Avx512) if supported(Isa::Avx512) => 3,
+        Some(_) => return false,
+    };
+    FORCED.store(code, Ordering::Relaxed);
+    true
+}
+
+fn supported(isa: Isa) -> bool {
+    match isa {
+        Isa::Baseline => true,
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx2 => std::is_x86_feature_detected!("avx2"),
+        #[cfg(target_arch = "x86_64")]
+        Isa::Avx512 => std::is_x86_feature_detected!("avx512f"),
+        #[cfg(not(target_arch = "x86_64"))]
+        _ => false,
     }
-    Isa::Baseline
+}
+
+/// The [`Isa`] the kernels run on now: the pinned one, or the widest this
+/// CPU supports.
+#[inline]
+pub fn isa() -> Isa {
+    match FORCED.load(Ordering::Relaxed) {
+        1 => return Isa::Baseline,
+        2 => return Isa::Avx2,
+        3 => return Isa::Avx512,
+        _ => {}
+    }
+    if supported(Isa::Avx512) {
+        Isa::Avx512
+    } else if supported(Isa::Avx2) {
+        Isa::Avx2
+    } else {
+        Isa::Baseline
+    }
 }
 
 /// Define `$name(args)` that runs the `#[inline(always)]` generic function
@@ -326,9 +364,17 @@ mod tests {
     #[test]
     fn exp_error_bound() {
         let mut worst = 0;
-        for x in bits_sweep(-87.0, 88.7, 97).into_iter().chain(sweep(-87.0, 88.7, 2_000_000)) {
+        for x in bits_sweep(-87.0, 88.7, 97)
+            .into_iter()
+            .chain(sweep(-87.0, 88.7, 2_000_000))
+        {
             let e = ulp(exp_f32(x), libm::exp(x as f64));
-            assert!(e <= EXP_MAX_ULP, "exp({x:e}): {} vs {}", exp_f32(x), libm::exp(x as f64));
+            assert!(
+                e <= EXP_MAX_ULP,
+                "exp({x:e}): {} vs {}",
+                exp_f32(x),
+                libm::exp(x as f64)
+            );
             worst = worst.max(e);
         }
         assert_eq!(worst, EXP_MAX_ULP, "the documented bound is tight");
@@ -351,9 +397,17 @@ mod tests {
     #[test]
     fn erf_error_bound() {
         let mut worst = 0;
-        for x in bits_sweep(-6.0, 6.0, 61).into_iter().chain(sweep(-6.0, 6.0, 2_000_000)) {
+        for x in bits_sweep(-6.0, 6.0, 61)
+            .into_iter()
+            .chain(sweep(-6.0, 6.0, 2_000_000))
+        {
             let e = ulp(erf_f32(x), libm::erf(x as f64));
-            assert!(e <= ERF_MAX_ULP, "erf({x:e}) = {} vs {}", erf_f32(x), libm::erf(x as f64));
+            assert!(
+                e <= ERF_MAX_ULP,
+                "erf({x:e}) = {} vs {}",
+                erf_f32(x),
+                libm::erf(x as f64)
+            );
             worst = worst.max(e);
         }
         assert_eq!(worst, ERF_MAX_ULP, "the documented erf bound is tight");
@@ -366,13 +420,25 @@ mod tests {
     #[test]
     fn tanh_and_sigmoid_error_bounds() {
         let (mut wt, mut ws) = (0, 0);
-        for x in bits_sweep(-12.0, 12.0, 61).into_iter().chain(sweep(-12.0, 12.0, 2_000_000)) {
+        for x in bits_sweep(-12.0, 12.0, 61)
+            .into_iter()
+            .chain(sweep(-12.0, 12.0, 2_000_000))
+        {
             let e = ulp(tanh_f32(x), libm::tanh(x as f64));
-            assert!(e <= TANH_MAX_ULP, "tanh({x:e}) = {} vs {}", tanh_f32(x), libm::tanh(x as f64));
+            assert!(
+                e <= TANH_MAX_ULP,
+                "tanh({x:e}) = {} vs {}",
+                tanh_f32(x),
+                libm::tanh(x as f64)
+            );
             wt = wt.max(e);
             let want = 1.0 / (1.0 + libm::exp(-(x as f64)));
             let e = ulp(sigmoid_f32(x), want);
-            assert!(e <= SIGMOID_MAX_ULP, "sigmoid({x:e}) = {} vs {want}", sigmoid_f32(x));
+            assert!(
+                e <= SIGMOID_MAX_ULP,
+                "sigmoid({x:e}) = {} vs {want}",
+                sigmoid_f32(x)
+            );
             ws = ws.max(e);
         }
         assert_eq!(wt, TANH_MAX_ULP, "the documented tanh bound is tight");

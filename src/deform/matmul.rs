@@ -93,25 +93,55 @@ impl<'a, T: Real> MatRef<'a, T> {
 /// `C = A · B` for `A` `[m, k]` and `B` `[k, n]` (any strides); `C` is
 /// returned row-major `[m, n]`.
 pub fn matmul<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+    matmul_then(a, b, &mut [], 0, |_, _, _| {})
+}
+
+/// [`matmul`], then `epilogue(first_row, c_rows, side_rows)` on each block
+/// of output rows right after it is computed (while it is in cache), with
+/// the matching rows of `side` (row-major, `side_w` values per row of `A`;
+/// empty when `side_w` is 0). Blocks are disjoint and each is visited once,
+/// so an element-wise epilogue gives the same bits as a separate pass.
+pub fn matmul_then<T: Real, F>(
+    a: MatRef<'_, T>,
+    b: MatRef<'_, T>,
+    side: &mut [T],
+    side_w: usize,
+    epilogue: F,
+) -> Vec<T>
+where
+    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+{
     assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
     let (m, k, n) = (a.rows, a.cols, b.cols);
+    assert_eq!(
+        side.len(),
+        m * side_w,
+        "matmul_then: side has the wrong size"
+    );
     let mut c = vec![T::ZERO; m * n];
     if m == 0 || n == 0 {
         return c;
     }
     let packed = pack_b(b);
+    let run = |blk: usize, cb: &mut [T], sb: &mut [T]| {
+        let r0 = blk * ROW_BLOCK;
+        let rows = cb.len() / n;
+        block_product(a.rows(r0, rows), &packed, k, n, cb);
+        epilogue(r0, cb, sb);
+    };
     if m <= ROW_BLOCK {
         // One block: no task to share.
-        block_product(a, &packed, k, n, &mut c);
-        return c;
+        run(0, &mut c, side);
+    } else if side_w == 0 {
+        c.par_chunks_mut(ROW_BLOCK * n)
+            .enumerate()
+            .for_each(|(blk, cb)| run(blk, cb, &mut []));
+    } else {
+        c.par_chunks_mut(ROW_BLOCK * n)
+            .zip(side.par_chunks_mut(ROW_BLOCK * side_w))
+            .enumerate()
+            .for_each(|(blk, (cb, sb))| run(blk, cb, sb));
     }
-    c.par_chunks_mut(ROW_BLOCK * n)
-        .enumerate()
-        .for_each(|(blk, cb)| {
-            let r0 = blk * ROW_BLOCK;
-            let rows = cb.len() / n;
-            block_product(a.rows(r0, rows), &packed, k, n, cb);
-        });
     c
 }
 
@@ -244,18 +274,15 @@ pub enum KernelPath {
     Baseline,
 }
 
-/// The kernel version this CPU runs (all give identical results).
+/// The kernel version that runs now (all give identical results): the
+/// widest this CPU supports, unless pinned by
+/// [`fastmath::force_isa`](super::fastmath::force_isa).
 pub fn kernel_path() -> KernelPath {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::is_x86_feature_detected!("avx512f") {
-            return KernelPath::Avx512;
-        }
-        if std::is_x86_feature_detected!("avx2") {
-            return KernelPath::Avx2;
-        }
+    match super::fastmath::isa() {
+        super::fastmath::Isa::Avx512 => KernelPath::Avx512,
+        super::fastmath::Isa::Avx2 => KernelPath::Avx2,
+        super::fastmath::Isa::Baseline => KernelPath::Baseline,
     }
-    KernelPath::Baseline
 }
 
 /// A tile routine: `out[r][q] = Σ_p A[r][p] · panel[p][q]` for `r < MR`,
@@ -350,7 +377,11 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                 // `acc`.
                 Some(f) if k > 0 => unsafe {
                     let (ap, rs, cs) = if direct {
-                        (a.data.as_ptr().add(i * a.row_stride), a.row_stride, a.col_stride)
+                        (
+                            a.data.as_ptr().add(i * a.row_stride),
+                            a.row_stride,
+                            a.col_stride,
+                        )
                     } else {
                         (strip.as_ptr(), 1, MR)
                     };

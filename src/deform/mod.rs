@@ -44,7 +44,7 @@ pub use activation::Activation;
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
 use crate::math::{Real, Rng};
-use linear::{linear_backward, linear_forward, InputGrad, LinearShape};
+use linear::{linear_backward, linear_forward, linear_forward_then, InputGrad, LinearShape};
 use std::fmt;
 
 /// Which deformation network.
@@ -368,6 +368,23 @@ impl Stacked<'_> {
     pub fn forward<T: Real>(&self, p: &[T], x: &[T], n: usize) -> Vec<T> {
         let (w, b) = self.gather(p);
         linear_forward(x, n, self.shape(), &w, &b)
+    }
+    /// [`forward`](Self::forward) with an epilogue on each block of output
+    /// rows (see [`linear_forward_then`]).
+    pub fn forward_then<T: Real, F>(
+        &self,
+        p: &[T],
+        x: &[T],
+        n: usize,
+        side: &mut [T],
+        side_w: usize,
+        epilogue: F,
+    ) -> Vec<T>
+    where
+        F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    {
+        let (w, b) = self.gather(p);
+        linear_forward_then(x, n, self.shape(), &w, &b, side, side_w, epilogue)
     }
     /// Backward; `g` is `[n, Σ out]`.
     pub fn backward<T: Real>(
