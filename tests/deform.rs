@@ -109,8 +109,21 @@ fn clear_relu_kinks(field: &mut Field<f64>, xyz: &[f64], t: &[f64], margin: f64)
 /// Check every parameter tensor and t; entries of tensors with more than
 /// `dense` values are sampled with a fixed stride (all tensors are covered).
 fn gradcheck(cfg: FieldConfig, seed: u64, dense: usize) {
+    gradcheck_with(cfg, seed, dense, 1e-2, |_| {});
+}
+
+/// [`gradcheck`] with relative weight step `h`, after `prepare` edits the
+/// initial weights.
+fn gradcheck_with(
+    cfg: FieldConfig,
+    seed: u64,
+    dense: usize,
+    h: f64,
+    prepare: impl Fn(&mut Field<f64>),
+) {
     let n = 5;
     let mut field = Field::<f64>::new(cfg, seed).unwrap();
+    prepare(&mut field);
     let (xyz, t) = inputs(seed + 100, n);
     // Relative weight steps of 3 × 1e-2 move pre-activations by far less than this.
     clear_relu_kinks(&mut field, &xyz, &t, 0.2);
@@ -121,7 +134,6 @@ fn gradcheck(cfg: FieldConfig, seed: u64, dense: usize) {
     };
     let (_, cache) = field.forward(&xyz, &t).unwrap();
     let (gp, gt) = field.backward(&cache, &v).unwrap();
-    let h = 1e-2;
     let tol = 1e-6;
     let mut f = field.clone();
     for spec in field.layout() {
@@ -156,6 +168,93 @@ fn gradcheck(cfg: FieldConfig, seed: u64, dense: usize) {
         .collect();
     let r = compare("t", &gt, &num, 1e-10);
     assert!(r.passes(tol), "{cfg:?}\n{r}");
+    // The canonical means: zero for additive fields, (R − I)ᵀ·g through the
+    // 6-DoF warp (the network's own input stays stop-gradient).
+    let gx = field.xyz_vjp(&cache, &v).unwrap();
+    // Only the explicit dependence on x: the warp with the head outputs frozen.
+    let wv = warp_heads(&field, &xyz, &t);
+    let num: Vec<f64> = (0..3 * n)
+        .map(|k| {
+            let mut xx = xyz.clone();
+            central6(xyz[k], 1e-2, |x| {
+                xx[k] = x;
+                warp_dot(&wv, &xx, &v.d_xyz)
+            })
+        })
+        .collect();
+    if cfg.is_6dof {
+        let r = compare("xyz (warp)", &gx, &num, 1e-10);
+        assert!(r.passes(tol), "{cfg:?}\n{r}");
+    } else {
+        assert!(gx.iter().all(|&g| g == 0.0));
+    }
+}
+
+/// The raw `branch_w | branch_v` outputs `[n, 6]` of a 6-DoF field, by the
+/// scalar re-implementation; empty for other fields.
+fn warp_heads(field: &Field<f64>, xyz: &[f64], t: &[f64]) -> Vec<f64> {
+    let cfg = *field.config();
+    if !cfg.is_6dof {
+        return Vec::new();
+    }
+    let file = field.to_tensor_file();
+    (0..t.len())
+        .flat_map(|i| {
+            let h = mlp_trunk(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
+            let mut wv = lin(&file, "branch_w", &h);
+            wv.extend(lin(&file, "branch_v", &h));
+            wv
+        })
+        .collect()
+}
+
+/// `Σ g · warp(w, v, x)` over Gaussians with the head outputs `wv` held fixed.
+fn warp_dot(wv: &[f64], xyz: &[f64], g: &[f64]) -> f64 {
+    if wv.is_empty() {
+        return 0.0;
+    }
+    let mut s = 0.0;
+    for i in 0..xyz.len() / 3 {
+        let d = se3_rodrigues(
+            &wv[6 * i..6 * i + 3],
+            &wv[6 * i + 3..6 * i + 6],
+            &xyz[3 * i..3 * i + 3],
+        );
+        for k in 0..3 {
+            s += g[3 * i + k] * d[k];
+        }
+    }
+    s
+}
+
+fn cross(a: &[f64], b: &[f64]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+/// Independent form of the 6-DoF warp (UPSTREAM §6.2) with cross products
+/// instead of matrices: `R·x = x + sin θ·w'×x + (1 − cos θ)·w'×(w'×x)`,
+/// `p = θ·v' + (1 − cos θ)·w'×v' + (θ − sin θ)·w'×(w'×v')`, with
+/// `w' = w/θ + 1e-5`, `v' = v/θ + 1e-5`; returns `R·x + p − x` (and the
+/// crate's θ = 0 limit, `v`, when w = 0).
+fn se3_rodrigues(w: &[f64], v: &[f64], x: &[f64]) -> [f64; 3] {
+    let th = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    if th == 0.0 {
+        return [v[0], v[1], v[2]];
+    }
+    let w1: Vec<f64> = w.iter().map(|c| c / th + 1e-5).collect();
+    let v1: Vec<f64> = v.iter().map(|c| c / th + 1e-5).collect();
+    let (s, c) = (libm::sin(th), libm::cos(th));
+    let wx = cross(&w1, x);
+    let wwx = cross(&w1, &wx);
+    let wv = cross(&w1, &v1);
+    let wwv = cross(&w1, &wv);
+    [0, 1, 2].map(|k| {
+        s * wx[k] + (1.0 - c) * wwx[k] + th * v1[k] + (1.0 - c) * wv[k] + (th - s) * wwv[k]
+    })
 }
 
 #[test]
@@ -209,6 +308,68 @@ fn mlp_gradients_several_depths() {
         7,
         256,
     );
+}
+
+fn six_dof(variant: Variant, depth: usize) -> FieldConfig {
+    FieldConfig {
+        is_6dof: true,
+        ..config(FieldKind::Mlp, variant, depth, 8, Activation::Relu)
+    }
+}
+
+#[test]
+fn mlp_6dof_gradients() {
+    gradcheck(six_dof(Variant::Real, 3), 31, 256);
+    gradcheck(six_dof(Variant::Synthetic, 4), 32, 256);
+}
+
+/// Zero `branch_w` weights and bias: w = 0 exactly, θ = 0 for every Gaussian.
+fn zero_branch_w(field: &mut Field<f64>) {
+    for s in field.layout().to_vec() {
+        if s.name.starts_with("branch_w.") {
+            field.params_mut()[s.range()].fill(0.0);
+        }
+    }
+}
+
+#[test]
+fn mlp_6dof_theta_zero_is_finite_and_defined() {
+    let cfg = six_dof(Variant::Real, 3);
+    let mut field = Field::<f64>::new(cfg, 40).unwrap();
+    zero_branch_w(&mut field);
+    let n = 6;
+    let (xyz, t) = inputs(41, n);
+    let (d, cache) = field.forward(&xyz, &t).unwrap();
+    // d_xyz is the branch_v output itself (R = I, p = v).
+    let file = field.to_tensor_file();
+    for i in 0..n {
+        let h = mlp_trunk(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
+        let v = lin(&file, "branch_v", &h);
+        for k in 0..3 {
+            let got = d.d_xyz[3 * i + k];
+            assert!(
+                (got - v[k]).abs() <= 1e-12 * v[k].abs().max(1.0),
+                "{got} vs {}",
+                v[k]
+            );
+        }
+    }
+    let g = Deformation {
+        d_xyz: cotangent(1, 3 * n),
+        d_rotation: cotangent(2, 4 * n),
+        d_scaling: cotangent(3, 3 * n),
+    };
+    let (gp, gt) = field.backward(&cache, &g).unwrap();
+    assert!(gp.iter().chain(&gt).all(|v| v.is_finite()));
+    assert!(field.xyz_vjp(&cache, &g).unwrap().iter().all(|&v| v == 0.0));
+    // The defined gradient at θ = 0 is what central differences see there.
+    // The warp is not smooth at w = 0 (its 1e-5 offsets add terms in ‖w‖²
+    // that depend on the direction of w at order 1e-5), so the difference
+    // quotient carries an error of about 0.6·step·1e-5·C; and upstream's
+    // `(1 − cos θ)·[w']×(v/θ)` loses ~1e-16/θ absolutely to cancellation,
+    // which the quotient divides by the step again. A step of 1e-3 keeps
+    // both near 1e-9 (1e-2 leaves ~1e-7 of the first, 1e-5 ~1e-6 of the second).
+    gradcheck_with(cfg, 40, 256, 1e-3, zero_branch_w);
 }
 
 // ---- independent scalar re-implementation of the forward passes ----
@@ -290,7 +451,8 @@ fn scalar_cfc(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
     lin(f, "head", &h)
 }
 
-fn scalar_mlp(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
+/// The MLP trunk's last hidden layer.
+fn mlp_trunk(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
     let mut input = gamma(x, 10);
     input.extend(time_feature(f, c.variant, t));
     let mut h = input.clone();
@@ -301,7 +463,17 @@ fn scalar_mlp(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
             h = input.iter().chain(h.iter()).copied().collect();
         }
     }
-    let mut out = lin(f, "gaussian_warp", &h);
+    h
+}
+
+fn scalar_mlp(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
+    let h = mlp_trunk(f, c, x, t);
+    let mut out = if c.is_6dof {
+        let (w, v) = (lin(f, "branch_w", &h), lin(f, "branch_v", &h));
+        se3_rodrigues(&w, &v, x).to_vec()
+    } else {
+        lin(f, "gaussian_warp", &h)
+    };
     out.extend(lin(f, "gaussian_rotation", &h));
     out.extend(lin(f, "gaussian_scaling", &h));
     out
@@ -325,6 +497,13 @@ fn forward_matches_scalar_reimplementation() {
         ),
         (
             config(FieldKind::Mlp, Variant::Real, 4, 8, Activation::Relu),
+            scalar_mlp,
+        ),
+        (
+            FieldConfig {
+                is_6dof: true,
+                ..config(FieldKind::Mlp, Variant::Synthetic, 4, 8, Activation::Relu)
+            },
             scalar_mlp,
         ),
     ] {
@@ -351,6 +530,59 @@ fn forward_matches_scalar_reimplementation() {
 }
 
 // ---- determinism, files, oracle ----
+
+/// The same bits whichever instruction set the matrix and element-wise
+/// kernels run on (AVX-512, AVX2, baseline SSE2), for every activation's
+/// f32 transcendental functions (exp, erf, tanh, sigmoid).
+#[test]
+fn fields_are_bit_identical_across_cpu_paths() {
+    use liquid_splat::deform::fastmath::{force_isa, Isa};
+    let n = 700;
+    for cfg in [
+        config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu),
+        config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::Silu),
+        config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::LecunTanh),
+        config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::Tanh),
+        config(FieldKind::Mlp, Variant::Synthetic, 4, 16, Activation::Relu),
+        six_dof(Variant::Real, 3),
+    ] {
+        let field = Field::<f32>::new(cfg, 9).unwrap();
+        let mut r = Rng::new(2);
+        let mut draw = |k: usize, lo: f64, hi: f64| -> Vec<f32> {
+            (0..k).map(|_| r.uniform_range(lo, hi) as f32).collect()
+        };
+        let xyz = draw(3 * n, -1.5, 1.5);
+        let t = draw(n, 0.0, 1.0);
+        let g = Deformation {
+            d_xyz: draw(3 * n, -1.0, 1.0),
+            d_rotation: draw(4 * n, -1.0, 1.0),
+            d_scaling: draw(3 * n, -1.0, 1.0),
+        };
+        let run = || {
+            let (d, c) = field.forward(&xyz, &t).unwrap();
+            let (gp, gt) = field.backward(&c, &g).unwrap();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            (
+                bits(&d.d_xyz),
+                bits(&d.d_rotation),
+                bits(&d.d_scaling),
+                bits(&gp),
+                bits(&gt),
+            )
+        };
+        assert!(force_isa(Some(Isa::Baseline)));
+        let base = run();
+        for isa in [Isa::Avx2, Isa::Avx512] {
+            if force_isa(Some(isa)) {
+                assert_eq!(base, run(), "{cfg:?} on {isa:?}");
+            } else {
+                eprintln!("{isa:?} not supported here: not compared");
+            }
+        }
+        force_isa(None);
+        assert_eq!(base, run(), "{cfg:?}");
+    }
+}
 
 #[test]
 fn fields_are_bit_identical_across_thread_counts() {
@@ -547,6 +779,9 @@ fn bad_inputs_are_errors() {
         .contains("depth"));
     cfg.depth = 8;
     cfg.is_6dof = true;
+    assert!(Field::<f32>::new(cfg, 0).is_ok());
+    let mut cfg = FieldConfig::new(FieldKind::Cfc);
+    cfg.is_6dof = true;
     assert!(Field::<f32>::new(cfg, 0)
         .unwrap_err()
         .to_string()
@@ -558,6 +793,7 @@ fn oracle_stage_matches_direct_calls() {
     for cfg in [
         config(FieldKind::Cfc, Variant::Synthetic, 3, 8, Activation::Silu),
         config(FieldKind::Mlp, Variant::Real, 3, 8, Activation::Relu),
+        six_dof(Variant::Synthetic, 3),
     ] {
         let field = Field::<f64>::new(cfg, 4).unwrap();
         let n = 6;
@@ -587,6 +823,14 @@ fn oracle_stage_matches_direct_calls() {
             d.d_scaling
         );
         assert_eq!(out.get_real::<f64>("grad_t", &[n, 1]).unwrap(), gt);
+        if cfg.is_6dof {
+            assert_eq!(
+                out.get_real::<f64>("grad_xyz", &[n, 3]).unwrap(),
+                field.xyz_vjp(&c, &g).unwrap()
+            );
+        } else {
+            assert!(out.get_real::<f64>("grad_xyz", &[n, 3]).is_err());
+        }
         for s in field.layout() {
             assert_eq!(
                 out.get_real::<f64>(&format!("grad.{}", s.name), &s.shape)

@@ -1,6 +1,9 @@
 //! `liquid-splat bench ...`: throughput measurements (never asserted in tests).
 
 use clap::Subcommand;
+use liquid_splat::deform::count::{macs_per_gaussian, MacConvention};
+use liquid_splat::deform::{Deformation, Field, FieldConfig, FieldKind};
+use liquid_splat::math::{gradcheck::cotangent, Real, Rng};
 use liquid_splat::render::{self, scene};
 use std::process::ExitCode;
 use std::time::Instant;
@@ -18,6 +21,21 @@ pub enum BenchWhat {
         #[command(flatten)]
         spec: super::train::RunSpec,
     },
+    /// Deformation fields forward and forward+backward (MLP D8 W256, CfC D6 W128), f32.
+    Deform {
+        /// Number of Gaussians.
+        #[arg(long, default_value_t = 20_000)]
+        n: usize,
+        /// Repetitions per measurement (the median is reported).
+        #[arg(long, default_value_t = 5)]
+        reps: usize,
+        /// Run in f64 instead of f32.
+        #[arg(long)]
+        f64: bool,
+        /// Only this field (mlp or cfc); both by default.
+        #[arg(long)]
+        field: Option<String>,
+    },
 }
 
 /// Run a `bench` subcommand.
@@ -28,6 +46,19 @@ pub fn run(what: BenchWhat) -> liquid_splat::Result<ExitCode> {
             super::train::PrecisionArg::F32 => bench_train::<f32>(&spec),
             super::train::PrecisionArg::F64 => bench_train::<f64>(&spec),
         },
+        BenchWhat::Deform {
+            n,
+            reps,
+            f64,
+            field,
+        } => {
+            let only = field.as_deref().map(FieldKind::parse).transpose()?;
+            if f64 {
+                bench_deform::<f64>(n, reps, only)
+            } else {
+                bench_deform::<f32>(n, reps, only)
+            }
+        }
     }
 }
 
@@ -154,5 +185,145 @@ fn bench_train<T: liquid_splat::math::Real>(
         1e3 * total / n as f64,
         1e3 * active.values().iter().sum::<f64>() / n_active.max(1) as f64
     );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// CPU time of the whole process (all threads) in seconds; `None` where not
+/// available. On a shared machine, CPU time ÷ threads estimates the wall
+/// time the same work would take with the cores to itself.
+fn process_cpu_seconds() -> Option<f64> {
+    #[cfg(target_os = "linux")]
+    {
+        #[repr(C)]
+        struct Timespec {
+            sec: i64,
+            nsec: i64,
+        }
+        extern "C" {
+            fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
+        }
+        const CLOCK_PROCESS_CPUTIME_ID: i32 = 2;
+        let mut ts = Timespec { sec: 0, nsec: 0 };
+        // SAFETY: clock_gettime writes one timespec (two 64-bit fields on
+        // 64-bit Linux) into the buffer we own.
+        let rc = unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
+        if rc == 0 && cfg!(target_pointer_width = "64") {
+            return Some(ts.sec as f64 + ts.nsec as f64 * 1e-9);
+        }
+    }
+    None
+}
+
+/// Seeded inputs of the deform benchmark: positions in [-1.3, 1.3]³, times in [0, 1].
+fn deform_inputs<T: Real>(n: usize) -> (Vec<T>, Vec<T>, Deformation<T>) {
+    let mut r = Rng::new(11);
+    let xyz = (0..3 * n)
+        .map(|_| T::from_f64(r.uniform_range(-1.3, 1.3)))
+        .collect();
+    let t = (0..n).map(|_| T::from_f64(r.uniform())).collect();
+    let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
+    let g = Deformation {
+        d_xyz: cast(cotangent(12, 3 * n)),
+        d_rotation: cast(cotangent(13, 4 * n)),
+        d_scaling: cast(cotangent(14, 3 * n)),
+    };
+    (xyz, t, g)
+}
+
+fn bench_deform<T: Real>(
+    n: usize,
+    reps: usize,
+    only: Option<FieldKind>,
+) -> liquid_splat::Result<ExitCode> {
+    let reps = reps.max(1);
+    if n == 0 {
+        return Err(liquid_splat::Error::invalid("n", "must be at least 1"));
+    }
+    println!(
+        "threads: {} (rayon pool; machine reports {} available); precision {}; N = {n}; median of {reps}",
+        rayon::current_num_threads(),
+        std::thread::available_parallelism().map_or(1, |n| n.get()),
+        T::PRECISION,
+    );
+    println!(
+        "matrix kernel path: {:?}",
+        liquid_splat::deform::matmul::kernel_path()
+    );
+    println!(
+        "{:<16} {:>11} {:>10} {:>16} {:>11} {:>12} {:>18} {:>22}",
+        "field",
+        "forward ms",
+        "GFLOP/s",
+        "fwd+bwd ms",
+        "GFLOP/s",
+        "backward ms",
+        "min fwd / fwd+bwd",
+        "CPU/threads fwd / f+b"
+    );
+    let (xyz, t, g) = deform_inputs::<T>(n);
+    for (name, config) in [
+        ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
+        ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
+    ] {
+        if only.is_some_and(|k| k != config.kind) {
+            continue;
+        }
+        let field = Field::<T>::new(config, 0)?;
+        // FLOPs: 2 per ptflops-aten MAC (every Linear's in·out + out) per Gaussian;
+        // forward+backward counts 3× that (forward, weight and input gradients).
+        let flop = 2.0 * macs_per_gaussian(&config, MacConvention::Aten)? as f64 * n as f64;
+        // One warm-up pass (allocations, page faults), not timed.
+        let (_, cache) = field.forward(&xyz, &t)?;
+        field.backward(&cache, &g)?;
+        drop(cache);
+        let mut fwd = Vec::new();
+        let mut both = Vec::new();
+        let mut bwd = Vec::new();
+        let (mut cpu_f, mut cpu_b) = (Vec::new(), Vec::new());
+        for _ in 0..reps {
+            let c0 = process_cpu_seconds();
+            let t0 = Instant::now();
+            let (_, cache) = field.forward(&xyz, &t)?;
+            let t1 = Instant::now();
+            let c1 = process_cpu_seconds();
+            field.backward(&cache, &g)?;
+            let t2 = Instant::now();
+            let c2 = process_cpu_seconds();
+            drop(cache);
+            fwd.push((t1 - t0).as_secs_f64());
+            bwd.push((t2 - t1).as_secs_f64());
+            both.push((t2 - t0).as_secs_f64());
+            if let (Some(c0), Some(c1), Some(c2)) = (c0, c1, c2) {
+                cpu_f.push(c1 - c0);
+                cpu_b.push(c2 - c0);
+            }
+        }
+        let threads = rayon::current_num_threads() as f64;
+        let cpu = if cpu_f.is_empty() {
+            "n/a".to_string()
+        } else {
+            format!(
+                "{:.1} / {:.1}",
+                median(cpu_f) / threads * 1e3,
+                median(cpu_b) / threads * 1e3
+            )
+        };
+        let min = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
+        let (fmin, fbmin) = (min(&fwd), min(&both));
+        let (f, b, fb) = (median(fwd), median(bwd), median(both));
+        println!(
+            "{:<16} {:>11.1} {:>10.1} {:>16.1} {:>11.1} {:>12.1} {:>18} {:>22}",
+            name,
+            f * 1e3,
+            flop / f / 1e9,
+            fb * 1e3,
+            3.0 * flop / fb / 1e9,
+            b * 1e3,
+            format!("{:.1} / {:.1}", fmin * 1e3, fbmin * 1e3),
+            cpu
+        );
+    }
+    println!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs;");
+    println!(" CPU/threads: median process CPU time / threads, the wall time with idle cores if the threads never wait; includes spin-waiting)");
     Ok(ExitCode::SUCCESS)
 }

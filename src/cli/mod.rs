@@ -3,6 +3,7 @@
 
 pub mod bench;
 pub mod case;
+pub mod count;
 pub mod data;
 pub mod experiment;
 pub mod gradcheck;

@@ -11,10 +11,11 @@
 //! The four heads of a cell run as one stacked product, and the gate, both
 //! tanh's and the new state are computed in one fused pass over the `N × W`
 //! block, which keeps what the backward needs (tanh(ff1), tanh(ff2),
-//! time_a(z) and σ).
+//! time_a(z) and σ). tanh and sigmoid are [`fastmath`]'s (vectorised in f32).
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
+use super::fastmath::{self, multiversion};
 use super::linear::InputGrad;
 use super::{
     concat_cols, take_cols, Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked,
@@ -129,8 +130,12 @@ impl CfcNet {
                 pres.push(pre);
             }
             let z = cur;
-            let mut gate = Stacked(&cell.heads).forward(p, &z, n);
-            cell_forward_fused(&mut gate, &mut h, t, w);
+            // The four heads, then the fused cell pass on each block of rows
+            // while it is in cache.
+            let gate = Stacked(&cell.heads).forward_then(p, &z, n, &mut h, w, |r0, g, hb| {
+                let rows = hb.len() / w;
+                cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
+            });
             cells.push(CellCache {
                 inputs,
                 pres,
@@ -216,29 +221,34 @@ impl CfcNet {
     }
 }
 
-/// The fused element-wise pass of a cell. `gate` holds the four head
-/// outputs per row (ff1 | ff2 | time_a | time_b, each W wide) on entry and
-/// tanh(ff1) | tanh(ff2) | time_a | σ on exit; `h` receives the new state.
-fn cell_forward_fused<T: Real>(gate: &mut [T], h: &mut [T], t: &[T], w: usize) {
-    gate.par_chunks_mut(4 * w * ROWS_PER_TASK)
-        .zip(h.par_chunks_mut(w * ROWS_PER_TASK))
-        .zip(t.par_chunks(ROWS_PER_TASK))
-        .for_each(|((g, h), t)| {
-            for ((g, h), &tau) in g.chunks_exact_mut(4 * w).zip(h.chunks_exact_mut(w)).zip(t) {
-                let (ff, tt) = g.split_at_mut(2 * w);
-                let (f1, f2) = ff.split_at_mut(w);
-                let (ta, tb) = tt.split_at_mut(w);
-                for j in 0..w {
-                    let a = f1[j].tanh();
-                    let b = f2[j].tanh();
-                    let s = (ta[j] * tau + tb[j]).sigmoid();
-                    h[j] = a * (T::ONE - s) + s * b;
-                    f1[j] = a;
-                    f2[j] = b;
-                    tb[j] = s;
-                }
-            }
-        });
+// The fused element-wise pass of a cell on a block of rows. `g` holds the
+// four head outputs per row (ff1 | ff2 | time_a | time_b, each W wide) on
+// entry and tanh(ff1) | tanh(ff2) | time_a | σ on exit; `h` receives the new
+// state; `t` is τ per row.
+multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [T], t: &[T], w: usize) => cell_forward_rows_body);
+
+#[inline(always)]
+fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [T], t: &[T], w: usize) {
+    for ((g, h), &tau) in g.chunks_exact_mut(4 * w).zip(h.chunks_exact_mut(w)).zip(t) {
+        let (ff, tt) = g.split_at_mut(2 * w);
+        let (f1, f2) = ff.split_at_mut(w);
+        let (ta, tb) = tt.split_at_mut(w);
+        for ((((f1, f2), ta), tb), h) in f1
+            .iter_mut()
+            .zip(f2.iter_mut())
+            .zip(ta.iter())
+            .zip(tb.iter_mut())
+            .zip(h.iter_mut())
+        {
+            let a = fastmath::tanh(*f1);
+            let b = fastmath::tanh(*f2);
+            let s = fastmath::sigmoid(*ta * tau + *tb);
+            *h = a * (T::ONE - s) + s * b;
+            *f1 = a;
+            *f2 = b;
+            *tb = s;
+        }
+    }
 }
 
 /// vjp of [`cell_forward_fused`]: the gradient of the four head outputs
@@ -252,29 +262,65 @@ fn cell_backward_fused<T: Real>(gate: &[T], dh: &[T], t: &[T], w: usize, dt: &mu
         .zip(t.par_chunks(ROWS_PER_TASK))
         .zip(dt.par_chunks_mut(ROWS_PER_TASK))
         .for_each(|((((o, g), dh), t), dt)| {
-            for ((((o, g), dh), &tau), dt) in o
-                .chunks_exact_mut(4 * w)
-                .zip(g.chunks_exact(4 * w))
-                .zip(dh.chunks_exact(w))
-                .zip(t)
-                .zip(dt.iter_mut())
-            {
-                let mut sum = T::ZERO;
-                for j in 0..w {
-                    let (a, b, ta, s) = (g[j], g[w + j], g[2 * w + j], g[3 * w + j]);
-                    let gh = dh[j];
-                    let da = gh * (T::ONE - s);
-                    let db = gh * s;
-                    let ds = gh * (b - a);
-                    let dpre = ds * (s * (T::ONE - s));
-                    o[j] = da * (T::ONE - a * a);
-                    o[w + j] = db * (T::ONE - b * b);
-                    o[2 * w + j] = dpre * tau;
-                    o[3 * w + j] = dpre;
-                    sum += dpre * ta;
-                }
-                *dt += sum;
-            }
+            let mut prod = vec![T::ZERO; w];
+            cell_backward_rows(o, g, dh, t, dt, &mut prod, w)
         });
     out
+}
+
+multiversion!(fn cell_backward_rows<T: Real>(o: &mut [T], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
+
+/// Rows of [`cell_backward_fused`]. The per-row sum for τ runs in its own
+/// loop over `prod` (j ascending), so the element-wise loop vectorises.
+#[inline(always)]
+fn cell_backward_rows_body<T: Real>(
+    o: &mut [T],
+    g: &[T],
+    dh: &[T],
+    t: &[T],
+    dt: &mut [T],
+    prod: &mut [T],
+    w: usize,
+) {
+    for ((((o, g), dh), &tau), dt) in o
+        .chunks_exact_mut(4 * w)
+        .zip(g.chunks_exact(4 * w))
+        .zip(dh.chunks_exact(w))
+        .zip(t)
+        .zip(dt.iter_mut())
+    {
+        let (o1, rest) = o.split_at_mut(w);
+        let (o2, rest) = rest.split_at_mut(w);
+        let (o3, o4) = rest.split_at_mut(w);
+        let (ga, rest) = g.split_at(w);
+        let (gb, rest) = rest.split_at(w);
+        let (gta, gs) = rest.split_at(w);
+        for (((((((((o1, o2), o3), o4), &a), &b), &ta), &s), &gh), pr) in o1
+            .iter_mut()
+            .zip(o2.iter_mut())
+            .zip(o3.iter_mut())
+            .zip(o4.iter_mut())
+            .zip(ga)
+            .zip(gb)
+            .zip(gta)
+            .zip(gs)
+            .zip(dh)
+            .zip(prod.iter_mut())
+        {
+            let da = gh * (T::ONE - s);
+            let db = gh * s;
+            let ds = gh * (b - a);
+            let dpre = ds * (s * (T::ONE - s));
+            *o1 = da * (T::ONE - a * a);
+            *o2 = db * (T::ONE - b * b);
+            *o3 = dpre * tau;
+            *o4 = dpre;
+            *pr = dpre * ta;
+        }
+        let mut sum = T::ZERO;
+        for &p in prod.iter() {
+            sum += p;
+        }
+        *dt += sum;
+    }
 }

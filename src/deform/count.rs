@@ -128,6 +128,12 @@ mod tests {
             522_280
         );
         assert_eq!(param_count(&cfg(Mlp, 8, 256, Relu, Real)).unwrap(), 506_378);
+        // UPSTREAM §6.3: the 6-DoF MLP (branch_w and branch_v replace the warp head).
+        let six = FieldConfig {
+            is_6dof: true,
+            ..cfg(Mlp, 8, 256, Relu, Synthetic)
+        };
+        assert_eq!(param_count(&six).unwrap(), 523_051);
         assert_eq!(
             param_count(&cfg(Cfc, 8, 256, Gelu, Synthetic)).unwrap(),
             782_888

@@ -4,9 +4,8 @@
 //! Each output is `(Σ_k x_k·W_jk, k ascending from zero) + b_j`: the bias is
 //! added after the dot product.
 
-use super::matmul::{column_sums, matmul, matmul_tn, MatRef};
+use super::matmul::{column_sums, matmul, matmul_then, matmul_tn, MatRef};
 use crate::math::Real;
-use rayon::prelude::*;
 
 /// Shape of a linear layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -27,20 +26,39 @@ pub enum InputGrad {
 
 /// `y = x·Wᵀ + b` for `x` `[n, in]`; returns `[n, out]`.
 pub fn linear_forward<T: Real>(x: &[T], n: usize, shape: LinearShape, w: &[T], b: &[T]) -> Vec<T> {
+    linear_forward_then(x, n, shape, w, b, &mut [], 0, |_, _, _| {})
+}
+
+/// [`linear_forward`], then `epilogue(first_row, y_rows, side_rows)` on each
+/// block of output rows while it is in cache (see
+/// [`matmul_then`](super::matmul::matmul_then)); the bias is already added.
+#[allow(clippy::too_many_arguments)]
+pub fn linear_forward_then<T: Real, F>(
+    x: &[T],
+    n: usize,
+    shape: LinearShape,
+    w: &[T],
+    b: &[T],
+    side: &mut [T],
+    side_w: usize,
+    epilogue: F,
+) -> Vec<T>
+where
+    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+{
     let LinearShape { in_dim, out_dim } = shape;
     let xm = MatRef::row_major(x, n, in_dim);
     let wt = MatRef::row_major(w, out_dim, in_dim).t();
-    let mut y = matmul(xm, wt);
-    if out_dim > 0 {
-        y.par_chunks_mut(out_dim * 256).for_each(|blk| {
+    matmul_then(xm, wt, side, side_w, |r0, blk, sb| {
+        if out_dim > 0 {
             for row in blk.chunks_exact_mut(out_dim) {
                 for (v, &bj) in row.iter_mut().zip(b) {
                     *v += bj;
                 }
             }
-        });
-    }
-    y
+        }
+        epilogue(r0, blk, sb)
+    })
 }
 
 /// Gradients of a linear layer.

@@ -93,25 +93,55 @@ impl<'a, T: Real> MatRef<'a, T> {
 /// `C = A · B` for `A` `[m, k]` and `B` `[k, n]` (any strides); `C` is
 /// returned row-major `[m, n]`.
 pub fn matmul<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+    matmul_then(a, b, &mut [], 0, |_, _, _| {})
+}
+
+/// [`matmul`], then `epilogue(first_row, c_rows, side_rows)` on each block
+/// of output rows right after it is computed (while it is in cache), with
+/// the matching rows of `side` (row-major, `side_w` values per row of `A`;
+/// empty when `side_w` is 0). Blocks are disjoint and each is visited once,
+/// so an element-wise epilogue gives the same bits as a separate pass.
+pub fn matmul_then<T: Real, F>(
+    a: MatRef<'_, T>,
+    b: MatRef<'_, T>,
+    side: &mut [T],
+    side_w: usize,
+    epilogue: F,
+) -> Vec<T>
+where
+    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+{
     assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
     let (m, k, n) = (a.rows, a.cols, b.cols);
+    assert_eq!(
+        side.len(),
+        m * side_w,
+        "matmul_then: side has the wrong size"
+    );
     let mut c = vec![T::ZERO; m * n];
     if m == 0 || n == 0 {
         return c;
     }
     let packed = pack_b(b);
+    let run = |blk: usize, cb: &mut [T], sb: &mut [T]| {
+        let r0 = blk * ROW_BLOCK;
+        let rows = cb.len() / n;
+        block_product(a.rows(r0, rows), &packed, k, n, cb);
+        epilogue(r0, cb, sb);
+    };
     if m <= ROW_BLOCK {
         // One block: no task to share.
-        block_product(a, &packed, k, n, &mut c);
-        return c;
+        run(0, &mut c, side);
+    } else if side_w == 0 {
+        c.par_chunks_mut(ROW_BLOCK * n)
+            .enumerate()
+            .for_each(|(blk, cb)| run(blk, cb, &mut []));
+    } else {
+        c.par_chunks_mut(ROW_BLOCK * n)
+            .zip(side.par_chunks_mut(ROW_BLOCK * side_w))
+            .enumerate()
+            .for_each(|(blk, (cb, sb))| run(blk, cb, sb));
     }
-    c.par_chunks_mut(ROW_BLOCK * n)
-        .enumerate()
-        .for_each(|(blk, cb)| {
-            let r0 = blk * ROW_BLOCK;
-            let rows = cb.len() / n;
-            block_product(a.rows(r0, rows), &packed, k, n, cb);
-        });
     c
 }
 
@@ -244,25 +274,23 @@ pub enum KernelPath {
     Baseline,
 }
 
-/// The kernel version this CPU runs (all give identical results).
+/// The kernel version that runs now (all give identical results): the
+/// widest this CPU supports, unless pinned by
+/// [`fastmath::force_isa`](super::fastmath::force_isa).
 pub fn kernel_path() -> KernelPath {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::is_x86_feature_detected!("avx512f") {
-            return KernelPath::Avx512;
-        }
-        if std::is_x86_feature_detected!("avx2") {
-            return KernelPath::Avx2;
-        }
+    match super::fastmath::isa() {
+        super::fastmath::Isa::Avx512 => KernelPath::Avx512,
+        super::fastmath::Isa::Avx2 => KernelPath::Avx2,
+        super::fastmath::Isa::Baseline => KernelPath::Baseline,
     }
-    KernelPath::Baseline
 }
 
-/// A tile routine: `acc[MR][NR] = Σ_p strip[p][r] · panel[p][q]` (p
-/// ascending, from zero, separate multiply and add), type-erased pointers:
-/// `strip` is `k × MR`, `panel` points at the tile's first column of a
-/// `k × PANEL` panel, `acc` is `MR × NR` row-major.
-type TileFn = unsafe fn(*const u8, *const u8, usize, *mut u8);
+/// A tile routine: `out[r][q] = Σ_p A[r][p] · panel[p][q]` for `r < MR`,
+/// `q < NR` (p ascending, from zero, separate multiply and add), type-erased
+/// pointers: `A[r][p]` is at `a + r·rs + p·cs` (elements), `panel` points at
+/// the tile's first column of a `k × PANEL` panel, row `r` of the output is
+/// written at `out + r·ldo`.
+type TileFn = unsafe fn(*const u8, usize, usize, *const u8, usize, *mut u8, usize);
 
 /// One block of output rows: `c[rows, n] = a[rows, k] · B` (B packed).
 fn block_product<T: Real>(a: MatRef<'_, T>, b: &PackedB<T>, k: usize, n: usize, c: &mut [T]) {
@@ -303,16 +331,21 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
     let rows = a.rows;
     debug_assert_eq!(c.len(), rows * n);
     debug_assert_eq!(PANEL % NR, 0);
-    // Gather MR rows of A into a k-major strip so the kernel reads it
-    // contiguously: strip[p*MR + r] = A[i+r, p]; missing rows are zero.
+    // The vector kernels read full blocks of MR rows of A in place; the
+    // portable loop and the last, partial block read a k-major strip:
+    // strip[p*MR + r] = A[i+r, p], missing rows zero. Same products, same
+    // order: the same bits either way.
     let mut strip = vec![T::ZERO; k * MR];
     let mut i = 0;
     while i < rows {
         let mr = MR.min(rows - i);
+        let direct = simd.is_some() && mr == MR && k > 0;
         if mr < MR {
             strip.fill(T::ZERO);
         }
-        if a.row_stride == 1 {
+        if direct {
+            // No gather.
+        } else if a.row_stride == 1 {
             // Columns of A are contiguous (a transposed view).
             for (p, dst) in strip.chunks_exact_mut(MR).enumerate() {
                 let s0 = p * a.col_stride + i;
@@ -333,17 +366,43 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
             let off = j % PANEL;
             let bp = &b.data[panel * k * PANEL..(panel + 1) * k * PANEL];
             let mut acc = [[T::ZERO; NR]; MR];
+            let full = mr == MR && nr == NR;
             match simd {
                 // SAFETY: the routine was chosen for this CPU, for T, MR and
-                // NR; strip holds k·MR values, the panel k·PANEL from which
-                // the tile reads columns off..off+NR < PANEL.
+                // NR. A: either MR full rows of the view read in place (the
+                // view's strides keep every (i+r, p) inside `a.data`), or the
+                // strip of k·MR values. The panel holds k·PANEL values, of
+                // which the tile reads columns off..off+NR ≤ PANEL. Output:
+                // either the full MR×NR tile of `c` (rows of stride n) or
+                // `acc`.
                 Some(f) if k > 0 => unsafe {
+                    let (ap, rs, cs) = if direct {
+                        (
+                            a.data.as_ptr().add(i * a.row_stride),
+                            a.row_stride,
+                            a.col_stride,
+                        )
+                    } else {
+                        (strip.as_ptr(), 1, MR)
+                    };
+                    let (out, ldo) = if full {
+                        (c.as_mut_ptr().add(i * n + j), n)
+                    } else {
+                        (acc.as_mut_ptr() as *mut T, NR)
+                    };
                     f(
-                        strip.as_ptr() as *const u8,
+                        ap as *const u8,
+                        rs,
+                        cs,
                         bp.as_ptr().add(off) as *const u8,
                         k,
-                        acc.as_mut_ptr() as *mut u8,
-                    )
+                        out as *mut u8,
+                        ldo,
+                    );
+                    if full {
+                        j += NR;
+                        continue;
+                    }
                 },
                 _ => tile::<T, MR, NR>(&strip, bp, off, k, &mut acc),
             }
@@ -394,26 +453,35 @@ mod simd {
             /// # Safety
             /// The CPU supports the feature; pointers as documented on `TileFn`.
             #[target_feature(enable = $feat)]
-            pub unsafe fn $name(strip: *const u8, panel: *const u8, k: usize, acc: *mut u8) {
-                let strip = strip as *const $t;
+            pub unsafe fn $name(
+                a: *const u8,
+                rs: usize,
+                cs: usize,
+                panel: *const u8,
+                k: usize,
+                out: *mut u8,
+                ldo: usize,
+            ) {
+                let a = a as *const $t;
                 let mut panel = panel as *const $t;
                 let mut c: [[$vec; 2]; $mr] = [[$zero(); 2]; $mr];
-                let mut s = strip;
+                let rows: [*const $t; $mr] = core::array::from_fn(|r| a.add(r * rs));
+                let mut p = 0;
                 for _ in 0..k {
                     let b0 = $load(panel);
                     let b1 = $load(panel.add($lanes));
                     for r in 0..$mr {
-                        let a = $set1(*s.add(r));
-                        c[r][0] = $add(c[r][0], $mul(a, b0));
-                        c[r][1] = $add(c[r][1], $mul(a, b1));
+                        let x = $set1(*rows[r].add(p));
+                        c[r][0] = $add(c[r][0], $mul(x, b0));
+                        c[r][1] = $add(c[r][1], $mul(x, b1));
                     }
-                    s = s.add($mr);
+                    p += cs;
                     panel = panel.add(PANEL);
                 }
-                let out = acc as *mut $t;
+                let out = out as *mut $t;
                 for r in 0..$mr {
-                    $store(out.add(r * 2 * $lanes), c[r][0]);
-                    $store(out.add(r * 2 * $lanes + $lanes), c[r][1]);
+                    $store(out.add(r * ldo), c[r][0]);
+                    $store(out.add(r * ldo + $lanes), c[r][1]);
                 }
             }
         };

@@ -20,8 +20,12 @@
 //! - Linear layers compute `(x·Wᵀ, summed over inputs in order) + b` with the
 //!   deterministic products of [`matmul`]: the same bits for any thread count.
 //!
-//! Deliberate limits: the 6-DoF (SE(3)) variant of the MLP is not
-//! implemented (asking for it is an error); the MLP needs `depth ≥ 3`
+//! The MLP's 6-DoF variant replaces the additive `d_xyz` head by an SE(3)
+//! warp ([`se3`]): `d_xyz = R·x + p − x`, with upstream's 1e-5 quirk kept and
+//! a finite limit at θ = 0; [`Field::xyz_vjp`] gives the gradient the
+//! canonical means receive through `R·x`.
+//!
+//! Deliberate limit: the MLP needs `depth ≥ 3`
 //! because upstream concatenates after layer `depth/2` and feeds the result
 //! to a later layer (depth 1 and 2 fail in upstream PyTorch too).
 
@@ -29,16 +33,18 @@ pub mod activation;
 pub mod cfc;
 pub mod count;
 pub mod encoding;
+pub mod fastmath;
 pub mod linear;
 pub mod matmul;
 pub mod mlp;
+pub mod se3;
 
 pub use activation::Activation;
 
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
 use crate::math::{Real, Rng};
-use linear::{linear_backward, linear_forward, InputGrad, LinearShape};
+use linear::{linear_backward, linear_forward, linear_forward_then, InputGrad, LinearShape};
 use std::fmt;
 
 /// Which deformation network.
@@ -133,7 +139,7 @@ pub struct FieldConfig {
     pub backbone_units: usize,
     /// CfC backbone depth (ignored by the MLP).
     pub backbone_layers: usize,
-    /// MLP 6-DoF (SE(3)) variant: not implemented, rejected by [`Field::new`].
+    /// MLP 6-DoF (SE(3)) variant ([`se3`]); the CfC field has none.
     pub is_6dof: bool,
 }
 
@@ -188,12 +194,6 @@ impl FieldConfig {
                     return Err(Error::invalid(
                         "activation",
                         format!("{} (the MLP field uses ReLU, as upstream)", self.activation),
-                    ));
-                }
-                if self.is_6dof {
-                    return Err(Error::invalid(
-                        "is_6dof",
-                        "the 6-DoF (SE(3)) MLP variant is not implemented",
                     ));
                 }
             }
@@ -368,6 +368,23 @@ impl Stacked<'_> {
     pub fn forward<T: Real>(&self, p: &[T], x: &[T], n: usize) -> Vec<T> {
         let (w, b) = self.gather(p);
         linear_forward(x, n, self.shape(), &w, &b)
+    }
+    /// [`forward`](Self::forward) with an epilogue on each block of output
+    /// rows (see [`linear_forward_then`]).
+    pub fn forward_then<T: Real, F>(
+        &self,
+        p: &[T],
+        x: &[T],
+        n: usize,
+        side: &mut [T],
+        side_w: usize,
+        epilogue: F,
+    ) -> Vec<T>
+    where
+        F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    {
+        let (w, b) = self.gather(p);
+        linear_forward_then(x, n, self.shape(), &w, &b, side, side_w, epilogue)
     }
     /// Backward; `g` is `[n, Σ out]`.
     pub fn backward<T: Real>(
@@ -745,6 +762,32 @@ impl<T: Real> Field<T> {
             }
         };
         Ok((gp, gt))
+    }
+
+    /// The gradient the canonical means `xyz` receive through the field
+    /// itself, beyond the identity path of `xyz + d_xyz`: `(R − I)ᵀ·g` per
+    /// Gaussian for the 6-DoF MLP (upstream multiplies the non-detached mean
+    /// by `R`), all zeros otherwise (the network's input is stop-gradient).
+    /// `grad` is the same output gradient as for [`backward`](Self::backward).
+    pub fn xyz_vjp(&self, cache: &FieldCache<T>, grad: &Deformation<T>) -> Result<Vec<T>> {
+        let n = cache.n;
+        if grad.d_xyz.len() != 3 * n {
+            return Err(Error::invalid(
+                "field output gradient",
+                format!("expected [{n},3] values for d_xyz"),
+            ));
+        }
+        let extra = match (&self.net, &cache.inner) {
+            (Net::Mlp(m), CacheInner::Mlp(c)) => m.xyz_vjp(c, grad),
+            (Net::Cfc(_), CacheInner::Cfc(_)) => None,
+            _ => {
+                return Err(Error::invalid(
+                    "field cache",
+                    "the cache comes from a different kind of field",
+                ))
+            }
+        };
+        Ok(extra.unwrap_or_else(|| vec![T::ZERO; 3 * n]))
     }
 
     /// The weights as a tensor file under their `state_dict` names, with the

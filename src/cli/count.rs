@@ -1,0 +1,179 @@
+//! `liquid-splat count`: parameters and multiply-accumulates (MACs) of a
+//! deformation field, per Gaussian and for N Gaussians, under the ptflops
+//! counting conventions of UPSTREAM §8.3 (see `liquid_splat::deform::count`).
+
+use clap::Args;
+use liquid_splat::deform::count::{macs_per_gaussian, param_count, MacConvention};
+use liquid_splat::deform::{Activation, FieldConfig, FieldKind, Variant};
+use liquid_splat::Error;
+use std::process::ExitCode;
+
+/// Arguments of `count`.
+#[derive(Args)]
+pub struct CountArgs {
+    /// Which field: mlp (D-3DGS DeformNetwork) or cfc (liquid field).
+    #[arg(long)]
+    pub field: String,
+    /// MLP trunk layers / CfC cells (default: 8 for mlp, 6 for cfc).
+    #[arg(long)]
+    pub depth: Option<usize>,
+    /// MLP trunk width / CfC hidden size (default: 256 for mlp, 128 for cfc).
+    #[arg(long)]
+    pub width: Option<usize>,
+    /// synthetic (D-NeRF, with the timenet) or real (NeRF-DS, γ₁₀(t)).
+    #[arg(long, default_value = "synthetic")]
+    pub variant: String,
+    /// CfC backbone activation: relu, gelu, silu, tanh or lecun_tanh (default gelu; mlp: relu only).
+    #[arg(long)]
+    pub activation: Option<String>,
+    /// CfC backbone width (default 64).
+    #[arg(long)]
+    pub backbone_units: Option<usize>,
+    /// CfC backbone depth (default 2).
+    #[arg(long)]
+    pub backbone_layers: Option<usize>,
+    /// The MLP's 6-DoF (SE(3)) variant.
+    #[arg(long = "6dof")]
+    pub six_dof: bool,
+    /// Number of Gaussians for the totals.
+    #[arg(long, default_value_t = 1)]
+    pub gaussians: u64,
+    /// Print one JSON object instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn config(a: &CountArgs) -> liquid_splat::Result<FieldConfig> {
+    let mut c = FieldConfig::new(FieldKind::parse(&a.field)?);
+    c.variant = Variant::parse(&a.variant)?;
+    if let Some(d) = a.depth {
+        c.depth = d;
+    }
+    if let Some(w) = a.width {
+        c.width = w;
+    }
+    if let Some(act) = &a.activation {
+        c.activation = Activation::parse(act)?;
+    }
+    if let Some(u) = a.backbone_units {
+        c.backbone_units = u;
+    }
+    if let Some(l) = a.backbone_layers {
+        c.backbone_layers = l;
+    }
+    c.is_6dof = a.six_dof;
+    c.validate()?;
+    Ok(c)
+}
+
+/// `1234567` → `1,234,567`.
+fn grouped(v: u64) -> String {
+    let s = v.to_string();
+    let mut out = String::new();
+    for (i, ch) in s.chars().enumerate() {
+        if i > 0 && (s.len() - i) % 3 == 0 {
+            out.push(',');
+        }
+        out.push(ch);
+    }
+    out
+}
+
+fn convention_key(c: MacConvention) -> &'static str {
+    match c {
+        MacConvention::Pytorch => "pytorch",
+        MacConvention::PytorchNoFunctional => "pytorch_no_functional",
+        MacConvention::Aten => "aten",
+    }
+}
+
+/// Run `count`.
+pub fn run(a: CountArgs) -> liquid_splat::Result<ExitCode> {
+    let c = config(&a)?;
+    let params = param_count(&c)? as u64;
+    let n = a.gaussians;
+    let mut rows = Vec::new();
+    for conv in MacConvention::ALL {
+        let per = macs_per_gaussian(&c, conv)?;
+        let total = per.checked_mul(n).ok_or_else(|| {
+            Error::invalid("gaussians", format!("{n}: the MAC total overflows 64 bits"))
+        })?;
+        rows.push((conv, per, total));
+    }
+    let arch = match c.kind {
+        FieldKind::Mlp => format!(
+            "mlp, variant {}, depth {}, width {}, activation relu{}",
+            c.variant,
+            c.depth,
+            c.width,
+            if c.is_6dof { ", 6-DoF (SE(3))" } else { "" }
+        ),
+        FieldKind::Cfc => format!(
+            "cfc, variant {}, {} cells, width {}, backbone {}x{} {}",
+            c.variant, c.depth, c.width, c.backbone_layers, c.backbone_units, c.activation
+        ),
+    };
+    if a.json {
+        let macs: serde_json::Map<String, serde_json::Value> = rows
+            .iter()
+            .map(|(conv, per, total)| {
+                (
+                    convention_key(*conv).to_string(),
+                    serde_json::json!({
+                        "convention": conv.name(),
+                        "per_gaussian": per,
+                        "total": total,
+                    }),
+                )
+            })
+            .collect();
+        let v = serde_json::json!({
+            "field": c.kind.name(),
+            "variant": c.variant.name(),
+            "depth": c.depth,
+            "width": c.width,
+            "activation": c.activation.name(),
+            "backbone_units": c.backbone_units,
+            "backbone_layers": c.backbone_layers,
+            "is_6dof": c.is_6dof,
+            "parameters": params,
+            "gaussians": n,
+            "macs": macs,
+            "default_convention": convention_key(MacConvention::Pytorch),
+        });
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&v).expect("JSON of plain values")
+        );
+        return Ok(ExitCode::SUCCESS);
+    }
+    println!("field: {arch}");
+    println!(
+        "parameters: {} ({:.4} M)",
+        grouped(params),
+        params as f64 / 1e6
+    );
+    println!("gaussians: {}", grouped(n));
+    println!("MACs (ptflops conventions, UPSTREAM §8.3; a Linear layer counts in·out + out per Gaussian;");
+    println!("      sin/cos, tanh, sigmoid and element-wise arithmetic count 0):");
+    println!(
+        "  {:<52} {:>16} {:>22}",
+        "convention", "per Gaussian", "total"
+    );
+    for (conv, per, total) in &rows {
+        let mark = if *conv == MacConvention::Pytorch {
+            " (ptflops 0.7.4+ default)"
+        } else if *conv == MacConvention::Aten {
+            " (ptflops 0.7.3 default)"
+        } else {
+            ""
+        };
+        println!(
+            "  {:<52} {:>16} {:>22}{mark}",
+            conv.name(),
+            grouped(*per),
+            grouped(*total)
+        );
+    }
+    Ok(ExitCode::SUCCESS)
+}
