@@ -345,12 +345,11 @@ fn mlp_6dof_theta_zero_is_finite_and_defined() {
     for i in 0..n {
         let h = mlp_trunk(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
         let v = lin(&file, "branch_v", &h);
-        for k in 0..3 {
+        for (k, vk) in v.iter().enumerate() {
             let got = d.d_xyz[3 * i + k];
             assert!(
-                (got - v[k]).abs() <= 1e-12 * v[k].abs().max(1.0),
-                "{got} vs {}",
-                v[k]
+                (got - vk).abs() <= 1e-12 * vk.abs().max(1.0),
+                "{got} vs {vk}"
             );
         }
     }
