@@ -798,6 +798,16 @@ impl<T: Real> Field<T> {
         Ok(extra.unwrap_or_else(|| vec![T::ZERO; 3 * n]))
     }
 
+    /// 6-DoF MLP: upstream's per-Gaussian SE(3) transforms `[N, 4, 4]`
+    /// (row-major, `[[R, p], [0, 0, 0, 1]]`) of the last forward; `None` for
+    /// the other fields.
+    pub fn se3_transforms(&self, cache: &FieldCache<T>) -> Option<Vec<T>> {
+        match (&self.net, &cache.inner) {
+            (Net::Mlp(m), CacheInner::Mlp(c)) => m.se3_transforms(c),
+            _ => None,
+        }
+    }
+
     /// The weights as a tensor file under their `state_dict` names, with the
     /// configuration in the metadata.
     pub fn to_tensor_file(&self) -> TensorFile {
