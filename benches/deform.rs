@@ -27,7 +27,10 @@ fn bench(c: &mut Criterion) {
     };
     let mut group = c.benchmark_group("deform");
     group.sample_size(10);
-    for (name, kind) in [("mlp D8 W256", FieldKind::Mlp), ("cfc D6 W128", FieldKind::Cfc)] {
+    for (name, kind) in [
+        ("mlp D8 W256", FieldKind::Mlp),
+        ("cfc D6 W128", FieldKind::Cfc),
+    ] {
         let field = Field::<f32>::new(FieldConfig::new(kind), 0).unwrap();
         group.bench_function(format!("forward {name} N{N} t2"), |b| {
             b.iter(|| pool.install(|| field.forward(&xyz, &t).unwrap()))
