@@ -25,8 +25,10 @@ Conventions written down here (the specification leaves them to this project):
 - CfC: u = [gamma_10(x); timenet(gamma_6(t))] (synthetic) or [gamma_10(x); gamma_10(t)]
   (real); h0 = 0; before cell D//2 runs, h += skip(u); ts = t per row, shape (N,1);
   head Linear(W, 10) -> d_xyz (3), d_rotation (4), d_scaling (3).
-- MLP with is_6dof: d_xyz is the per-Gaussian [N,4,4] SE(3) transform exp_se3 (upstream's
-  return value), not an offset.
+- MLP with is_6dof: upstream returns the per-Gaussian [N,4,4] SE(3) transform exp_se3 and
+  moves the mean to R x + p. Outputs, as the Rust oracle: d_xyz = (R x + p) - x [N,3] (the
+  offset the caller adds), d_xyz_se3 = the [N,4,4] transform, and grad_xyz [N,3], the
+  gradient of the canonical xyz through R x (the network itself sees xyz.detach()).
 """
 
 import argparse
@@ -215,20 +217,28 @@ def run(meta, t):
     if missing or unknown:
         raise SystemExit(f"weights do not match the field: missing {missing}, unexpected {unknown}")
     net.load_state_dict({k: t[k].to(dtype) for k in names}, strict=True)
-    xyz = t["xyz"].to(dtype).detach()  # stop-gradient, as upstream
+    xyz_live = t["xyz"].to(dtype).clone().requires_grad_(True)
+    xyz = xyz_live.detach()  # stop-gradient into the network, as upstream
     time = t["t"].to(dtype).clone().requires_grad_(True)
     d_xyz, d_rot, d_scale = net(xyz, time)
     loss = ((d_rot * t["grad_d_rotation"].to(dtype)).sum()
             + (d_scale * t["grad_d_scaling"].to(dtype)).sum())
+    se3 = None
     if d_xyz.dim() == 2:
         loss = loss + (d_xyz * t["grad_d_xyz"].to(dtype)).sum()
     else:
-        # 6-DoF: the cotangent is on the transformed mean R x + p.
-        moved = (d_xyz[:, :3, :3] @ xyz[:, :, None])[:, :, 0] + d_xyz[:, :3, 3]
-        loss = loss + (moved * t["grad_d_xyz"].to(dtype)).sum()
+        # 6-DoF: the mean moves to R x + p, with x not detached (upstream's bmm);
+        # the offset is (R x + p) - x.
+        se3 = d_xyz
+        moved = (se3[:, :3, :3] @ xyz_live[:, :, None])[:, :, 0] + se3[:, :3, 3]
+        d_xyz = moved - xyz_live
+        loss = loss + (d_xyz * t["grad_d_xyz"].to(dtype)).sum()
     loss.backward()
     out = {"d_xyz": d_xyz.detach(), "d_rotation": d_rot.detach(), "d_scaling": d_scale.detach(),
            "grad_t": time.grad}
+    if se3 is not None:
+        out["d_xyz_se3"] = se3.detach()
+        out["grad_xyz"] = xyz_live.grad
     for name, p in net.named_parameters():
         out["grad." + name] = p.grad if p.grad is not None else torch.zeros_like(p)
     return out

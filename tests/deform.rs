@@ -345,12 +345,11 @@ fn mlp_6dof_theta_zero_is_finite_and_defined() {
     for i in 0..n {
         let h = mlp_trunk(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
         let v = lin(&file, "branch_v", &h);
-        for k in 0..3 {
+        for (k, vk) in v.iter().enumerate() {
             let got = d.d_xyz[3 * i + k];
             assert!(
-                (got - v[k]).abs() <= 1e-12 * v[k].abs().max(1.0),
-                "{got} vs {}",
-                v[k]
+                (got - vk).abs() <= 1e-12 * vk.abs().max(1.0),
+                "{got} vs {vk}"
             );
         }
     }
@@ -828,6 +827,20 @@ fn oracle_stage_matches_direct_calls() {
                 out.get_real::<f64>("grad_xyz", &[n, 3]).unwrap(),
                 field.xyz_vjp(&c, &g).unwrap()
             );
+            // The transform moves x to x + d_xyz (to rounding).
+            let m = out.get_real::<f64>("d_xyz_se3", &[n, 4, 4]).unwrap();
+            for i in 0..n {
+                let mi = &m[16 * i..16 * i + 16];
+                assert_eq!(&mi[12..], &[0.0, 0.0, 0.0, 1.0]);
+                for r in 0..3 {
+                    let moved = mi[4 * r] * xyz[3 * i]
+                        + mi[4 * r + 1] * xyz[3 * i + 1]
+                        + mi[4 * r + 2] * xyz[3 * i + 2]
+                        + mi[4 * r + 3];
+                    let want = xyz[3 * i + r] + d.d_xyz[3 * i + r];
+                    assert!((moved - want).abs() < 1e-12, "{moved} vs {want}");
+                }
+            }
         } else {
             assert!(out.get_real::<f64>("grad_xyz", &[n, 3]).is_err());
         }

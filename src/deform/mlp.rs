@@ -121,6 +121,20 @@ impl MlpNet {
         )
     }
 
+    /// 6-DoF: upstream's per-Gaussian 4×4 transforms `[n, 16]` (row-major);
+    /// `None` for the additive field.
+    pub fn se3_transforms<T: Real>(&self, c: &MlpCache<T>) -> Option<Vec<T>> {
+        let (_, wv) = c.warp.as_ref()?;
+        let mut out = Vec::with_capacity(wv.len() / 6 * 16);
+        for wv in wv.chunks_exact(6) {
+            let m = se3::transform([wv[0], wv[1], wv[2]], [wv[3], wv[4], wv[5]]);
+            for row in m {
+                out.extend_from_slice(&row);
+            }
+        }
+        Some(out)
+    }
+
     /// 6-DoF: the extra gradient of the canonical positions through the
     /// warp, `(R − I)ᵀ·g` per Gaussian; `None` for the additive field.
     pub fn xyz_vjp<T: Real>(&self, c: &MlpCache<T>, g: &Deformation<T>) -> Option<Vec<T>> {

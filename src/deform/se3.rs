@@ -112,6 +112,28 @@ fn parts<T: Real>(w: [T; 3], v: [T; 3]) -> Option<Parts<T>> {
     })
 }
 
+/// Upstream's 4×4 transform `[[R, p], [0, 0, 0, 1]]` for one Gaussian
+/// (row-major; `R = I`, `p = v` at θ = 0).
+pub fn transform<T: Real>(w: [T; 3], v: [T; 3]) -> [[T; 4]; 4] {
+    let (r, p) = match parts(w, v) {
+        None => {
+            let mut id = [[T::ZERO; 3]; 3];
+            for (i, row) in id.iter_mut().enumerate() {
+                row[i] = T::ONE;
+            }
+            (id, v)
+        }
+        Some(q) => (q.r, mul_vec(&q.a, q.v1)),
+    };
+    let mut m = [[T::ZERO; 4]; 4];
+    for i in 0..3 {
+        m[i][..3].copy_from_slice(&r[i]);
+        m[i][3] = p[i];
+    }
+    m[3][3] = T::ONE;
+    m
+}
+
 /// `d_xyz = R·x + p − x` for one Gaussian (`v` itself at θ = 0).
 pub fn warp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3]) -> [T; 3] {
     match parts(w, v) {

@@ -9,9 +9,11 @@
 //! `grad_d_scaling` `[N,3]`, all of one dtype (F32 or F64, which selects the
 //! precision). Outputs: `d_xyz`, `d_rotation`, `d_scaling`, `grad_t` `[N,1]`
 //! and `grad.<name>` for every weight. For the 6-DoF MLP (`is_6dof=true`)
-//! `d_xyz` is `R·x + p − x` (see `deform::se3`) and one more output,
-//! `grad_xyz` `[N,3]`, is the gradient the canonical `xyz` receives through
-//! the warp, `(R − I)ᵀ·grad_d_xyz` (PyTorch: `x.grad` of
+//! `d_xyz` is `R·x + p − x` (see `deform::se3`), and two more outputs:
+//! `d_xyz_se3` `[N,4,4]`, upstream's transform `[[R, p], [0, 0, 0, 1]]`
+//! (what `DeformNetwork` returns as d_xyz), and `grad_xyz` `[N,3]`, the
+//! gradient the canonical `xyz` receives through the warp,
+//! `(R − I)ᵀ·grad_d_xyz` (PyTorch: `x.grad` of
 //! `from_homogenous(T @ to_homogenous(x)) − x` with the network fed `x.detach()`).
 
 use crate::deform::{Deformation, Field, FieldConfig};
@@ -83,6 +85,9 @@ fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     out.insert_real("grad_t", vec![n, 1], &gt);
     if config.is_6dof {
         out.insert_real("grad_xyz", vec![n, 3], &field.xyz_vjp(&cache, &grad)?);
+        if let Some(m) = field.se3_transforms(&cache) {
+            out.insert_real("d_xyz_se3", vec![n, 4, 4], &m);
+        }
     }
     for s in field.layout() {
         out.insert_real(&format!("grad.{}", s.name), s.shape.clone(), &gp[s.range()]);
