@@ -88,7 +88,7 @@ fn bad_arguments_exit_2() {
         &["--field", "cfc", "--6dof"][..],
         &["--field", "mlp", "--variant", "blender"][..],
         &["--field", "mlp", "--gaussians", "-1"][..],
-        &["--depth", "8"][..],
+        &["--field", "cfc", "--depth", "0"][..],
     ] {
         let (code, _, err) = run(args);
         assert_eq!(code, 2, "{args:?}: {err}");

@@ -4,37 +4,15 @@
 
 use clap::Args;
 use liquid_splat::deform::count::{macs_per_gaussian, param_count, MacConvention};
-use liquid_splat::deform::{Activation, FieldConfig, FieldKind, Variant};
+use liquid_splat::deform::{FieldConfig, FieldKind, Variant};
 use liquid_splat::Error;
 use std::process::ExitCode;
 
 /// Arguments of `count`.
 #[derive(Args)]
 pub struct CountArgs {
-    /// Which field: mlp (D-3DGS DeformNetwork) or cfc (liquid field).
-    #[arg(long)]
-    pub field: String,
-    /// MLP trunk layers / CfC cells (default: 8 for mlp, 6 for cfc).
-    #[arg(long)]
-    pub depth: Option<usize>,
-    /// MLP trunk width / CfC hidden size (default: 256 for mlp, 128 for cfc).
-    #[arg(long)]
-    pub width: Option<usize>,
-    /// synthetic (D-NeRF, with the timenet) or real (NeRF-DS, γ₁₀(t)).
-    #[arg(long, default_value = "synthetic")]
-    pub variant: String,
-    /// CfC backbone activation: relu, gelu, silu, tanh or lecun_tanh (default gelu; mlp: relu only).
-    #[arg(long)]
-    pub activation: Option<String>,
-    /// CfC backbone width (default 64).
-    #[arg(long)]
-    pub backbone_units: Option<usize>,
-    /// CfC backbone depth (default 2).
-    #[arg(long)]
-    pub backbone_layers: Option<usize>,
-    /// The MLP's 6-DoF (SE(3)) variant.
-    #[arg(long = "6dof")]
-    pub six_dof: bool,
+    #[command(flatten)]
+    pub field: super::train::FieldArgs,
     /// Number of Gaussians for the totals.
     #[arg(long, default_value_t = 1)]
     pub gaussians: u64,
@@ -44,26 +22,7 @@ pub struct CountArgs {
 }
 
 fn config(a: &CountArgs) -> liquid_splat::Result<FieldConfig> {
-    let mut c = FieldConfig::new(FieldKind::parse(&a.field)?);
-    c.variant = Variant::parse(&a.variant)?;
-    if let Some(d) = a.depth {
-        c.depth = d;
-    }
-    if let Some(w) = a.width {
-        c.width = w;
-    }
-    if let Some(act) = &a.activation {
-        c.activation = Activation::parse(act)?;
-    }
-    if let Some(u) = a.backbone_units {
-        c.backbone_units = u;
-    }
-    if let Some(l) = a.backbone_layers {
-        c.backbone_layers = l;
-    }
-    c.is_6dof = a.six_dof;
-    c.validate()?;
-    Ok(c)
+    a.field.config(Variant::Synthetic)
 }
 
 /// `1234567` → `1,234,567`.

@@ -67,6 +67,7 @@ fn fields(ablations: bool) -> Vec<FieldArgs> {
         activation: (field == FieldArg::Cfc).then(|| act.to_string()),
         backbone_units: None,
         backbone_layers: None,
+        six_dof: false,
         variant: None,
     };
     let mut v = vec![

@@ -55,10 +55,16 @@ pub struct FieldArgs {
     /// CfC backbone activation: gelu, relu, silu, tanh, lecun_tanh.
     #[arg(long)]
     pub activation: Option<String>,
+    /// CfC backbone width (default 64).
     #[arg(long)]
     pub backbone_units: Option<usize>,
+    /// CfC backbone layers (default 2).
     #[arg(long)]
     pub backbone_layers: Option<usize>,
+    /// The MLP's 6-DoF (SE(3)) variant.
+    #[arg(long = "6dof")]
+    #[serde(default)]
+    pub six_dof: bool,
     /// Time input: synthetic (D-NeRF timenet) or real (NeRF-DS); default from the dataset.
     #[arg(long, value_enum)]
     pub variant: Option<VariantArg>,
@@ -90,6 +96,7 @@ impl FieldArgs {
         if let Some(l) = self.backbone_layers {
             c.backbone_layers = l;
         }
+        c.is_6dof = self.six_dof;
         c.validate()?;
         Ok(c)
     }
