@@ -71,7 +71,10 @@ fn visible(out: &TensorFile, w: usize, col: usize, k: usize) -> Vec<usize> {
 fn gradients_match_finite_differences_of_the_loss() {
     let c = case(Precision::F64, 3);
     let out = run_case(&c).unwrap();
-    assert!(visible(&out, 1, 0, 16).len() >= 4, "too few visible Gaussians");
+    assert!(
+        visible(&out, 1, 0, 16).len() >= 4,
+        "too few visible Gaussians"
+    );
     // sh coefficient 0 (f_dc) and 3 (degree 1) of channel 1, K = 16.
     let sh: Vec<usize> = visible(&out, 48, 1, 3)
         .into_iter()
@@ -141,7 +144,11 @@ fn adam_update_and_statistics_match_hand_computation() {
                 &field_weights(&c),
             )
             .unwrap();
-            spec.layout().iter().find(|s| s.name == name).unwrap().offset
+            spec.layout()
+                .iter()
+                .find(|s| s.name == name)
+                .unwrap()
+                .offset
         } else {
             0
         };
@@ -254,27 +261,94 @@ fn malformed_cases_are_errors_naming_the_problem() {
     let n = base.shape("xyz").unwrap()[0];
     type Edit = Box<dyn Fn(&mut TensorFile)>;
     let cases: Vec<(&str, Edit)> = vec![
-        ("xyz", Box::new(|c| { c.tensors.remove("xyz"); })),
-        ("sh", Box::new(move |c| c.insert_real("sh", vec![n, 5, 3], &vec![0f32; n * 15]))),
-        ("opacity", Box::new(move |c| c.insert_real("opacity", vec![n], &vec![0f32; n]))),
-        ("rotation", Box::new(move |c| c.insert_real("rotation", vec![n, 3], &vec![0f32; 3 * n]))),
-        ("gt", Box::new(|c| c.insert_real("gt", vec![3, 16, 15], &[0f32; 720]))),
-        ("bg", Box::new(|c| { c.tensors.remove("bg"); })),
-        ("viewmatrix", Box::new(|c| c.insert_real("viewmatrix", vec![3, 4], &[0f32; 12]))),
-        ("adam.xyz.v", Box::new(|c| { c.tensors.remove("adam.xyz.v"); })),
-        ("adam.sh.m", Box::new(|c| c.insert_real("adam.sh.m", vec![2], &[0f32; 2]))),
-        ("adam.opacity.v", Box::new(move |c| c.insert_real("adam.opacity.v", vec![n, 1], &vec![-1f32; n]))),
-        ("stats.denom", Box::new(move |c| c.insert_real("stats.denom", vec![n], &vec![0f32; n]))),
-        ("stats.max_radii", Box::new(move |c| c.insert_i32("stats.max_radii", vec![n], vec![-1; n]))),
-        ("head.weight", Box::new(|c| { c.tensors.remove("head.weight"); })),
-        ("head.wieght", Box::new(|c| c.insert_real("head.wieght", vec![1], &[0f32]))),
-        ("F64", Box::new(|c| c.insert_real("bg", vec![3], &[0f64; 3]))),
-        ("active_sh_degree", Box::new(|c| c.set_meta("active_sh_degree", 4))),
+        (
+            "xyz",
+            Box::new(|c| {
+                c.tensors.remove("xyz");
+            }),
+        ),
+        (
+            "sh",
+            Box::new(move |c| c.insert_real("sh", vec![n, 5, 3], &vec![0f32; n * 15])),
+        ),
+        (
+            "opacity",
+            Box::new(move |c| c.insert_real("opacity", vec![n], &vec![0f32; n])),
+        ),
+        (
+            "rotation",
+            Box::new(move |c| c.insert_real("rotation", vec![n, 3], &vec![0f32; 3 * n])),
+        ),
+        (
+            "gt",
+            Box::new(|c| c.insert_real("gt", vec![3, 16, 15], &[0f32; 720])),
+        ),
+        (
+            "bg",
+            Box::new(|c| {
+                c.tensors.remove("bg");
+            }),
+        ),
+        (
+            "viewmatrix",
+            Box::new(|c| c.insert_real("viewmatrix", vec![3, 4], &[0f32; 12])),
+        ),
+        (
+            "adam.xyz.v",
+            Box::new(|c| {
+                c.tensors.remove("adam.xyz.v");
+            }),
+        ),
+        (
+            "adam.sh.m",
+            Box::new(|c| c.insert_real("adam.sh.m", vec![2], &[0f32; 2])),
+        ),
+        (
+            "adam.opacity.v",
+            Box::new(move |c| c.insert_real("adam.opacity.v", vec![n, 1], &vec![-1f32; n])),
+        ),
+        (
+            "stats.denom",
+            Box::new(move |c| c.insert_real("stats.denom", vec![n], &vec![0f32; n])),
+        ),
+        (
+            "stats.max_radii",
+            Box::new(move |c| c.insert_i32("stats.max_radii", vec![n], vec![-1; n])),
+        ),
+        (
+            "head.weight",
+            Box::new(|c| {
+                c.tensors.remove("head.weight");
+            }),
+        ),
+        (
+            "head.wieght",
+            Box::new(|c| c.insert_real("head.wieght", vec![1], &[0f32])),
+        ),
+        (
+            "F64",
+            Box::new(|c| c.insert_real("bg", vec![3], &[0f64; 3])),
+        ),
+        (
+            "active_sh_degree",
+            Box::new(|c| c.set_meta("active_sh_degree", 4)),
+        ),
         ("lr.xyz", Box::new(|c| c.set_meta("lr.xyz", "-1e-3"))),
-        ("lambda_dssim", Box::new(|c| c.set_meta("lambda_dssim", "1.5"))),
-        ("time", Box::new(|c| { c.metadata.remove("time"); })),
+        (
+            "lambda_dssim",
+            Box::new(|c| c.set_meta("lambda_dssim", "1.5")),
+        ),
+        (
+            "time",
+            Box::new(|c| {
+                c.metadata.remove("time");
+            }),
+        ),
         ("field_on", Box::new(|c| c.set_meta("field_on", "maybe"))),
-        ("adam.xyz.step", Box::new(|c| c.set_meta("adam.xyz.step", "-2"))),
+        (
+            "adam.xyz.step",
+            Box::new(|c| c.set_meta("adam.xyz.step", "-2")),
+        ),
         ("stage", Box::new(|c| c.set_meta("stage", "steps"))),
     ];
     for (what, edit) in cases {
@@ -284,4 +358,35 @@ fn malformed_cases_are_errors_naming_the_problem() {
         assert!(err.contains(what), "{what}: {err}");
     }
     assert!(run_case(&base).is_ok());
+}
+
+/// The published f32 tolerances for the step outputs are tight enough to
+/// catch a 1% error in one gradient or moment tensor of the golden case.
+#[test]
+fn f32_tolerances_catch_a_one_percent_error() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/cases");
+    let tol = liquid_splat::oracle::Tolerances::load(&dir.join("tolerances_f32.json")).unwrap();
+    let expected = TensorFile::load(&dir.join("step_f32.expected.safetensors")).unwrap();
+    assert!(
+        liquid_splat::oracle::compare(&expected, &expected, &tol)
+            .unwrap()
+            .passed
+    );
+    for name in [
+        "grad.xyz",
+        "grad.sh",
+        "grad.rotation",
+        "grad_means2d",
+        "stats.accum",
+        "new.adam.xyz.m",
+        "new.adam.sh.v",
+    ] {
+        let mut actual = expected.clone();
+        match &mut actual.tensors.get_mut(name).unwrap().data {
+            TensorData::F32(v) => v.iter_mut().for_each(|x| *x *= 1.01),
+            _ => panic!("{name}"),
+        }
+        let report = liquid_splat::oracle::compare(&expected, &actual, &tol).unwrap();
+        assert!(!report.passed, "{name}: {report}");
+    }
 }

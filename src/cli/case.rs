@@ -140,8 +140,16 @@ fn run_new(a: NewArgs) -> ExitCode {
             Ok(())
         };
         uses("--width", a.width.is_some(), &["rasterize", "loss", "step"])?;
-        uses("--height", a.height.is_some(), &["rasterize", "loss", "step"])?;
-        uses("--count", a.count.is_some(), &["rasterize", "deform", "step"])?;
+        uses(
+            "--height",
+            a.height.is_some(),
+            &["rasterize", "loss", "step"],
+        )?;
+        uses(
+            "--count",
+            a.count.is_some(),
+            &["rasterize", "deform", "step"],
+        )?;
         uses("--gradient", a.gradient.is_some(), &["rasterize"])?;
         uses("--field", a.field.is_some(), &["deform", "step"])?;
         uses("--depth", a.depth.is_some(), &["deform", "step"])?;

@@ -318,7 +318,11 @@ fn new_step<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
     for _ in 0..n {
         let d = (r.uniform() * 6.0) as i32;
         let a = d as f64 * r.uniform_range(0.0, 2e-3);
-        let m = if d > 0 { 1 + (r.uniform() * 8.0) as i32 } else { 0 };
+        let m = if d > 0 {
+            1 + (r.uniform() * 8.0) as i32
+        } else {
+            0
+        };
         accum.push(a);
         denom.push(d);
         radii.push(m);

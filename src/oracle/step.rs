@@ -99,7 +99,12 @@ fn shape_error(case: &TensorFile, name: &str, expected: String, found: &[usize])
 fn read_gaussians<T: Real>(case: &TensorFile) -> Result<Gaussians<T>> {
     let (shape, xyz) = case.get_real_any::<T>("xyz")?;
     if shape.len() != 2 || shape[1] != 3 || shape[0] == 0 {
-        return Err(shape_error(case, "xyz", "shape [N,3], N ≥ 1".into(), &shape));
+        return Err(shape_error(
+            case,
+            "xyz",
+            "shape [N,3], N ≥ 1".into(),
+            &shape,
+        ));
     }
     let n = shape[0];
     let (shape, sh) = case.get_real_any::<T>("sh")?;
@@ -108,7 +113,12 @@ fn read_gaussians<T: Real>(case: &TensorFile) -> Result<Gaussians<T>> {
         _ => None,
     };
     let max_sh_degree = degree.ok_or_else(|| {
-        shape_error(case, "sh", format!("shape [{n},K,3], K = 1, 4, 9 or 16"), &shape)
+        shape_error(
+            case,
+            "sh",
+            format!("shape [{n},K,3], K = 1, 4, 9 or 16"),
+            &shape,
+        )
     })?;
     let g = Gaussians {
         max_sh_degree,
@@ -213,7 +223,10 @@ fn meta_number(case: &TensorFile, key: &str, default: f64, min: f64) -> Result<f
 
 /// Every tensor name the stage reads besides the field weights.
 fn known_tensors() -> Vec<String> {
-    let mut k: Vec<String> = GAUSSIAN_TENSORS.iter().map(|(n, _)| n.to_string()).collect();
+    let mut k: Vec<String> = GAUSSIAN_TENSORS
+        .iter()
+        .map(|(n, _)| n.to_string())
+        .collect();
     k.extend(CAMERA_TENSORS.iter().map(|s| s.to_string()));
     k.extend(["bg", "gt", "stats.accum", "stats.denom", "stats.max_radii"].map(String::from));
     for g in ADAM_GROUPS {
@@ -321,9 +334,12 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
         scaling: lr[4],
         rotation: lr[5],
     };
-    trainer
-        .optimizer
-        .step(&mut trainer.gaussians, &grads.gaussians, &lrs, StepGroups::All)?;
+    trainer.optimizer.step(
+        &mut trainer.gaussians,
+        &grads.gaussians,
+        &lrs,
+        StepGroups::All,
+    )?;
     if let Some(fg) = &grads.field {
         trainer
             .field_optimizer
