@@ -154,7 +154,7 @@ fn read_adam<T: Real>(case: &TensorFile, group: &str, shape: &[usize]) -> Result
         (true, true) => {
             state.m = case.get_real::<T>(&m, shape)?;
             state.v = case.get_real::<T>(&v, shape)?;
-            if let Some(i) = state.v.iter().position(|x| !(*x >= T::ZERO)) {
+            if let Some(i) = state.v.iter().position(|x| x.is_nan() || *x < T::ZERO) {
                 return Err(Error::Tensor {
                     context: case.path.display().to_string(),
                     name: v,
