@@ -171,6 +171,10 @@ fn case_new_cli_writes_runnable_cases_and_rejects_bad_options() {
             vec!["--field", "cfc", "--depth", "1", "--hidden", "4"],
         ),
         ("loss", vec!["--height", "7"]),
+        (
+            "step",
+            vec!["--count", "3", "--width", "12", "--field", "mlp"],
+        ),
     ] {
         let case = p(&format!("{stage}.safetensors"));
         let mut args = vec!["case", "new", stage, &case, "--dtype", "f32", "--seed", "5"];
@@ -187,12 +191,17 @@ fn case_new_cli_writes_runnable_cases_and_rejects_bad_options() {
     assert_eq!(f.meta("gradient").unwrap(), "inria");
     assert_eq!(f.shape("grad_out_color").unwrap(), &[3, 24, 20]);
     assert_eq!(f.shape("means3D").unwrap(), &[4, 3]);
+    let f = TensorFile::load(&tmp.join("step.safetensors")).unwrap();
+    assert_eq!(f.shape("gt").unwrap(), &[3, 16, 12]);
+    assert_eq!(f.shape("xyz").unwrap(), &[3, 3]);
+    assert_eq!(f.meta("field").unwrap(), "mlp");
     for bad in [
         vec!["case", "new", "loss", "x", "--field", "mlp"],
         vec!["case", "new", "rasterize", "x", "--dtype", "f16"],
         vec!["case", "new", "rasterize", "x", "--gradient", "approx"],
         vec!["case", "new", "step-that-does-not-exist", "x"],
         vec!["case", "new", "deform", "x", "--field", "lstm"],
+        vec!["case", "new", "step", "x", "--gradient", "inria"],
     ] {
         let o = run(&bad);
         assert_eq!(o.status.code(), Some(2), "{bad:?}");

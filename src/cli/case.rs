@@ -37,7 +37,7 @@ pub enum CaseCommand {
 /// Arguments of `case new`.
 #[derive(Args)]
 pub struct NewArgs {
-    /// Stage: rasterize, deform or loss.
+    /// Stage: rasterize, deform, loss or step.
     pub stage: String,
     /// Where to write the case (safetensors).
     pub output: PathBuf,
@@ -47,25 +47,25 @@ pub struct NewArgs {
     /// Seed of every random draw.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Image width (rasterize, loss).
+    /// Image width (rasterize, loss, step).
     #[arg(long)]
     pub width: Option<usize>,
-    /// Image height (rasterize, loss).
+    /// Image height (rasterize, loss, step).
     #[arg(long)]
     pub height: Option<usize>,
-    /// Number of Gaussians (rasterize: in view, plus one beside it) or points (deform).
+    /// Number of Gaussians (rasterize: in view, plus one beside it; step) or points (deform).
     #[arg(long)]
     pub count: Option<usize>,
     /// Rasterize: gradient mode, exact or inria.
     #[arg(long)]
     pub gradient: Option<String>,
-    /// Deform: field kind, mlp or cfc.
+    /// Deform, step: field kind, mlp or cfc.
     #[arg(long)]
     pub field: Option<String>,
-    /// Deform: depth (MLP layers or CfC cells); default small.
+    /// Deform, step: depth (MLP layers or CfC cells); default small.
     #[arg(long)]
     pub depth: Option<usize>,
-    /// Deform: width (MLP trunk or CfC hidden size); default small.
+    /// Deform, step: width (MLP trunk or CfC hidden size); default small.
     #[arg(long)]
     pub hidden: Option<usize>,
 }
@@ -139,13 +139,21 @@ fn run_new(a: NewArgs) -> ExitCode {
             }
             Ok(())
         };
-        uses("--width", a.width.is_some(), &["rasterize", "loss"])?;
-        uses("--height", a.height.is_some(), &["rasterize", "loss"])?;
-        uses("--count", a.count.is_some(), &["rasterize", "deform"])?;
+        uses("--width", a.width.is_some(), &["rasterize", "loss", "step"])?;
+        uses(
+            "--height",
+            a.height.is_some(),
+            &["rasterize", "loss", "step"],
+        )?;
+        uses(
+            "--count",
+            a.count.is_some(),
+            &["rasterize", "deform", "step"],
+        )?;
         uses("--gradient", a.gradient.is_some(), &["rasterize"])?;
-        uses("--field", a.field.is_some(), &["deform"])?;
-        uses("--depth", a.depth.is_some(), &["deform"])?;
-        uses("--hidden", a.hidden.is_some(), &["deform"])?;
+        uses("--field", a.field.is_some(), &["deform", "step"])?;
+        uses("--depth", a.depth.is_some(), &["deform", "step"])?;
+        uses("--hidden", a.hidden.is_some(), &["deform", "step"])?;
         spec.width = a.width.unwrap_or(spec.width);
         spec.height = a.height.unwrap_or(spec.height);
         spec.count = a.count.unwrap_or(spec.count);

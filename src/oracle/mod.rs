@@ -1,7 +1,7 @@
 //! The oracle: what backend authors run in their CI against this reference.
 //!
 //! A *case file* is a safetensors file whose string metadata names the stage
-//! (`stage=rasterize|loss|deform`) and its settings, and whose tensors are the
+//! (`stage=rasterize|deform|loss|step`) and its settings, and whose tensors are the
 //! stage's inputs under the names of the upstream Python APIs. [`run_case`]
 //! computes the stage's outputs and gradients into another tensor file; the
 //! tensors' dtype (F32 or F64) selects the precision.
@@ -9,6 +9,8 @@
 //! - [`rasterize`]: the Inria rasterizer's forward and backward.
 //! - [`deform`]: the MLP and CfC deformation fields' forward and backward.
 //! - [`loss`]: L1 + SSIM training loss and its gradient.
+//! - [`step`]: one whole training iteration (field, rasterizer, loss,
+//!   backward, densification statistics, Adam).
 //! - [`new`]: seeded random, well-formed case files for every stage, and
 //!   the golden fixtures (`fixtures/cases/`).
 //! - [`compare`](mod@compare): tensor-by-tensor comparison of an expected case output with
@@ -21,6 +23,7 @@ pub mod deform;
 pub mod loss;
 pub mod new;
 pub mod rasterize;
+pub mod step;
 
 pub use compare::{
     compare, CompareReport, ElementStats, Status, TensorReport, Tolerance, ToleranceSpec,
@@ -31,7 +34,7 @@ use crate::error::{Error, Result};
 use crate::io::TensorFile;
 
 /// Stage names [`run_case`] understands.
-pub const STAGES: &[&str] = &[rasterize::STAGE, deform::STAGE, loss::STAGE];
+pub const STAGES: &[&str] = &[rasterize::STAGE, deform::STAGE, loss::STAGE, step::STAGE];
 
 /// Run the stage named by the case's `stage` metadata.
 pub fn run_case(case: &TensorFile) -> Result<TensorFile> {
@@ -39,6 +42,7 @@ pub fn run_case(case: &TensorFile) -> Result<TensorFile> {
         s if s == rasterize::STAGE => rasterize::run(case),
         s if s == deform::STAGE => deform::run(case),
         s if s == loss::STAGE => loss::run(case),
+        s if s == step::STAGE => step::run(case),
         other => Err(Error::field(
             &case.path,
             "__metadata__.stage",

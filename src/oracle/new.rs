@@ -7,8 +7,8 @@
 //! rounded once to the requested precision (the rasterizer's camera matrices
 //! are formed in that precision, as upstream forms them in f32).
 
-use super::{deform, loss, rasterize, run_case, STAGES};
-use crate::deform::{Field, FieldConfig, FieldKind};
+use super::{deform, loss, rasterize, run_case, step, STAGES};
+use crate::deform::{Field, FieldConfig, FieldKind, Variant};
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
 use crate::math::{Precision, Real, Rng};
@@ -19,23 +19,23 @@ use crate::render::GradientMode;
 /// [`CaseSpec::new`] for the defaults.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CaseSpec {
-    /// `rasterize`, `deform` or `loss`.
+    /// `rasterize`, `deform`, `loss` or `step`.
     pub stage: String,
     pub precision: Precision,
     pub seed: u64,
-    /// Image size (rasterize, loss).
+    /// Image size (rasterize, loss, step).
     pub width: usize,
     pub height: usize,
     /// Gaussians (rasterize: in view, plus one beside it whose tangent clamp
-    /// is active; deform: points).
+    /// is active; deform: points; step: Gaussians).
     pub count: usize,
     /// Rasterize: metadata `gradient`.
     pub gradient: GradientMode,
-    /// Deform: field kind.
+    /// Deform, step: field kind.
     pub field: FieldKind,
-    /// Deform: depth D (MLP trunk layers or CfC cells); `None` = small default.
+    /// Deform, step: depth D (MLP trunk layers or CfC cells); `None` = small default.
     pub depth: Option<usize>,
-    /// Deform: width W (MLP trunk or CfC hidden size); `None` = small default.
+    /// Deform, step: width W (MLP trunk or CfC hidden size); `None` = small default.
     pub hidden: Option<usize>,
 }
 
@@ -48,8 +48,19 @@ pub const SMALL_CFC: (usize, usize) = (2, 16);
 
 impl CaseSpec {
     /// Defaults: f64, seed 0, 32×24 pixels, 8 Gaussians, gradient `exact`,
-    /// field `mlp`, small field size.
+    /// field `mlp`, small field size; for `step`: 16×16 pixels, 16
+    /// Gaussians, field `cfc`.
     pub fn new(stage: &str) -> Self {
+        if stage == step::STAGE {
+            return CaseSpec {
+                width: 16,
+                height: 16,
+                count: 16,
+                field: FieldKind::Cfc,
+                ..CaseSpec::new(deform::STAGE)
+            }
+            .with_stage(stage);
+        }
         CaseSpec {
             stage: stage.to_string(),
             precision: Precision::F64,
@@ -62,6 +73,13 @@ impl CaseSpec {
             depth: None,
             hidden: None,
         }
+    }
+}
+
+impl CaseSpec {
+    fn with_stage(mut self, stage: &str) -> Self {
+        self.stage = stage.to_string();
+        self
     }
 }
 
@@ -93,6 +111,7 @@ fn new_typed<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
         s if s == rasterize::STAGE => new_rasterize::<T>(spec)?,
         s if s == deform::STAGE => new_deform::<T>(spec)?,
         s if s == loss::STAGE => new_loss::<T>(spec)?,
+        s if s == step::STAGE => new_step::<T>(spec)?,
         other => {
             return Err(Error::invalid(
                 "stage",
@@ -164,7 +183,8 @@ fn new_rasterize<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
     Ok(f)
 }
 
-fn new_deform<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+/// The small field of generated cases ([`SMALL_MLP`], [`SMALL_CFC`]).
+fn small_field(spec: &CaseSpec) -> FieldConfig {
     let mut config = FieldConfig::new(spec.field);
     let (d, wd) = match spec.field {
         FieldKind::Mlp => SMALL_MLP,
@@ -175,6 +195,12 @@ fn new_deform<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
     };
     config.depth = spec.depth.unwrap_or(d);
     config.width = spec.hidden.unwrap_or(wd);
+    config
+}
+
+/// A case file holding freshly initialised weights of `config` (rounded to
+/// `T`) and the configuration as metadata.
+fn field_case<T: Real>(spec: &CaseSpec, config: FieldConfig) -> Result<TensorFile> {
     let field = Field::<f64>::new(config, spec.seed)?;
     let weights = field.to_tensor_file();
     let mut f = TensorFile::new(format!("{}.safetensors", spec.stage));
@@ -182,6 +208,11 @@ fn new_deform<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
     for (name, t) in &weights.tensors {
         f.insert_real(name, t.shape.clone(), &to_t::<T>(&t.data.to_f64()));
     }
+    Ok(f)
+}
+
+fn new_deform<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+    let mut f = field_case::<T>(spec, small_field(spec))?;
     let n = spec.count;
     let xyz = uniforms(spec.seed, STREAM_INPUT, 3 * n, -1.5, 1.5);
     let t = uniforms(spec.seed, STREAM_INPUT + 1, n, 0.0, 1.0);
@@ -211,6 +242,94 @@ fn new_loss<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
     f.set_meta("lambda_dssim", exact_decimal(crate::loss::LAMBDA_DSSIM));
     f.insert_real("image", vec![3, h, w], &to_t::<T>(&image));
     f.insert_real("gt", vec![3, h, w], &to_t::<T>(&gt));
+    Ok(f)
+}
+
+/// The active SH degree of generated step cases (coefficients above it get
+/// no gradient but still move under Adam's momentum).
+pub const STEP_ACTIVE_SH_DEGREE: usize = 2;
+
+/// Adam step counter of the optimizer state in generated step cases.
+pub const STEP_ADAM_STEP: u64 = 7;
+
+fn new_step<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+    // The field: small, `real` variant (time feature γ₁₀(t), no timenet) so
+    // the files stay small; the deform cases cover the timenet.
+    let mut config = small_field(spec);
+    config.variant = Variant::Real;
+    let mut f = field_case::<T>(spec, config)?;
+    let field_params = Field::<f64>::new(config, spec.seed)?.param_count();
+
+    let mut ss = SceneSpec::small(spec.count, spec.seed);
+    ss.width = spec.width;
+    ss.height = spec.height;
+    let scene = random_scene(&ss)?;
+    let n = scene.len();
+    let (h, w) = (spec.height, spec.width);
+    rasterize::write_camera(&mut f, &scene.camera.raster::<T>());
+    f.set_meta("active_sh_degree", STEP_ACTIVE_SH_DEGREE);
+    f.set_meta("field_on", true);
+    let time = uniforms(spec.seed, STREAM_INPUT, 1, 0.0, 1.0)[0];
+    f.set_meta("time", exact_decimal(T::from_f64(time).to_f64()));
+    f.set_meta("lambda_dssim", exact_decimal(crate::loss::LAMBDA_DSSIM));
+    for (name, lr) in step::default_learning_rates() {
+        f.set_meta(&format!("lr.{name}"), exact_decimal(lr));
+    }
+
+    // Raw (unactivated) parameters of the scene's Gaussians.
+    let scaling: Vec<f64> = scene.scales.iter().map(|&s| libm::log(s)).collect();
+    let opacity: Vec<f64> = scene
+        .opacities
+        .iter()
+        .map(|&o| libm::log(o / (1.0 - o)))
+        .collect();
+    f.insert_real("xyz", vec![n, 3], &to_t::<T>(&scene.means3d));
+    f.insert_real("sh", vec![n, SCENE_SH_STRIDE, 3], &to_t::<T>(&scene.sh));
+    f.insert_real("scaling", vec![n, 3], &to_t::<T>(&scaling));
+    f.insert_real("rotation", vec![n, 4], &to_t::<T>(&scene.rotations));
+    f.insert_real("opacity", vec![n, 1], &to_t::<T>(&opacity));
+    f.insert_real("bg", vec![3], &to_t::<T>(&scene.background));
+    let gt = uniforms(spec.seed, STREAM_INPUT + 1, 3 * h * w, 0.0, 1.0);
+    f.insert_real("gt", vec![3, h, w], &to_t::<T>(&gt));
+
+    // Optimizer state as after a few steps: moments of gradient-like size.
+    let groups: [(&str, Vec<usize>); 6] = [
+        ("xyz", vec![n, 3]),
+        ("sh", vec![n, SCENE_SH_STRIDE, 3]),
+        ("opacity", vec![n, 1]),
+        ("scaling", vec![n, 3]),
+        ("rotation", vec![n, 4]),
+        ("field", vec![field_params]),
+    ];
+    for (k, (group, shape)) in groups.into_iter().enumerate() {
+        let len = shape.iter().product();
+        let stream = STREAM_INPUT + 16 + 2 * k as u64;
+        let m = normals(spec.seed, stream, len, 1e-3);
+        let spread = uniforms(spec.seed, stream + 1, len, 0.0, 1e-6);
+        let v: Vec<f64> = m.iter().zip(&spread).map(|(m, s)| m * m + s).collect();
+        f.insert_real(&format!("adam.{group}.m"), shape.clone(), &to_t::<T>(&m));
+        f.insert_real(&format!("adam.{group}.v"), shape, &to_t::<T>(&v));
+        f.set_meta(&format!("adam.{group}.step"), STEP_ADAM_STEP);
+    }
+
+    // Statistics as after a few views.
+    let mut r = Rng::stream(spec.seed, STREAM_INPUT + 2);
+    let (mut accum, mut denom, mut radii) = (vec![], vec![], vec![]);
+    for _ in 0..n {
+        let d = (r.uniform() * 6.0) as i32;
+        let a = d as f64 * r.uniform_range(0.0, 2e-3);
+        let m = if d > 0 {
+            1 + (r.uniform() * 8.0) as i32
+        } else {
+            0
+        };
+        accum.push(a);
+        denom.push(d);
+        radii.push(m);
+    }
+    f.insert_real("stats.accum", vec![n], &to_t::<T>(&accum));
+    f.insert_i32("stats.denom", vec![n], denom);
+    f.insert_i32("stats.max_radii", vec![n], radii);
     Ok(f)
 }
 
@@ -262,6 +381,11 @@ pub const GOLDEN: &[GoldenEntry] = &[
     },
     GoldenEntry {
         stage: loss::STAGE,
+        variant: None,
+        configure: keep,
+    },
+    GoldenEntry {
+        stage: step::STAGE,
         variant: None,
         configure: keep,
     },

@@ -48,6 +48,37 @@ fn array<T: Real, const K: usize>(
     Ok(a)
 }
 
+/// The camera as this stage encodes it: metadata `image_height`,
+/// `image_width`, `tanfovx`, `tanfovy` and tensors `viewmatrix [4,4]`,
+/// `projmatrix [4,4]`, `campos [3]` (Inria layout). Shared with the `step`
+/// stage.
+pub fn read_camera<T: Real>(case: &TensorFile) -> Result<RasterCamera<T>> {
+    Ok(RasterCamera {
+        viewmatrix: array::<T, 16>(case, "viewmatrix", &[4, 4])?,
+        projmatrix: array::<T, 16>(case, "projmatrix", &[4, 4])?,
+        campos: array::<T, 3>(case, "campos", &[3])?,
+        tanfovx: T::from_f64(case.meta_parse::<f64>("tanfovx")?),
+        tanfovy: T::from_f64(case.meta_parse::<f64>("tanfovy")?),
+        width: case.meta_parse("image_width")?,
+        height: case.meta_parse("image_height")?,
+    })
+}
+
+/// The camera tensors [`read_camera`] reads.
+pub const CAMERA_TENSORS: [&str; 3] = ["viewmatrix", "projmatrix", "campos"];
+
+/// Write `camera` the way [`read_camera`] reads it (floats as shortest
+/// round-trip decimals).
+pub fn write_camera<T: Real>(file: &mut TensorFile, camera: &RasterCamera<T>) {
+    file.set_meta("image_height", camera.height);
+    file.set_meta("image_width", camera.width);
+    file.set_meta("tanfovx", format!("{:?}", camera.tanfovx.to_f64()));
+    file.set_meta("tanfovy", format!("{:?}", camera.tanfovy.to_f64()));
+    file.insert_real("viewmatrix", vec![4, 4], &camera.viewmatrix);
+    file.insert_real("projmatrix", vec![4, 4], &camera.projmatrix);
+    file.insert_real("campos", vec![3], &camera.campos);
+}
+
 fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     let stage = case.meta("stage")?;
     if stage != STAGE {
@@ -67,10 +98,8 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
             )
         })?,
     };
-    let h: usize = case.meta_parse("image_height")?;
-    let w: usize = case.meta_parse("image_width")?;
-    let tanfovx: f64 = case.meta_parse("tanfovx")?;
-    let tanfovy: f64 = case.meta_parse("tanfovy")?;
+    let camera = read_camera::<T>(case)?;
+    let (h, w) = (camera.height, camera.width);
     let scale_modifier: f64 = case.meta_parse("scale_modifier")?;
 
     let (shape, means) = case.get_real_any::<T>("means3D")?;
@@ -136,15 +165,6 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
         }
     };
     case.reject_unknown(known)?;
-    let camera = RasterCamera {
-        viewmatrix: array::<T, 16>(case, "viewmatrix", &[4, 4])?,
-        projmatrix: array::<T, 16>(case, "projmatrix", &[4, 4])?,
-        campos: array::<T, 3>(case, "campos", &[3])?,
-        tanfovx: T::from_f64(tanfovx),
-        tanfovy: T::from_f64(tanfovy),
-        width: w,
-        height: h,
-    };
     let background = array::<T, 3>(case, "bg", &[3])?;
     let grad_color = case.get_real::<T>("grad_out_color", &[3, h, w])?;
     let grad_depth = if case.contains("grad_out_depth") {
