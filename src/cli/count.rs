@@ -5,6 +5,7 @@
 use clap::Args;
 use liquid_splat::deform::count::{macs_per_gaussian, param_count, MacConvention};
 use liquid_splat::deform::{FieldConfig, FieldKind, Variant};
+use liquid_splat::report::tables::thousands;
 use liquid_splat::Error;
 use std::process::ExitCode;
 
@@ -23,19 +24,6 @@ pub struct CountArgs {
 
 fn config(a: &CountArgs) -> liquid_splat::Result<FieldConfig> {
     a.field.config(Variant::Synthetic)
-}
-
-/// `1234567` → `1,234,567`.
-fn grouped(v: u64) -> String {
-    let s = v.to_string();
-    let mut out = String::new();
-    for (i, ch) in s.chars().enumerate() {
-        if i > 0 && (s.len() - i) % 3 == 0 {
-            out.push(',');
-        }
-        out.push(ch);
-    }
-    out
 }
 
 fn convention_key(c: MacConvention) -> &'static str {
@@ -109,10 +97,10 @@ pub fn run(a: CountArgs) -> liquid_splat::Result<ExitCode> {
     println!("field: {arch}");
     println!(
         "parameters: {} ({:.4} M)",
-        grouped(params),
+        thousands(params),
         params as f64 / 1e6
     );
-    println!("gaussians: {}", grouped(n));
+    println!("gaussians: {}", thousands(n));
     println!("MACs (ptflops conventions, UPSTREAM §8.3; a Linear layer counts in·out + out per Gaussian;");
     println!("      sin/cos, tanh, sigmoid and element-wise arithmetic count 0):");
     println!(
@@ -130,8 +118,8 @@ pub fn run(a: CountArgs) -> liquid_splat::Result<ExitCode> {
         println!(
             "  {:<52} {:>16} {:>22}{mark}",
             conv.name(),
-            grouped(*per),
-            grouped(*total)
+            thousands(*per),
+            thousands(*total)
         );
     }
     Ok(ExitCode::SUCCESS)

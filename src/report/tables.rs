@@ -47,7 +47,8 @@ impl Cell {
     }
 }
 
-fn thousands(v: u64) -> String {
+/// `1234567` → `1,234,567`.
+pub fn thousands(v: u64) -> String {
     let s = v.to_string();
     let mut out = String::new();
     for (i, c) in s.chars().enumerate() {
