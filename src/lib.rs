@@ -17,15 +17,25 @@
 //! - [`math`]: the `Real` scalar trait (f32 / f64), the pinned math library,
 //!   the seeded generator and the finite-difference gradient checker.
 //! - [`camera`]: pinhole cameras and the matrices the rasterizer consumes.
-//! - [`io`]: atomic writes and named-tensor (safetensors) files.
+//! - [`io`]: atomic writes, named-tensor (safetensors) files, PNG and EXR.
+//! - [`dataset`]: D-NeRF and nerfies loaders, initial points, built-in scenes.
+//! - [`deform`]: the MLP and CfC deformation fields, forward and backward.
+//! - [`gaussians`]: raw per-Gaussian parameters, activations, Inria PLY.
+//! - [`render`]: the rasterizer, forward and backward (`exact` or `inria`).
+//! - [`loss`]: L1, SSIM and their backward; PSNR/SSIM metrics.
+//! - [`optim`], [`densify`]: Adam and schedules; clone, split, prune, reset.
+//! - [`train`]: [`train::Trainer::step`], checkpoints, whole runs.
+//! - [`oracle`]: case files for every stage and the comparison report.
 //! - [`report`]: per-run records and the experiment report (Markdown, CSV,
 //!   PNG plots, temporal smoothness of a learned deformation).
 //!
 //! ## Determinism
 //! The same inputs give the same bits whatever the thread count, run or CPU:
 //! work is split into fixed pieces, every floating-point reduction has a fixed
-//! order, transcendental functions come from one pinned pure-Rust library, and
-//! all randomness comes from explicit seeds.
+//! order, transcendental functions come from one pinned pure-Rust library
+//! (`libm`; in f32 the fields' activations use [`deform::fastmath`], plain
+//! arithmetic with the same bits on every instruction set), and all
+//! randomness comes from explicit seeds.
 
 pub mod camera;
 pub mod dataset;
@@ -41,5 +51,6 @@ pub mod oracle;
 pub mod render;
 pub mod report;
 
-pub use error::{Error, Result};
 pub mod train;
+
+pub use error::{Error, Result};

@@ -28,7 +28,7 @@ impl CameraSampler {
         CameraSampler {
             count,
             stack: Vec::new(),
-            rng: Rng::stream(seed, 0xCA3E_0A),
+            rng: Rng::stream(seed, 0x00CA_3E0A),
         }
     }
 
