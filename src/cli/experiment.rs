@@ -1,7 +1,7 @@
 //! `liquid-splat experiment`: MLP vs liquid field on several scenes, with
 //! identical seeds and settings except the field, and a report folder.
 //!
-//! Each (scene, field, seed) trains in `OUT/work/<scene>__<field>__seed<S>/`
+//! Each (scene, field, seed) trains in `OUT/training/<scene>__<field>__seed<S>/`
 //! with periodic checkpoints; when it finishes its record is written to
 //! `OUT/runs/`. Rerunning the same command skips finished runs and resumes
 //! unfinished ones from their newest checkpoint, so a sweep can be
@@ -24,7 +24,7 @@ pub struct ExperimentArgs {
     /// Built-in scenes to use when no dataset folder is given.
     #[arg(long, value_delimiter = ',', default_value = "bouncing,swing,blob")]
     pub scenes: Vec<String>,
-    /// Report folder (runs, work folders, report.md, CSV, plots).
+    /// Report folder (runs, training folders, report.md, CSV, plots).
     #[arg(long, short)]
     pub out: PathBuf,
     /// Training iterations per run.
@@ -159,7 +159,7 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
         );
         let work = a
             .out
-            .join("work")
+            .join("training")
             .join(format!("{scene}__{label}__seed{}", s.seed));
         let opts = RunOptions {
             out: work.clone(),
