@@ -87,6 +87,7 @@ fn train_render_eval_on_the_fixture_scene() {
     let r = cli(&["eval", o]);
     assert!(r.status.success(), "{}", text(&r));
     assert_eq!(json(&out.join("results.json")), results);
+    assert_eq!(json(&out.join("per_view.json")), per_view);
 
     let r = cli(&["render", o, "--sweep-frames", "3", "--sweep-view", "1"]);
     assert!(r.status.success(), "{}", text(&r));

@@ -263,7 +263,7 @@ pub fn render_views<T: Real>(
             v.width,
         )?;
         per_view.push(super::trainer::view_metrics(
-            &v.name, &out.color, &v.image, v.height, v.width,
+            &name, &out.color, &v.image, v.height, v.width,
         )?);
     }
     Ok(per_view)
