@@ -8,7 +8,7 @@
 //!
 //! **Images** are converted to RGBA and composited exactly as upstream does
 //! ([`Image8::composite`](super::image::Image8::composite)), then optionally box-downscaled
-//! ([`box_downscale`](super::image::box_downscale)), then divided by 255 in f32.
+//! ([`super::image::box_downscale`]), then divided by 255 in f32.
 //!
 //! **Field of view.** Upstream computes `fovy = focal2fov(fov2focal(fovx, W), H)` and then
 //! stores `FovY = fovx`, `FovX = fovy`: the two are swapped. For square images (all of

@@ -31,7 +31,7 @@ pub fn linear_forward<T: Real>(x: &[T], n: usize, shape: LinearShape, w: &[T], b
 
 /// [`linear_forward`], then `epilogue(first_row, y_rows, side_rows)` on each
 /// block of output rows while it is in cache (see
-/// [`matmul_then`](super::matmul::matmul_then)); the bias is already added.
+/// [`super::matmul::matmul_then`]); the bias is already added.
 #[allow(clippy::too_many_arguments)]
 pub fn linear_forward_then<T: Real, F>(
     x: &[T],

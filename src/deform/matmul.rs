@@ -4,7 +4,7 @@
 //! from zero, with a separate multiply and add per term (Rust never contracts
 //! them into an FMA). The sum does not depend on the tiling, on the
 //! instruction set the kernel was compiled for, or on the number of threads,
-//! so the fast kernels give the same bits as the plain [`reference`] loops on
+//! so the fast kernels give the same bits as the plain [`reference`](mod@reference) loops on
 //! every CPU and build.
 //!
 //! Speed comes from a register-tiled micro-kernel (a tile of `MR` rows by

@@ -7,8 +7,8 @@
 //! ```
 //!
 //! Semantics follow the Inria rasterizer (and the depth output of the fork
-//! used by the D-3DGS paper) exactly; see [`project`], [`tiles`],
-//! [`rasterize`] and [`rasterize_vjp`] for each stage's rules and orders.
+//! used by the D-3DGS paper) exactly; see the private modules `project`, `tiles`,
+//! `rasterize` and `rasterize_vjp` for each stage's rules and orders.
 //!
 //! ## Conventions
 //! - Inputs use the Inria Python API's layouts: `means3D [N,3]`, SH

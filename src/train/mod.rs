@@ -5,7 +5,7 @@
 //! - [`deformed`]: canonical Gaussians + offsets → rasterizer inputs, and back.
 //! - [`trainer`]: [`Trainer::step`], one iteration.
 //! - [`checkpoint`]: atomic, verified checkpoints; resume.
-//! - [`run`]: a whole run with evaluation and outputs.
+//! - [`run`](mod@run): a whole run with evaluation and outputs.
 
 pub mod cameras;
 pub mod checkpoint;

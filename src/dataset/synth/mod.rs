@@ -77,7 +77,7 @@ impl Default for SynthOptions {
     }
 }
 
-/// Which on-disk layout [`write`] produces.
+/// Which on-disk layout [`write`](fn@write) produces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum Layout {
     #[default]
@@ -205,7 +205,7 @@ fn render_split(name: SceneName, opts: &SynthOptions, split: u64) -> Result<Vec<
 const SPLITS: [&str; 3] = ["train", "val", "test"];
 
 /// Build a built-in scene in memory, as [`super::load`] would load it from the D-NeRF files
-/// [`write`] produces (same pixels, cameras and times), with `opts.background` and random
+/// [`write`](fn@write) produces (same pixels, cameras and times), with `opts.background` and random
 /// initial points in `[-1.3, 1.3)³` (no `points3d.ply`).
 pub fn builtin(name: &str, opts: &SynthOptions) -> Result<Dataset> {
     let scene = SceneName::parse(name).ok_or_else(|| unknown(name))?;
