@@ -557,18 +557,7 @@ fn fields_are_bit_identical_across_cpu_paths() {
             d_rotation: draw(4 * n, -1.0, 1.0),
             d_scaling: draw(3 * n, -1.0, 1.0),
         };
-        let run = || {
-            let (d, c) = field.forward(&xyz, &t).unwrap();
-            let (gp, gt) = field.backward(&c, &g).unwrap();
-            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-            (
-                bits(&d.d_xyz),
-                bits(&d.d_rotation),
-                bits(&d.d_scaling),
-                bits(&gp),
-                bits(&gt),
-            )
-        };
+        let run = || forward_backward_bits(&field, &xyz, &t, &g);
         assert!(force_isa(Some(Isa::Baseline)));
         let base = run();
         for isa in [Isa::Avx2, Isa::Avx512] {
@@ -612,18 +601,7 @@ fn fields_are_bit_identical_across_thread_counts() {
                 .num_threads(threads)
                 .build()
                 .unwrap();
-            pool.install(|| {
-                let (d, c) = field.forward(&xyz, &t).unwrap();
-                let (gp, gt) = field.backward(&c, &g).unwrap();
-                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-                (
-                    bits(&d.d_xyz),
-                    bits(&d.d_rotation),
-                    bits(&d.d_scaling),
-                    bits(&gp),
-                    bits(&gt),
-                )
-            })
+            pool.install(|| forward_backward_bits(&field, &xyz, &t, &g))
         };
         let one = run(1);
         assert_eq!(one, run(2), "{cfg:?}");
@@ -865,4 +843,20 @@ fn oracle_stage_matches_direct_calls() {
             .to_string()
             .contains("`t`"));
     }
+}
+
+type Bits = (Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>);
+
+/// The bits of a field's outputs and of its parameter and time gradients.
+fn forward_backward_bits(field: &Field<f32>, xyz: &[f32], t: &[f32], g: &Deformation<f32>) -> Bits {
+    let (d, c) = field.forward(xyz, t).unwrap();
+    let (gp, gt) = field.backward(&c, g).unwrap();
+    let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+    (
+        bits(&d.d_xyz),
+        bits(&d.d_rotation),
+        bits(&d.d_scaling),
+        bits(&gp),
+        bits(&gt),
+    )
 }

@@ -130,14 +130,11 @@ fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
 fn bench_train<T: liquid_splat::math::Real>(
     spec: &super::train::RunSpec,
 ) -> liquid_splat::Result<ExitCode> {
-    use liquid_splat::dataset::init::initial_gaussians;
-    use liquid_splat::train::{run, StageTimes, Trainer};
+    use liquid_splat::train::{run, StageTimes};
     let data = spec.load_dataset()?;
     let config = spec.train_config(&data)?;
     let views = run::views::<T>(&data.train);
-    let bg = [if data.white_background { 1.0 } else { 0.0 }; 3];
-    let g = initial_gaussians::<T>(&data.init)?;
-    let mut trainer = Trainer::new(config.clone(), g, views.len(), data.scene_extent, bg)?;
+    let mut trainer = run::new_trainer::<T>(&config, &data)?;
     let (mut all, mut active) = (StageTimes::default(), StageTimes::default());
     let (mut n_active, mut gaussians) = (0u64, 0u64);
     let t0 = Instant::now();

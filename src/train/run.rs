@@ -97,6 +97,20 @@ pub fn mean_metrics(per_view: &[ViewMetrics]) -> Result<(f64, f64)> {
     ))
 }
 
+/// A fresh run on `data`: its initial Gaussians (sized for the run's SH
+/// degree), train views, scene extent and background.
+pub fn new_trainer<T: Real>(config: &TrainConfig, data: &Dataset) -> Result<Trainer<T>> {
+    let g = with_sh_degree(initial_gaussians::<T>(&data.init)?, config.max_sh_degree);
+    let background = [if data.white_background { 1.0 } else { 0.0 }; 3];
+    Trainer::new(
+        config.clone(),
+        g,
+        data.train.len(),
+        data.scene_extent,
+        background,
+    )
+}
+
 /// Train on `data` with `config`, writing into `opts.out`.
 pub fn run<T: Real>(
     config: &TrainConfig,
@@ -107,7 +121,6 @@ pub fn run<T: Real>(
     let train = views::<T>(&data.train);
     let test = views::<T>(eval_frames(data));
     let ckpt_dir = opts.out.join("checkpoints");
-    let background = [if data.white_background { 1.0 } else { 0.0 }; 3];
 
     let (mut trainer, mut curve) = match opts
         .resume
@@ -133,19 +146,7 @@ pub fn run<T: Real>(
             });
             (t, read_curve(&dir)?)
         }
-        None => {
-            let g = with_sh_degree(initial_gaussians::<T>(&data.init)?, config.max_sh_degree);
-            (
-                Trainer::new(
-                    config.clone(),
-                    g,
-                    train.len(),
-                    data.scene_extent,
-                    background,
-                )?,
-                Vec::new(),
-            )
-        }
+        None => (new_trainer(config, data)?, Vec::new()),
     };
 
     let start = trainer.iteration;
