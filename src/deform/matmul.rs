@@ -22,6 +22,7 @@
 
 use crate::math::Real;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// Rows per chunk of the fixed-order reductions over rows (weight and bias
 /// gradients). Part of the definition of the result: changing it changes bits.
@@ -118,30 +119,36 @@ where
         m * side_w,
         "matmul_then: side has the wrong size"
     );
-    let mut c = vec![T::ZERO; m * n];
     if m == 0 || n == 0 {
-        return c;
+        return vec![T::ZERO; m * n];
     }
     let packed = pack_b(b);
-    let run = |blk: usize, cb: &mut [T], sb: &mut [T]| {
+    // The output is written once, tile by tile, without being zeroed first
+    // (zeroing cost as much as a tenth of a product).
+    let mut c: Vec<T> = Vec::with_capacity(m * n);
+    let out = &mut c.spare_capacity_mut()[..m * n];
+    let run = |blk: usize, cb: &mut [MaybeUninit<T>], sb: &mut [T]| {
         let r0 = blk * ROW_BLOCK;
         let rows = cb.len() / n;
-        block_product(a.rows(r0, rows), &packed, k, n, cb);
+        let cb = block_product(ASource::View(a.rows(r0, rows)), &packed, k, n, cb, false);
         epilogue(r0, cb, sb);
     };
     if m <= ROW_BLOCK {
         // One block: no task to share.
-        run(0, &mut c, side);
+        run(0, out, side);
     } else if side_w == 0 {
-        c.par_chunks_mut(ROW_BLOCK * n)
+        out.par_chunks_mut(ROW_BLOCK * n)
             .enumerate()
             .for_each(|(blk, cb)| run(blk, cb, &mut []));
     } else {
-        c.par_chunks_mut(ROW_BLOCK * n)
+        out.par_chunks_mut(ROW_BLOCK * n)
             .zip(side.par_chunks_mut(ROW_BLOCK * side_w))
             .enumerate()
             .for_each(|(blk, (cb, sb))| run(blk, cb, sb));
     }
+    // SAFETY: block_product wrote every one of the m·n elements (each block
+    // of rows is visited exactly once above).
+    unsafe { c.set_len(m * n) };
     c
 }
 
@@ -155,27 +162,42 @@ pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
         return vec![T::ZERO; m * n];
     }
     let chunks = r.div_ceil(REDUCTION_CHUNK);
-    if chunks == 1 {
-        return matmul(a.t(), b);
-    }
     let partials: Vec<Vec<T>> = (0..chunks)
         .into_par_iter()
         .map(|c| {
             let r0 = c * REDUCTION_CHUNK;
             let rows = REDUCTION_CHUNK.min(r - r0);
-            let at = a.rows(r0, rows).t();
-            let bc = b.rows(r0, rows);
-            let packed = pack_b(bc);
-            let mut out = vec![T::ZERO; m * n];
-            // Parallel over output rows inside a chunk too (helps when there
-            // are fewer chunks than threads); results do not depend on it.
-            out.par_chunks_mut(ROW_BLOCK * n)
-                .enumerate()
-                .for_each(|(blk, cb)| {
-                    let o0 = blk * ROW_BLOCK;
-                    let orows = cb.len() / n;
-                    block_product(at.rows(o0, orows), &packed, rows, n, cb);
-                });
+            let mut out: Vec<T> = Vec::with_capacity(m * n);
+            let o = &mut out.spare_capacity_mut()[..m * n];
+            // The chunk's rows in blocks of KC, each block's sums resumed
+            // from the previous one's (exact), so that both packed operands
+            // of a block stay in cache.
+            let mut s0 = 0;
+            while s0 < rows {
+                let kc = KC.min(rows - s0);
+                let packed = pack_b(b.rows(r0 + s0, kc));
+                let mr = tile_shape::<T>(packed.path).0;
+                // Rows of Aᵀ are columns of A, far apart in memory: pack them
+                // into the kernel's strips, reading A row by row.
+                let strips = pack_a_transposed(a.rows(r0 + s0, kc), mr);
+                let resume = s0 > 0;
+                // Parallel over output rows inside a chunk too (helps when
+                // there are fewer chunks than threads); results do not
+                // depend on it.
+                o.par_chunks_mut(ROW_BLOCK * n)
+                    .enumerate()
+                    .for_each(|(blk, cb)| {
+                        let o0 = blk * ROW_BLOCK;
+                        let a = ASource::Strips {
+                            data: &strips[o0 / mr * kc * mr..],
+                            rows: cb.len() / n,
+                        };
+                        block_product(a, &packed, kc, n, cb, resume);
+                    });
+                s0 += kc;
+            }
+            // SAFETY: every block of output rows was written by block_product.
+            unsafe { out.set_len(m * n) };
             out
         })
         .collect();
@@ -226,44 +248,104 @@ fn sum_in_order<T: Real>(mut partials: Vec<Vec<T>>) -> Vec<T> {
     total
 }
 
-/// `B` `[k, n]` copied into column panels of `PANEL` columns: panel `j`
-/// holds rows `0..k` of columns `j*PANEL..`, each row `PANEL` wide (the last
-/// panel is zero-padded; padded columns are never stored).
+/// `B` `[k, n]` copied into column panels of `width` columns, the tile
+/// width of the kernel that reads them: panel `j` holds rows `0..k` of
+/// columns `j*width..`, each row `width` wide, so a tile streams one
+/// contiguous block (the last panel is zero-padded; padded columns are never
+/// stored).
 struct PackedB<T> {
     data: Vec<T>,
+    width: usize,
+    /// The kernel the panels are laid out for.
+    path: KernelPath,
 }
 
-/// Panel width in elements: the largest micro-kernel tile width.
-const PANEL: usize = 32;
-
+/// Pack `B` for the kernel that runs now ([`kernel_path`]).
 fn pack_b<T: Real>(b: MatRef<'_, T>) -> PackedB<T> {
+    let path = kernel_path();
+    let width = tile_shape::<T>(path).1;
     let (k, n) = (b.rows, b.cols);
-    let panels = n.div_ceil(PANEL);
-    let mut data = vec![T::ZERO; panels * k * PANEL];
-    let fill = |(p, dst): (usize, &mut [T])| {
-        let j0 = p * PANEL;
-        let w = PANEL.min(n - j0);
-        for (kk, row) in dst.chunks_exact_mut(PANEL).enumerate() {
-            let row = &mut row[..w];
-            if b.col_stride == 1 {
-                let s0 = kk * b.row_stride + j0;
-                row.copy_from_slice(&b.data[s0..s0 + w]);
-            } else {
-                for (q, v) in row.iter_mut().enumerate() {
-                    *v = b.at(kk, j0 + q);
-                }
+    let panels = n.div_ceil(width);
+    let mut data = vec![T::ZERO; panels * k * width];
+    // Sequential (the large packs run inside the weight gradient's parallel
+    // chunks), reading B in its own memory order: rows of a row-major B
+    // (each row split over the panels), columns of a transposed view.
+    if b.col_stride == 1 {
+        for kk in 0..k {
+            let row = &b.data[kk * b.row_stride..kk * b.row_stride + n];
+            for (p, panel) in data.chunks_exact_mut(k * width).enumerate() {
+                let j0 = p * width;
+                let w = width.min(n - j0);
+                copy_short(&mut panel[kk * width..kk * width + w], &row[j0..j0 + w]);
             }
         }
-    };
-    if k == 0 {
-        return PackedB { data };
-    }
-    if k * n < 1 << 14 {
-        data.chunks_mut(k * PANEL).enumerate().for_each(fill);
     } else {
-        data.par_chunks_mut(k * PANEL).enumerate().for_each(fill);
+        for j in 0..n {
+            let (p, q) = (j / width, j % width);
+            let panel = &mut data[p * k * width..(p + 1) * k * width];
+            for (kk, dst) in panel.chunks_exact_mut(width).enumerate() {
+                dst[q] = b.at(kk, j);
+            }
+        }
     }
-    PackedB { data }
+    PackedB { data, width, path }
+}
+
+/// `dst.copy_from_slice(src)` for the short rows of packing, with the
+/// common lengths as fixed-size moves (a `memmove` call per row of 6 or 16
+/// values cost a third of a weight-gradient product).
+#[inline(always)]
+fn copy_short<T: Copy>(dst: &mut [T], src: &[T]) {
+    #[inline(always)]
+    fn fixed<T: Copy, const N: usize>(dst: &mut [T], src: &[T]) {
+        let d: &mut [T; N] = dst.try_into().expect("length checked");
+        *d = *<&[T; N]>::try_from(src).expect("same length");
+    }
+    match dst.len() {
+        4 => fixed::<T, 4>(dst, src),
+        6 => fixed::<T, 6>(dst, src),
+        8 => fixed::<T, 8>(dst, src),
+        16 => fixed::<T, 16>(dst, src),
+        32 => fixed::<T, 32>(dst, src),
+        _ => dst.copy_from_slice(src),
+    }
+}
+
+/// `Aᵀ` for `A` `[k, m]` (row-major rows of any stride, columns contiguous)
+/// packed in strips of `mr` rows of `Aᵀ`: strip `t` holds `Aᵀ[t·mr + r][p]`
+/// at `t·k·mr + p·mr + r`, zero-padded past row `m`.
+fn pack_a_transposed<T: Real>(a: MatRef<'_, T>, mr: usize) -> Vec<T> {
+    let (k, m) = (a.rows, a.cols);
+    let tiles = m.div_ceil(mr);
+    let mut out = vec![T::ZERO; tiles * k * mr];
+    if a.col_stride == 1 {
+        for p in 0..k {
+            let row = &a.data[p * a.row_stride..p * a.row_stride + m];
+            for (t, strip) in out.chunks_exact_mut(k * mr).enumerate() {
+                let r0 = t * mr;
+                let w = mr.min(m - r0);
+                copy_short(&mut strip[p * mr..p * mr + w], &row[r0..r0 + w]);
+            }
+        }
+    } else {
+        for p in 0..k {
+            for i in 0..m {
+                out[(i / mr) * k * mr + p * mr + i % mr] = a.at(p, i);
+            }
+        }
+    }
+    out
+}
+
+/// Where a block's rows of `A` come from.
+#[derive(Clone, Copy)]
+enum ASource<'a, T> {
+    /// A view: full tiles of rows read in place by the vector kernels,
+    /// other tiles gathered into a strip.
+    View(MatRef<'a, T>),
+    /// Strips from [`pack_a_transposed`] (with the kernel's MR), starting at
+    /// the block's first tile.
+    Strips { data: &'a [T], rows: usize },
 }
 
 /// Which compiled version of the micro-kernel runs.
@@ -285,152 +367,228 @@ pub fn kernel_path() -> KernelPath {
     }
 }
 
+/// The tile shape `(MR, NR)` of a kernel path for `T`; `NR` is also the
+/// width of the packed panels of `B`.
+fn tile_shape<T: Real>(path: KernelPath) -> (usize, usize) {
+    let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
+    let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
+    match (path, f32, f64) {
+        (KernelPath::Avx512, true, _) => (6, 32),
+        (KernelPath::Avx512, _, true) | (KernelPath::Avx2, true, _) => (6, 16),
+        (KernelPath::Avx2, _, true) => (6, 8),
+        _ => (4, 8),
+    }
+}
+
 /// A tile routine: `out[r][q] = Σ_p A[r][p] · panel[p][q]` for `r < MR`,
 /// `q < NR` (p ascending, from zero, separate multiply and add), type-erased
 /// pointers: `A[r][p]` is at `a + r·rs + p·cs` (elements), `panel` points at
-/// the tile's first column of a `k × PANEL` panel, row `r` of the output is
-/// written at `out + r·ldo`.
-type TileFn = unsafe fn(*const u8, usize, usize, *const u8, usize, *mut u8, usize);
+/// the tile's `k × NR` panel, row `r` of the output is written at
+/// `out + r·ldo`. With `resume`, the sums start from the values in `out`
+/// instead of zero.
+type TileFn = unsafe fn(*const u8, usize, usize, *const u8, usize, *mut u8, usize, bool);
 
-/// One block of output rows: `c[rows, n] = a[rows, k] · B` (B packed).
-fn block_product<T: Real>(a: MatRef<'_, T>, b: &PackedB<T>, k: usize, n: usize, c: &mut [T]) {
+/// One block of output rows: `c[rows, n] = a[rows, k] · B` (B packed), or
+/// with `resume`, `c += a · B` continuing the sums already in `c` term by
+/// term. Writes every element of `c` and returns it, initialised.
+fn block_product<'c, T: Real>(
+    a: ASource<'_, T>,
+    b: &PackedB<T>,
+    k: usize,
+    n: usize,
+    c: &'c mut [MaybeUninit<T>],
+    resume: bool,
+) -> &'c mut [T] {
+    debug_assert_eq!(b.width, tile_shape::<T>(b.path).1);
     #[cfg(target_arch = "x86_64")]
     {
         let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
         let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
-        match (kernel_path(), f32, f64) {
+        match (b.path, f32, f64) {
             (KernelPath::Avx512, true, _) => {
-                return block_body::<T, 6, 32>(a, b, k, n, c, Some(simd::f32_avx512))
+                block_body::<T, 6, 32>(a, b, k, n, c, resume, Some(simd::f32_avx512))
             }
             (KernelPath::Avx512, _, true) => {
-                return block_body::<T, 6, 16>(a, b, k, n, c, Some(simd::f64_avx512))
+                block_body::<T, 6, 16>(a, b, k, n, c, resume, Some(simd::f64_avx512))
             }
             (KernelPath::Avx2, true, _) => {
-                return block_body::<T, 6, 16>(a, b, k, n, c, Some(simd::f32_avx2))
+                block_body::<T, 6, 16>(a, b, k, n, c, resume, Some(simd::f32_avx2))
             }
             (KernelPath::Avx2, _, true) => {
-                return block_body::<T, 6, 8>(a, b, k, n, c, Some(simd::f64_avx2))
+                block_body::<T, 6, 8>(a, b, k, n, c, resume, Some(simd::f64_avx2))
             }
-            _ => {}
+            _ => block_body::<T, 4, 8>(a, b, k, n, c, resume, None),
         }
     }
-    block_body::<T, 4, 8>(a, b, k, n, c, None)
+    #[cfg(not(target_arch = "x86_64"))]
+    block_body::<T, 4, 8>(a, b, k, n, c, resume, None);
+    // SAFETY: block_body wrote every element of `c` (every (row, column)
+    // lies in exactly one tile, and each tile is stored in full).
+    unsafe { &mut *(c as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
-/// The micro-kernel driver. `NR` divides [`PANEL`]; `tile` (matching `T`,
-/// `MR` and `NR`) is the vector version, `None` the portable loop.
+/// Inner-dimension block of the micro-kernel driver: a tile sums `KC`
+/// terms, stores its running sums, and the next block starts from them.
+/// Storing and reloading an f32/f64 sum is exact, so this changes no bit; it
+/// keeps the tile's slice of `B` (`KC × NR`) and of `A` in L1 when `k` is
+/// large (the weight gradient's chunks of [`REDUCTION_CHUNK`] rows).
+const KC: usize = 256;
+
+/// The micro-kernel driver for `B` packed in panels `NR` wide; `tile`
+/// (matching `T`, `MR` and `NR`) is the vector version, `None` the portable
+/// loop.
 #[inline(always)]
 fn block_body<T: Real, const MR: usize, const NR: usize>(
-    a: MatRef<'_, T>,
+    a: ASource<'_, T>,
     b: &PackedB<T>,
     k: usize,
     n: usize,
-    c: &mut [T],
+    c: &mut [MaybeUninit<T>],
+    resume_first: bool,
     simd: Option<TileFn>,
 ) {
-    let rows = a.rows;
+    let rows = match a {
+        ASource::View(v) => v.rows,
+        ASource::Strips { rows, .. } => rows,
+    };
     debug_assert_eq!(c.len(), rows * n);
-    debug_assert_eq!(PANEL % NR, 0);
+    debug_assert_eq!(b.width, NR);
     // The vector kernels read full blocks of MR rows of A in place; the
     // portable loop and the last, partial block read a k-major strip:
-    // strip[p*MR + r] = A[i+r, p], missing rows zero. Same products, same
+    // strip[p*MR + r] = A[i+r, k0+p], missing rows zero. Same products, same
     // order: the same bits either way.
-    let mut strip = vec![T::ZERO; k * MR];
-    let mut i = 0;
-    while i < rows {
-        let mr = MR.min(rows - i);
-        let direct = simd.is_some() && mr == MR && k > 0;
-        if mr < MR {
-            strip.fill(T::ZERO);
-        }
-        if direct {
-            // No gather.
-        } else if a.row_stride == 1 {
-            // Columns of A are contiguous (a transposed view).
-            for (p, dst) in strip.chunks_exact_mut(MR).enumerate() {
-                let s0 = p * a.col_stride + i;
-                dst[..mr].copy_from_slice(&a.data[s0..s0 + mr]);
+    let kc_max = KC.min(k).max(1);
+    let mut strip = vec![T::ZERO; kc_max * MR];
+    let mut k0 = 0;
+    loop {
+        let kc = kc_max.min(k - k0);
+        // Later blocks continue the sums stored by the earlier ones.
+        let resume = resume_first || k0 > 0;
+        let mut i = 0;
+        while i < rows {
+            let mr = MR.min(rows - i);
+            // A transposed view (the weight gradient's `Gᵀ`) has each A
+            // column contiguous but its rows far apart: gathering the strip
+            // once per row of tiles is cheaper than the strided reads.
+            let (a, packed) = match a {
+                ASource::View(v) => (v, None),
+                ASource::Strips { data, .. } => {
+                    let s0 = (i / MR) * k * MR + k0 * MR;
+                    (MatRef::row_major(&[], 0, 0), Some(&data[s0..s0 + kc * MR]))
+                }
+            };
+            let direct =
+                simd.is_some() && mr == MR && kc > 0 && a.row_stride != 1 && packed.is_none();
+            if mr < MR && packed.is_none() {
+                strip.fill(T::ZERO);
             }
-        } else {
-            for r in 0..mr {
-                let s0 = (i + r) * a.row_stride;
-                for (p, dst) in strip.chunks_exact_mut(MR).enumerate() {
-                    dst[r] = a.data[s0 + p * a.col_stride];
+            if direct || packed.is_some() {
+                // No gather.
+            } else if a.row_stride == 1 {
+                // Columns of A are contiguous (a transposed view).
+                for (p, dst) in strip[..kc * MR].chunks_exact_mut(MR).enumerate() {
+                    let s0 = (k0 + p) * a.col_stride + i;
+                    copy_short(&mut dst[..mr], &a.data[s0..s0 + mr]);
+                }
+            } else {
+                for r in 0..mr {
+                    let s0 = (i + r) * a.row_stride + k0 * a.col_stride;
+                    for (p, dst) in strip[..kc * MR].chunks_exact_mut(MR).enumerate() {
+                        dst[r] = a.data[s0 + p * a.col_stride];
+                    }
                 }
             }
-        }
-        let mut j = 0;
-        while j < n {
-            let nr = NR.min(n - j);
-            let panel = j / PANEL;
-            let off = j % PANEL;
-            let bp = &b.data[panel * k * PANEL..(panel + 1) * k * PANEL];
-            let mut acc = [[T::ZERO; NR]; MR];
-            let full = mr == MR && nr == NR;
-            match simd {
-                // SAFETY: the routine was chosen for this CPU, for T, MR and
-                // NR. A: either MR full rows of the view read in place (the
-                // view's strides keep every (i+r, p) inside `a.data`), or the
-                // strip of k·MR values. The panel holds k·PANEL values, of
-                // which the tile reads columns off..off+NR ≤ PANEL. Output:
-                // either the full MR×NR tile of `c` (rows of stride n) or
-                // `acc`.
-                Some(f) if k > 0 => unsafe {
-                    let (ap, rs, cs) = if direct {
-                        (
-                            a.data.as_ptr().add(i * a.row_stride),
-                            a.row_stride,
-                            a.col_stride,
-                        )
-                    } else {
-                        (strip.as_ptr(), 1, MR)
-                    };
-                    let (out, ldo) = if full {
-                        (c.as_mut_ptr().add(i * n + j), n)
-                    } else {
-                        (acc.as_mut_ptr() as *mut T, NR)
-                    };
-                    f(
-                        ap as *const u8,
-                        rs,
-                        cs,
-                        bp.as_ptr().add(off) as *const u8,
-                        k,
-                        out as *mut u8,
-                        ldo,
-                    );
-                    if full {
-                        j += NR;
-                        continue;
+            let mut j = 0;
+            while j < n {
+                let nr = NR.min(n - j);
+                let panel = j / NR;
+                let p0 = panel * k * NR + k0 * NR;
+                let bp = &b.data[p0..p0 + kc * NR];
+                let full = mr == MR && nr == NR;
+                // Full tiles of the vector path are summed in place in `c`;
+                // the others in `acc`.
+                let in_place = simd.is_some() && full && kc > 0;
+                let mut acc = [[T::ZERO; NR]; MR];
+                if resume && !in_place {
+                    for (r, row) in acc.iter_mut().enumerate().take(mr) {
+                        for (q, v) in row.iter_mut().enumerate().take(nr) {
+                            // SAFETY: written by the previous block.
+                            *v = unsafe { c[(i + r) * n + j + q].assume_init() };
+                        }
                     }
-                },
-                _ => tile::<T, MR, NR>(&strip, bp, off, k, &mut acc),
+                }
+                match simd {
+                    // SAFETY: the routine was chosen for this CPU, for T, MR
+                    // and NR. A: either MR full rows of the view read in place
+                    // from column k0 (the view's strides keep every (i+r, p)
+                    // inside `a.data`), or the strip of kc·MR values. The
+                    // panel slice holds the kc·NR values the tile reads.
+                    // Output: the full MR×NR tile of `c` (rows of stride n;
+                    // written by the previous block when `resume`), or `acc`
+                    // (loaded from `c` above when `resume`).
+                    Some(f) if kc > 0 => unsafe {
+                        let (ap, rs, cs) = if direct {
+                            (
+                                a.data.as_ptr().add(i * a.row_stride + k0 * a.col_stride),
+                                a.row_stride,
+                                a.col_stride,
+                            )
+                        } else {
+                            (packed.unwrap_or(&strip).as_ptr(), 1, MR)
+                        };
+                        let (out, ldo) = if full {
+                            (c.as_mut_ptr().add(i * n + j) as *mut T, n)
+                        } else {
+                            (acc.as_mut_ptr() as *mut T, NR)
+                        };
+                        f(
+                            ap as *const u8,
+                            rs,
+                            cs,
+                            bp.as_ptr() as *const u8,
+                            kc,
+                            out as *mut u8,
+                            ldo,
+                            resume,
+                        );
+                        if full {
+                            j += NR;
+                            continue;
+                        }
+                    },
+                    _ => tile::<T, MR, NR>(packed.unwrap_or(&strip), bp, kc, &mut acc),
+                }
+                for r in 0..mr {
+                    let dst = &mut c[(i + r) * n + j..(i + r) * n + j + nr];
+                    for (d, &v) in dst.iter_mut().zip(&acc[r][..nr]) {
+                        d.write(v);
+                    }
+                }
+                j += NR;
             }
-            for r in 0..mr {
-                let dst = &mut c[(i + r) * n + j..(i + r) * n + j + nr];
-                dst.copy_from_slice(&acc[r][..nr]);
-            }
-            j += NR;
+            i += MR;
         }
-        i += MR;
+        k0 += kc;
+        if k0 >= k {
+            break;
+        }
     }
 }
 
-/// `acc[r][q] = Σ_p strip[p][r] · panel[p][off + q]`, p ascending, from zero.
-/// Rows or columns beyond the matrix read zeros (padding) and are not stored.
+/// `acc[r][q] += Σ_p strip[p][r] · panel[p][q]`, p ascending, one term at a
+/// time onto the running sum. Rows or columns beyond the matrix read zeros
+/// (padding) and are not stored.
 #[inline(always)]
 fn tile<T: Real, const MR: usize, const NR: usize>(
     strip: &[T],
     panel: &[T],
-    off: usize,
     k: usize,
     acc: &mut [[T; NR]; MR],
 ) {
     for (av, bv) in strip[..k * MR]
         .chunks_exact(MR)
-        .zip(panel[..k * PANEL].chunks_exact(PANEL))
+        .zip(panel[..k * NR].chunks_exact(NR))
     {
-        let bv = &bv[off..off + NR];
         for r in 0..MR {
             let x = av[r];
             for q in 0..NR {
@@ -444,7 +602,6 @@ fn tile<T: Real, const MR: usize, const NR: usize>(
 /// rounded, then an add rounded; no FMA), so every path gives the same bits.
 #[cfg(target_arch = "x86_64")]
 mod simd {
-    use super::PANEL;
     use std::arch::x86_64::*;
 
     macro_rules! tile_fn {
@@ -461,10 +618,18 @@ mod simd {
                 k: usize,
                 out: *mut u8,
                 ldo: usize,
+                resume: bool,
             ) {
                 let a = a as *const $t;
+                let out = out as *mut $t;
                 let mut panel = panel as *const $t;
                 let mut c: [[$vec; 2]; $mr] = [[$zero(); 2]; $mr];
+                if resume {
+                    for r in 0..$mr {
+                        c[r][0] = $load(out.add(r * ldo));
+                        c[r][1] = $load(out.add(r * ldo + $lanes));
+                    }
+                }
                 let rows: [*const $t; $mr] = core::array::from_fn(|r| a.add(r * rs));
                 let mut p = 0;
                 for _ in 0..k {
@@ -476,9 +641,8 @@ mod simd {
                         c[r][1] = $add(c[r][1], $mul(x, b1));
                     }
                     p += cs;
-                    panel = panel.add(PANEL);
+                    panel = panel.add(2 * $lanes);
                 }
-                let out = out as *mut $t;
                 for r in 0..$mr {
                     $store(out.add(r * ldo), c[r][0]);
                     $store(out.add(r * ldo + $lanes), c[r][1]);
@@ -635,6 +799,8 @@ mod tests {
             (13, 37, 33),
             (50, 64, 70),
             (97, 93, 256),
+            // k over the inner block KC: sums resumed from the stored tile.
+            (19, 2 * KC + 77, 37),
         ] {
             let a = random::<T>(1 + m as u64, m * k);
             let b = random::<T>(2 + n as u64, k * n);
@@ -670,14 +836,28 @@ mod tests {
         }
     }
 
+    /// Every kernel path this CPU has (the portable one always), then the
+    /// automatic choice. Results are the same on all paths by design, so
+    /// pinning the path here cannot change what other tests compute.
+    fn on_every_path(check: impl Fn()) {
+        use crate::deform::fastmath::{force_isa, Isa};
+        for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
+            if force_isa(Some(isa)) {
+                check();
+            }
+        }
+        force_isa(None);
+        check();
+    }
+
     #[test]
     fn fast_products_match_reference_bits_f32() {
-        check_all::<f32>();
+        on_every_path(check_all::<f32>);
     }
 
     #[test]
     fn fast_products_match_reference_bits_f64() {
-        check_all::<f64>();
+        on_every_path(check_all::<f64>);
     }
 
     #[test]
