@@ -141,6 +141,18 @@ impl Activation {
         out
     }
 
+    /// `f` applied in place to a block of values (sequential: meant for a
+    /// matrix product's epilogue, which already runs in parallel blocks).
+    pub fn apply_block<T: Real>(self, x: &mut [T]) {
+        apply_in_place(self, x);
+    }
+
+    /// `out = f(pre)` on a block of values (sequential, as
+    /// [`apply_block`](Self::apply_block)).
+    pub fn apply_block_into<T: Real>(self, pre: &[T], out: &mut [T]) {
+        apply_slice(self, pre, out);
+    }
+
     /// vjp: `g ⊙ f'(pre)`, in place on `g`.
     pub fn backward_in_place<T: Real>(self, pre: &[T], g: &mut [T]) {
         if g.len() <= 4096 {
@@ -150,6 +162,40 @@ impl Activation {
         g.par_chunks_mut(4096)
             .zip(pre.par_chunks(4096))
             .for_each(|(g, p)| scale_by_derivative(self, p, g));
+    }
+}
+
+/// vjp of ReLU from its output instead of its input: `g ⊙ f'(pre)` with
+/// `f'(pre) = [out > 0]` (the same values, since `out > 0` exactly when
+/// `pre > 0`), in place on `g` `[n, w]`; the outputs are columns
+/// `c0..c0+w` of the row-major `out` `[n, out_w]`. Lets a ReLU layer keep
+/// only its output.
+pub fn relu_backward_from_output<T: Real>(
+    out: &[T],
+    out_w: usize,
+    c0: usize,
+    g: &mut [T],
+    w: usize,
+) {
+    const ROWS: usize = 64;
+    if w == 0 {
+        return;
+    }
+    g.par_chunks_mut(ROWS * w)
+        .zip(out.par_chunks(ROWS * out_w))
+        .for_each(|(g, o)| {
+            for (g, o) in g.chunks_exact_mut(w).zip(o.chunks_exact(out_w)) {
+                relu_mask_row(&o[c0..c0 + w], g);
+            }
+        });
+}
+
+multiversion!(fn relu_mask_row<T: Real>(out: &[T], g: &mut [T]) => relu_mask_row_body);
+
+#[inline(always)]
+fn relu_mask_row_body<T: Real>(out: &[T], g: &mut [T]) {
+    for (g, &o) in g.iter_mut().zip(out) {
+        *g *= if o > T::ZERO { T::ONE } else { T::ZERO };
     }
 }
 
@@ -186,6 +232,7 @@ macro_rules! per_activation {
 }
 
 multiversion!(fn apply_slice<T: Real>(act: Activation, pre: &[T], out: &mut [T]) => apply_slice_body);
+multiversion!(fn apply_in_place<T: Real>(act: Activation, x: &mut [T]) => apply_in_place_body);
 multiversion!(fn scale_by_derivative<T: Real>(act: Activation, pre: &[T], g: &mut [T]) => scale_by_derivative_body);
 
 #[inline(always)]
@@ -193,6 +240,15 @@ fn apply_slice_body<T: Real>(act: Activation, pre: &[T], out: &mut [T]) {
     per_activation!(act, |a| {
         for (o, &p) in out.iter_mut().zip(pre) {
             *o = a.apply(p);
+        }
+    })
+}
+
+#[inline(always)]
+fn apply_in_place_body<T: Real>(act: Activation, x: &mut [T]) {
+    per_activation!(act, |a| {
+        for v in x.iter_mut() {
+            *v = a.apply(*v);
         }
     })
 }

@@ -12,7 +12,7 @@
 //! stacked product in `state_dict` order (`branch_w`, `branch_v`,
 //! `gaussian_rotation`, `gaussian_scaling`).
 
-use super::activation::Activation;
+use super::activation::{relu_backward_from_output, Activation};
 use super::encoding::{encode, encoded_dim};
 use super::linear::InputGrad;
 use super::se3;
@@ -40,10 +40,10 @@ pub(crate) struct MlpNet {
 /// What the MLP's backward needs.
 pub(crate) struct MlpCache<T> {
     time: TimeCache<T>,
-    /// Input of each trunk layer (`inputs[0]` = h₀).
+    /// Input of each trunk layer (`inputs[0]` = h₀). Layer `i`'s output is
+    /// `inputs[i + 1]` (its last W columns after the skip), or `head_in`.
+    /// The ReLU backward needs only that output (no pre-activations kept).
     inputs: Vec<Vec<T>>,
-    /// Pre-activation of each trunk layer.
-    pres: Vec<Vec<T>>,
     /// Input of the heads `[n, W]`.
     head_in: Vec<T>,
     /// 6-DoF only: the canonical positions `[n, 3]` and the raw
@@ -89,18 +89,19 @@ impl MlpNet {
         let (t_feat, time) = self.time.forward(p, t);
         let h0 = concat_cols(&x_emb, xd, &t_feat, self.in_dim - xd, n);
         let mut inputs: Vec<Vec<T>> = Vec::with_capacity(self.layers.len());
-        let mut pres = Vec::with_capacity(self.layers.len());
         let mut cur = h0;
         for (i, l) in self.layers.iter().enumerate() {
-            let pre = l.forward(p, &cur, n);
-            let out = Activation::Relu.forward(&pre);
+            // ReLU on each block of rows as it leaves the product.
+            let out = l.forward_then(p, &cur, n, &mut [], 0, |_, blk, _| {
+                Activation::Relu.apply_block(blk)
+            });
             let next = if i == self.skip {
-                concat_cols(&inputs[0], self.in_dim, &out, self.width, n)
+                let first = inputs.first().unwrap_or(&cur);
+                concat_cols(first, self.in_dim, &out, self.width, n)
             } else {
                 out
             };
             inputs.push(std::mem::replace(&mut cur, next));
-            pres.push(pre);
         }
         let head_out = Stacked(&self.heads).forward(p, &cur, n);
         let (d, warp) = if self.is_6dof {
@@ -114,7 +115,6 @@ impl MlpNet {
             MlpCache {
                 time,
                 inputs,
-                pres,
                 head_in: cur,
                 warp,
             },
@@ -173,16 +173,22 @@ impl MlpNet {
             .backward(p, &c.head_in, &g_head, n, InputGrad::From(0), gp)
             .expect("input gradient requested");
         let mut g_tfeat = vec![T::ZERO; n * td];
+        let wcat = self.in_dim + self.width;
         for i in (0..self.layers.len()).rev() {
             if i == self.skip {
                 // dh is the gradient of [γ(x), t_feat, h]: keep the t_feat part.
-                let wcat = self.in_dim + self.width;
                 for (acc, v) in g_tfeat.iter_mut().zip(take_cols(&dh, wcat, xd, td)) {
                     *acc += v;
                 }
                 dh = take_cols(&dh, wcat, self.in_dim, self.width);
             }
-            Activation::Relu.backward_in_place(&c.pres[i], &mut dh);
+            // ReLU's vjp from the layer's output (see MlpCache::inputs).
+            let (out, out_w, c0) = match c.inputs.get(i + 1) {
+                None => (&c.head_in, self.width, 0),
+                Some(next) if i == self.skip => (next, wcat, self.in_dim),
+                Some(next) => (next, self.width, 0),
+            };
+            relu_backward_from_output(out, out_w, c0, &mut dh, self.width);
             let want = if i == 0 {
                 InputGrad::From(xd)
             } else {

@@ -328,6 +328,32 @@ impl LinearParams {
         linear_forward(x, n, self.shape, self.weight(p), self.bias(p))
     }
 
+    /// [`forward`](Self::forward) with an epilogue on each block of output
+    /// rows (see [`linear_forward_then`]).
+    pub fn forward_then<T: Real, F>(
+        &self,
+        p: &[T],
+        x: &[T],
+        n: usize,
+        side: &mut [T],
+        side_w: usize,
+        epilogue: F,
+    ) -> Vec<T>
+    where
+        F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    {
+        linear_forward_then(
+            x,
+            n,
+            self.shape,
+            self.weight(p),
+            self.bias(p),
+            side,
+            side_w,
+            epilogue,
+        )
+    }
+
     /// Backward: writes the weight and bias gradients into `grad` (same
     /// layout as the parameters) and returns the requested input gradient.
     pub fn backward<T: Real>(
@@ -535,11 +561,10 @@ impl TimeEmbedding {
 
 /// `[a | b]` row by row: `a` `[n, da]`, `b` `[n, db]` → `[n, da + db]`.
 pub(crate) fn concat_cols<T: Real>(a: &[T], da: usize, b: &[T], db: usize, n: usize) -> Vec<T> {
-    let w = da + db;
-    let mut out = vec![T::ZERO; n * w];
+    let mut out = Vec::with_capacity(n * (da + db));
     for i in 0..n {
-        out[i * w..i * w + da].copy_from_slice(&a[i * da..(i + 1) * da]);
-        out[i * w + da..(i + 1) * w].copy_from_slice(&b[i * db..(i + 1) * db]);
+        out.extend_from_slice(&a[i * da..(i + 1) * da]);
+        out.extend_from_slice(&b[i * db..(i + 1) * db]);
     }
     out
 }

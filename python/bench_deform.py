@@ -1,0 +1,63 @@
+#!/usr/bin/env python3
+"""PyTorch CPU timing of the deformation fields, the workloads of `liquid-splat bench deform`.
+
+MLP D8 W256 (the D-3DGS DeformNetwork) and CfC D6 W128 (stacked ncps CfCCell, backbone 2x64
+GELU), synthetic variant, f32, N Gaussians, forward and forward+backward, median of --reps
+runs after one warm-up. Run it beside `liquid-splat --threads T bench deform` on the same
+machine with the same thread count to compare.
+
+Usage:
+    python bench_deform.py [--threads 2] [--n 20000] [--reps 5]
+"""
+
+import argparse
+import statistics
+import time
+
+import torch
+
+from reference_deform import CfCField, DeformNetwork
+
+
+def timed(fn, reps):
+    fn()  # warm-up (allocator, thread pool)
+    out = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        out.append((time.perf_counter() - t0) * 1e3)
+    return statistics.median(out), min(out)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--n", type=int, default=20000)
+    ap.add_argument("--reps", type=int, default=5)
+    a = ap.parse_args()
+    torch.set_num_threads(a.threads)
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(1)
+    xyz = (torch.rand(a.n, 3, generator=g) * 2 - 1) * 1.3
+    t = torch.rand(a.n, 1, generator=g)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, N = {a.n}, f32, "
+          f"median of {a.reps} (fastest)")
+    for name, net in [("mlp D8 W256", DeformNetwork(8, 256)), ("cfc D6 W128", CfCField(6, 128))]:
+        def fwd():
+            with torch.no_grad():
+                net(xyz, t)
+
+        def fwd_bwd():
+            net.zero_grad(set_to_none=True)
+            tt = t.clone().requires_grad_(True)
+            dx, dr, ds = net(xyz, tt)
+            (dx.sum() + dr.sum() + ds.sum()).backward()
+
+        f, fmin = timed(fwd, a.reps)
+        fb, fbmin = timed(fwd_bwd, a.reps)
+        print(f"{name:<14} forward {f:8.1f} ms ({fmin:.1f})   forward+backward {fb:8.1f} ms "
+              f"({fbmin:.1f})")
+
+
+if __name__ == "__main__":
+    main()
