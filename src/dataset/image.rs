@@ -116,7 +116,7 @@ pub fn box_downscale(path: &Path, rgb: &[u8], w: usize, h: usize, r: usize) -> R
     if r == 1 {
         return Ok(rgb.to_vec());
     }
-    if w % r != 0 || h % r != 0 {
+    if !w.is_multiple_of(r) || !h.is_multiple_of(r) {
         return Err(Error::format(
             path,
             format!("image size {w}x{h} is not divisible by the downscale factor {r}"),

@@ -104,7 +104,7 @@ impl<T: Real> AdamState<T> {
                 ),
             ));
         }
-        if lrs.is_empty() || n % lrs.len() != 0 {
+        if lrs.is_empty() || !n.is_multiple_of(lrs.len()) {
             return Err(Error::invalid(
                 "Adam step",
                 format!("{} learning rates do not tile {n} elements", lrs.len()),
@@ -156,8 +156,8 @@ impl<T: Real> AdamState<T> {
     /// unchanged.
     pub fn extend_zero(&mut self, width: usize, count: usize) {
         let add = width * count;
-        self.m.extend(std::iter::repeat(T::ZERO).take(add));
-        self.v.extend(std::iter::repeat(T::ZERO).take(add));
+        self.m.extend(std::iter::repeat_n(T::ZERO, add));
+        self.v.extend(std::iter::repeat_n(T::ZERO, add));
     }
 
     /// Zero the moments of every element (opacity reset); step kept.

@@ -230,7 +230,7 @@ impl Tolerances {
         for (pattern, spec) in &self.tensors {
             if pattern.contains('*') && glob_match(pattern, name) {
                 let specificity = pattern.chars().filter(|&c| c != '*').count();
-                if best.map_or(true, |(s, _)| specificity > s) {
+                if best.is_none_or(|(s, _)| specificity > s) {
                     best = Some((specificity, spec));
                 }
             }
@@ -644,7 +644,7 @@ fn element_stats(shape: &[usize], e: &TensorData, a: &TensorData, tol: &Toleranc
                 f64::INFINITY
             }
         };
-        if worst.map_or(true, |(s, _)| score > s) {
+        if worst.is_none_or(|(s, _)| score > s) {
             worst = Some((score, i));
         }
     }

@@ -277,7 +277,7 @@ fn check_len(what: &str, len: usize, want: usize, n: usize) -> Result<()> {
 impl<T: Real> RasterInput<'_, T> {
     /// Number of Gaussians, after checking every length against it.
     pub fn validate(&self) -> Result<usize> {
-        if self.means3d.len() % 3 != 0 {
+        if !self.means3d.len().is_multiple_of(3) {
             return Err(Error::invalid(
                 "means3d",
                 format!("length {} is not a multiple of 3", self.means3d.len()),

@@ -233,7 +233,9 @@ impl<T: Real> Trainer<T> {
     pub fn step(&mut self, views: &[View<T>]) -> Result<StepReport> {
         let it = self.iteration + 1;
         let cfg = &self.config;
-        if it % cfg.schedule.sh_degree_interval == 0 && self.active_sh_degree < cfg.max_sh_degree {
+        if it.is_multiple_of(cfg.schedule.sh_degree_interval)
+            && self.active_sh_degree < cfg.max_sh_degree
+        {
             self.active_sh_degree += 1;
         }
         let pick = self.sampler.next();
@@ -393,7 +395,7 @@ impl<T: Real> Trainer<T> {
         }
         self.stats.update(radii, grad_means2d)?;
         let mut report = None;
-        if it > s.densify_from && it % s.densification_interval == 0 {
+        if it > s.densify_from && it.is_multiple_of(s.densification_interval) {
             let seed = Rng::stream(self.config.seed ^ STREAM_SPLIT, it).next_u64();
             report = Some(densify_and_prune(
                 &mut self.gaussians,
@@ -406,7 +408,7 @@ impl<T: Real> Trainer<T> {
             )?);
         }
         let white = self.background == [1.0; 3];
-        let reset = it % s.opacity_reset_interval == 0 || (white && it == s.densify_from);
+        let reset = it.is_multiple_of(s.opacity_reset_interval) || (white && it == s.densify_from);
         if reset {
             reset_opacity(&mut self.gaussians, &mut self.optimizer)?;
         }

@@ -335,7 +335,7 @@ fn write_nerfies(scene: SceneName, out: &Path, opts: &SynthOptions) -> Result<()
         };
         let rgb = img.composite(opts.background);
         for r in [1usize, 2, 4] {
-            if res % r == 0 {
+            if res.is_multiple_of(r) {
                 let small = super::image::box_downscale(out, &rgb, res, res, r)?;
                 let png = encode_png(res / r, res / r, 3, &small)?;
                 crate::io::write_atomic(&out.join(format!("rgb/{r}x/{id}.png")), &png)?;

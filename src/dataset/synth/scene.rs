@@ -108,7 +108,7 @@ impl Shape {
                         albedo: [0.0; 3],
                     };
                     if let Some(h) = s.intersect(o, d) {
-                        if best.map_or(true, |b| h.0 < b.0) {
+                        if best.is_none_or(|b| h.0 < b.0) {
                             best = Some(h);
                         }
                     }
@@ -328,7 +328,7 @@ pub fn render(shapes: &[Shape], camera: &Camera, ss: usize) -> Vec<u8> {
                     let mut best: Option<(f64, V3, V3)> = None;
                     for s in shapes {
                         if let Some((t, n)) = s.intersect(o, d) {
-                            if best.map_or(true, |b| t < b.0) {
+                            if best.is_none_or(|b| t < b.0) {
                                 best = Some((t, n, s.albedo()));
                             }
                         }
