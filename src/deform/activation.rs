@@ -141,14 +141,23 @@ impl Activation {
         out
     }
 
-    /// `f` applied in place to a block of values (sequential: meant for a
-    /// matrix product's epilogue, which already runs in parallel blocks).
-    pub fn apply_block<T: Real>(self, x: &mut [T]) {
-        apply_in_place(self, x);
+    /// `row = f(row + bias)` element-wise on each row of a row-major block
+    /// (sequential: meant for a matrix product's epilogue, which already
+    /// runs in parallel blocks): a linear
+    /// layer's bias and activation in one pass. Each value is written
+    /// whatever its sign (an in-place ReLU alone compiles to masked stores,
+    /// which are slow on some CPUs).
+    pub fn add_bias_apply_block<T: Real>(self, blk: &mut [T], bias: &[T]) {
+        if bias.is_empty() {
+            return;
+        }
+        for row in blk.chunks_exact_mut(bias.len()) {
+            add_bias_apply(self, row, bias);
+        }
     }
 
     /// `out = f(pre)` on a block of values (sequential, as
-    /// [`apply_block`](Self::apply_block)).
+    /// [`add_bias_apply_block`](Self::add_bias_apply_block)).
     pub fn apply_block_into<T: Real>(self, pre: &[T], out: &mut [T]) {
         apply_slice(self, pre, out);
     }
@@ -232,7 +241,7 @@ macro_rules! per_activation {
 }
 
 multiversion!(fn apply_slice<T: Real>(act: Activation, pre: &[T], out: &mut [T]) => apply_slice_body);
-multiversion!(fn apply_in_place<T: Real>(act: Activation, x: &mut [T]) => apply_in_place_body);
+multiversion!(fn add_bias_apply<T: Real>(act: Activation, row: &mut [T], bias: &[T]) => add_bias_apply_body);
 multiversion!(fn scale_by_derivative<T: Real>(act: Activation, pre: &[T], g: &mut [T]) => scale_by_derivative_body);
 
 #[inline(always)]
@@ -245,10 +254,10 @@ fn apply_slice_body<T: Real>(act: Activation, pre: &[T], out: &mut [T]) {
 }
 
 #[inline(always)]
-fn apply_in_place_body<T: Real>(act: Activation, x: &mut [T]) {
+fn add_bias_apply_body<T: Real>(act: Activation, row: &mut [T], bias: &[T]) {
     per_activation!(act, |a| {
-        for v in x.iter_mut() {
-            *v = a.apply(*v);
+        for (v, &b) in row.iter_mut().zip(bias) {
+            *v = a.apply(*v + b);
         }
     })
 }

@@ -18,8 +18,8 @@ use super::encoding::{encode, encoded_dim};
 use super::fastmath::{self, multiversion};
 use super::linear::InputGrad;
 use super::{
-    concat_cols, take_cols, Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked,
-    TimeCache, TimeEmbedding, XYZ_LEVELS,
+    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
+    XYZ_LEVELS,
 };
 use crate::math::Real;
 use rayon::prelude::*;
@@ -50,7 +50,11 @@ pub(crate) struct CfcNet {
 }
 
 struct CellCache<T> {
-    /// Input of each backbone layer (`inputs[0] = [u; h]`).
+    /// The state entering the cell (after the skip, at cell D/2): with `u`,
+    /// the first backbone layer's input `[u; h]`, read as column blocks
+    /// (never concatenated).
+    h_in: Vec<T>,
+    /// Input of each backbone layer after the first.
     inputs: Vec<Vec<T>>,
     /// Pre-activation of each backbone layer.
     pres: Vec<Vec<T>>,
@@ -63,7 +67,9 @@ struct CellCache<T> {
 /// What the CfC field's backward needs.
 pub(crate) struct CfcCache<T> {
     time: TimeCache<T>,
-    u: Vec<T>,
+    /// The two blocks of `u`: `γ(x)` `[n, 63]` and `t_feat`.
+    x_emb: Vec<T>,
+    t_feat: Vec<T>,
     cells: Vec<CellCache<T>>,
     head_in: Vec<T>,
 }
@@ -109,39 +115,52 @@ impl CfcNet {
         let xd = encoded_dim(3, XYZ_LEVELS);
         let x_emb = encode(xyz, 3, XYZ_LEVELS);
         let (t_feat, time) = self.time.forward(p, t);
-        let u = concat_cols(&x_emb, xd, &t_feat, self.u_dim - xd, n);
-        drop(x_emb);
+        let td = self.u_dim - xd;
         let mut h = vec![T::ZERO; n * w];
         let mut cells = Vec::with_capacity(self.cells.len());
         for (l, cell) in self.cells.iter().enumerate() {
+            let u = [(&x_emb[..], xd), (&t_feat[..], td)];
             if l == self.skip_at {
-                let s = self.skip.forward(p, &u, n);
+                let s = self
+                    .skip
+                    .forward_parts_then(p, &u, n, &mut [], 0, |_, _, _| {});
                 for (hv, sv) in h.iter_mut().zip(s) {
                     *hv += sv;
                 }
             }
-            let mut cur = concat_cols(&u, self.u_dim, &h, w, n);
-            let mut inputs = Vec::with_capacity(cell.backbone.len());
+            let mut inputs = Vec::with_capacity(cell.backbone.len() - 1);
             let mut pres = Vec::with_capacity(cell.backbone.len());
-            for lin in &cell.backbone {
+            let mut cur: Vec<T> = Vec::new();
+            for (j, lin) in cell.backbone.iter().enumerate() {
                 // The activation on each block of rows as it leaves the
-                // product, into `out`.
+                // product, into `out`. The first layer reads [u; h] as
+                // column blocks.
                 let units = lin.shape.out_dim;
                 let mut out = vec![T::ZERO; n * units];
-                let pre = lin.forward_then(p, &cur, n, &mut out, units, |_, blk, ob| {
-                    self.act.apply_block_into(blk, ob)
-                });
-                inputs.push(std::mem::replace(&mut cur, out));
+                let act =
+                    |_: usize, blk: &mut [T], ob: &mut [T]| self.act.apply_block_into(blk, ob);
+                let pre = if j == 0 {
+                    let xs = [u[0], u[1], (&h[..], w)];
+                    lin.forward_parts_then(p, &xs, n, &mut out, units, act)
+                } else {
+                    lin.forward_then(p, &cur, n, &mut out, units, act)
+                };
+                let prev = std::mem::replace(&mut cur, out);
+                if j > 0 {
+                    inputs.push(prev);
+                }
                 pres.push(pre);
             }
             let z = cur;
             // The four heads, then the fused cell pass on each block of rows
-            // while it is in cache.
-            let gate = Stacked(&cell.heads).forward_then(p, &z, n, &mut h, w, |r0, g, hb| {
+            // while it is in cache, writing the new state.
+            let mut h_next = vec![T::ZERO; n * w];
+            let gate = Stacked(&cell.heads).forward_then(p, &z, n, &mut h_next, w, |r0, g, hb| {
                 let rows = hb.len() / w;
                 cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
             });
             cells.push(CellCache {
+                h_in: std::mem::replace(&mut h, h_next),
                 inputs,
                 pres,
                 z,
@@ -153,7 +172,8 @@ impl CfcNet {
             Deformation::from_head(&out),
             CfcCache {
                 time,
-                u,
+                x_emb,
+                t_feat,
                 cells,
                 head_in: h,
             },
@@ -184,36 +204,33 @@ impl CfcNet {
             let mut dz = Stacked(&cell.heads)
                 .backward(p, &cc.z, &g_heads, n, InputGrad::From(0), gp)
                 .expect("input gradient requested");
-            let mut din = Vec::new();
+            let u = [(&c.x_emb[..], xd), (&c.t_feat[..], td)];
             for j in (0..cell.backbone.len()).rev() {
                 self.act.backward_in_place(&cc.pres[j], &mut dz);
-                // The first layer's input is [γ(x), t_feat, h]: γ(x) is stop-gradient.
-                let want = if j == 0 {
-                    InputGrad::From(xd)
-                } else {
-                    InputGrad::From(0)
-                };
-                let gin = cell.backbone[j]
-                    .backward(p, &cc.inputs[j], &dz, n, want, gp)
-                    .expect("input gradient requested");
-                if j == 0 {
-                    din = gin;
-                } else {
-                    dz = gin;
+                if j > 0 {
+                    dz = cell.backbone[j]
+                        .backward(p, &cc.inputs[j - 1], &dz, n, InputGrad::From(0), gp)
+                        .expect("input gradient requested");
+                    continue;
                 }
+                // The first layer's input is [γ(x) | t_feat | h]: γ(x) is
+                // stop-gradient; t_feat's gradient is collected, h's flows on.
+                let xs = [u[0], u[1], (&cc.h_in[..], w)];
+                let mut gin =
+                    cell.backbone[0].backward_parts(p, &xs, &dz, n, InputGrad::From(xd), gp);
+                let g_t = gin[1].take().expect("input gradient requested");
+                for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
+                    *acc += v;
+                }
+                dh = gin[2].take().expect("input gradient requested");
             }
-            let wd = td + w;
-            for (acc, v) in g_tfeat.iter_mut().zip(take_cols(&din, wd, 0, td)) {
-                *acc += v;
-            }
-            dh = take_cols(&din, wd, td, w);
             if l == self.skip_at {
                 // h_in = h_prev + skip(u): the same gradient flows to both.
-                let gs = self
+                let mut gs = self
                     .skip
-                    .backward(p, &c.u, &dh, n, InputGrad::From(xd), gp)
-                    .expect("input gradient requested");
-                for (acc, v) in g_tfeat.iter_mut().zip(gs) {
+                    .backward_parts(p, &u, &dh, n, InputGrad::From(xd), gp);
+                let g_t = gs[1].take().expect("input gradient requested");
+                for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
                     *acc += v;
                 }
             }

@@ -4,7 +4,7 @@
 //! Each output is `(Σ_k x_k·W_jk, k ascending from zero) + b_j`: the bias is
 //! added after the dot product.
 
-use super::matmul::{column_sums, matmul, matmul_then, matmul_tn, MatRef};
+use super::matmul::{column_sums, matmul, matmul_parts_then, matmul_tn, MatRef};
 use crate::math::Real;
 
 /// Shape of a linear layer.
@@ -46,10 +46,44 @@ pub fn linear_forward_then<T: Real, F>(
 where
     F: Fn(usize, &mut [T], &mut [T]) + Sync,
 {
+    linear_forward_parts_then(&[(x, shape.in_dim)], n, shape, w, b, side, side_w, epilogue)
+}
+
+/// [`linear_forward_then`] for an input given as column blocks
+/// `x = [x₁ | x₂ | …]` (`xs[i] = (xᵢ, width of xᵢ)`, each `[n, widthᵢ]`,
+/// widths adding up to `in`), without concatenating them: the same bits as
+/// on the concatenated input.
+#[allow(clippy::too_many_arguments)]
+pub fn linear_forward_parts_then<T: Real, F>(
+    xs: &[(&[T], usize)],
+    n: usize,
+    shape: LinearShape,
+    w: &[T],
+    b: &[T],
+    side: &mut [T],
+    side_w: usize,
+    epilogue: F,
+) -> Vec<T>
+where
+    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+{
     let LinearShape { in_dim, out_dim } = shape;
-    let xm = MatRef::row_major(x, n, in_dim);
+    assert_eq!(
+        xs.iter().map(|&(_, d)| d).sum::<usize>(),
+        in_dim,
+        "linear: input blocks do not add up to the input width"
+    );
     let wt = MatRef::row_major(w, out_dim, in_dim).t();
-    matmul_then(xm, wt, side, side_w, |r0, blk, sb| {
+    let mut c0 = 0;
+    let parts: Vec<_> = xs
+        .iter()
+        .map(|&(x, d)| {
+            let part = (MatRef::row_major(x, n, d), wt.rows(c0, d));
+            c0 += d;
+            part
+        })
+        .collect();
+    matmul_parts_then(&parts, side, side_w, |r0, blk, sb| {
         if out_dim > 0 {
             for row in blk.chunks_exact_mut(out_dim) {
                 for (v, &bj) in row.iter_mut().zip(b) {
@@ -100,10 +134,129 @@ pub fn linear_backward<T: Real>(
     }
 }
 
+/// Gradients of a linear layer whose input was given as column blocks.
+pub struct LinearPartsGrads<T> {
+    /// `Gᵀ·X`, `[out, in]` (the blocks' columns side by side).
+    pub weight: Vec<T>,
+    /// Column sums of `G`, `[out]`.
+    pub bias: Vec<T>,
+    /// Per input block, `G·W` on its requested columns (`[n, count]`), or
+    /// `None` where none of its columns is requested.
+    pub input: Vec<Option<Vec<T>>>,
+}
+
+/// vjp of [`linear_forward_parts_then`]: [`linear_backward`] with the input
+/// as column blocks `xs`, with the same bits (every element of `Gᵀ·X` and
+/// of `G·W` is a sum of its own, unaffected by how the columns are grouped).
+/// With `InputGrad::From(c)`, block `i` gets the gradient of its columns at
+/// or after input column `c`.
+pub fn linear_backward_parts<T: Real>(
+    xs: &[(&[T], usize)],
+    g: &[T],
+    n: usize,
+    shape: LinearShape,
+    w: &[T],
+    input: InputGrad,
+) -> LinearPartsGrads<T> {
+    let LinearShape { in_dim, out_dim } = shape;
+    assert_eq!(
+        xs.iter().map(|&(_, d)| d).sum::<usize>(),
+        in_dim,
+        "linear: input blocks do not add up to the input width"
+    );
+    let gm = MatRef::row_major(g, n, out_dim);
+    let wm = MatRef::row_major(w, out_dim, in_dim);
+    let mut weight = vec![T::ZERO; out_dim * in_dim];
+    let mut grads = Vec::with_capacity(xs.len());
+    let mut c0 = 0;
+    for &(x, d) in xs {
+        let part = matmul_tn(gm, MatRef::row_major(x, n, d));
+        if d > 0 {
+            for (dst, src) in weight.chunks_exact_mut(in_dim).zip(part.chunks_exact(d)) {
+                dst[c0..c0 + d].copy_from_slice(src);
+            }
+        }
+        grads.push(match input {
+            InputGrad::From(from) if from < c0 + d => {
+                let s = from.max(c0);
+                Some(matmul(gm, wm.cols(s, c0 + d - s)))
+            }
+            _ => None,
+        });
+        c0 += d;
+    }
+    LinearPartsGrads {
+        weight,
+        bias: column_sums(g, n, out_dim),
+        input: grads,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::math::gradcheck::{compare, cotangent, numeric_gradient};
+
+    /// An input given as column blocks gives the same bits, forward and
+    /// backward, as the concatenated input.
+    #[test]
+    fn column_blocks_match_the_concatenated_input() {
+        let (n, widths, out) = (700, [5usize, 0, 9, 4], 6);
+        let in_dim: usize = widths.iter().sum();
+        let shape = LinearShape {
+            in_dim,
+            out_dim: out,
+        };
+        let x: Vec<f32> = cotangent(1, n * in_dim).iter().map(|&v| v as f32).collect();
+        let w: Vec<f32> = cotangent(2, out * in_dim)
+            .iter()
+            .map(|&v| v as f32)
+            .collect();
+        let b: Vec<f32> = cotangent(3, out).iter().map(|&v| v as f32).collect();
+        let g: Vec<f32> = cotangent(4, n * out).iter().map(|&v| v as f32).collect();
+        let mut blocks = Vec::new();
+        let mut c0 = 0;
+        for &d in &widths {
+            let blk: Vec<f32> = x
+                .chunks_exact(in_dim)
+                .flat_map(|r| r[c0..c0 + d].to_vec())
+                .collect();
+            blocks.push(blk);
+            c0 += d;
+        }
+        let xs: Vec<(&[f32], usize)> = blocks.iter().map(|v| &v[..]).zip(widths).collect();
+        let fwd = linear_forward(&x, n, shape, &w, &b);
+        let fwd_parts = linear_forward_parts_then(&xs, n, shape, &w, &b, &mut [], 0, |_, _, _| {});
+        assert!(fwd
+            .iter()
+            .zip(&fwd_parts)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
+        // Input gradient from column 7: nothing of the first two blocks
+        // (columns 0..5), columns 7..14 of the third, all of the fourth.
+        let whole = linear_backward(&x, &g, n, shape, &w, InputGrad::From(7));
+        let parts = linear_backward_parts(&xs, &g, n, shape, &w, InputGrad::From(7));
+        let same = |a: &[f32], b: &[f32]| {
+            a.len() == b.len() && a.iter().zip(b).all(|(a, b)| a.to_bits() == b.to_bits())
+        };
+        assert!(same(&whole.weight, &parts.weight));
+        assert!(same(&whole.bias, &parts.bias));
+        assert!(parts.input[0].is_none() && parts.input[1].is_none());
+        let gin = whole.input.unwrap();
+        let (g2, g3) = (
+            parts.input[2].as_ref().unwrap(),
+            parts.input[3].as_ref().unwrap(),
+        );
+        let want2: Vec<f32> = gin
+            .chunks_exact(in_dim - 7)
+            .flat_map(|r| r[..7].to_vec())
+            .collect();
+        let want3: Vec<f32> = gin
+            .chunks_exact(in_dim - 7)
+            .flat_map(|r| r[7..].to_vec())
+            .collect();
+        assert!(same(g2, &want2));
+        assert!(same(g3, &want3));
+    }
 
     #[test]
     fn vjp_matches_central_differences() {

@@ -112,8 +112,29 @@ pub fn matmul_then<T: Real, F>(
 where
     F: Fn(usize, &mut [T], &mut [T]) + Sync,
 {
-    assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
-    let (m, k, n) = (a.rows, a.cols, b.cols);
+    matmul_parts_then(&[(a, b)], side, side_w, epilogue)
+}
+
+/// [`matmul_then`] for `A` given as column blocks `[A₁ | A₂ | …]` and `B`
+/// as the matching row blocks `[B₁; B₂; …]` (`parts[i] = (Aᵢ, Bᵢ)`), without
+/// copying them into one matrix: each sum runs over `A₁`'s columns, then
+/// continues over `A₂`'s, and so on, so the result has the same bits as
+/// the product of the concatenated matrices.
+pub fn matmul_parts_then<T: Real, F>(
+    parts: &[(MatRef<'_, T>, MatRef<'_, T>)],
+    side: &mut [T],
+    side_w: usize,
+    epilogue: F,
+) -> Vec<T>
+where
+    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+{
+    let (first_a, first_b) = parts.first().expect("matmul: at least one part");
+    let (m, n) = (first_a.rows, first_b.cols);
+    for (a, b) in parts {
+        assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
+        assert_eq!((a.rows, b.cols), (m, n), "matmul: parts differ in shape");
+    }
     assert_eq!(
         side.len(),
         m * side_w,
@@ -122,7 +143,7 @@ where
     if m == 0 || n == 0 {
         return vec![T::ZERO; m * n];
     }
-    let packed = pack_b(b);
+    let packed: Vec<PackedB<T>> = parts.iter().map(|&(_, b)| pack_b(b)).collect();
     // The output is written once, tile by tile, without being zeroed first
     // (zeroing cost as much as a tenth of a product).
     let mut c: Vec<T> = Vec::with_capacity(m * n);
@@ -130,7 +151,12 @@ where
     let run = |blk: usize, cb: &mut [MaybeUninit<T>], sb: &mut [T]| {
         let r0 = blk * ROW_BLOCK;
         let rows = cb.len() / n;
-        let cb = block_product(ASource::View(a.rows(r0, rows)), &packed, k, n, cb, false);
+        for (i, ((a, _), pb)) in parts.iter().zip(&packed).enumerate() {
+            // The first part writes the block; the others continue its sums.
+            block_product(ASource::View(a.rows(r0, rows)), pb, a.cols, n, cb, i > 0);
+        }
+        // SAFETY: the first block_product call wrote every element of cb.
+        let cb = unsafe { &mut *(cb as *mut [MaybeUninit<T>] as *mut [T]) };
         epilogue(r0, cb, sb);
     };
     if m <= ROW_BLOCK {
@@ -505,11 +531,44 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                 let p0 = panel * k * NR + k0 * NR;
                 let bp = &b.data[p0..p0 + kc * NR];
                 let full = mr == MR && nr == NR;
-                // Full tiles of the vector path are summed in place in `c`;
-                // the others in `acc`.
-                let in_place = simd.is_some() && full && kc > 0;
+                // Full tiles of the vector path are summed in place in `c`
+                // (no scratch to set up); the others in `acc`.
+                // A for the vector routine: MR full rows of the view read in
+                // place from column k0, or the strip of kc·MR values.
+                let (ap, rs, cs) = if direct {
+                    (
+                        a.data[i * a.row_stride + k0 * a.col_stride..].as_ptr(),
+                        a.row_stride,
+                        a.col_stride,
+                    )
+                } else {
+                    (packed.unwrap_or(&strip).as_ptr(), 1, MR)
+                };
+                if let (Some(f), true, true) = (simd, full, kc > 0) {
+                    // SAFETY: the routine was chosen for this CPU, for T, MR
+                    // and NR. A: either MR full rows of the view read in place
+                    // from column k0 (the view's strides keep every (i+r, p)
+                    // inside `a.data`), or the strip of kc·MR values. The
+                    // panel slice holds the kc·NR values the tile reads.
+                    // Output: the full MR×NR tile of `c` (rows of stride n;
+                    // written by the previous block when `resume`).
+                    unsafe {
+                        f(
+                            ap as *const u8,
+                            rs,
+                            cs,
+                            bp.as_ptr() as *const u8,
+                            kc,
+                            c.as_mut_ptr().add(i * n + j) as *mut u8,
+                            n,
+                            resume,
+                        )
+                    };
+                    j += NR;
+                    continue;
+                }
                 let mut acc = [[T::ZERO; NR]; MR];
-                if resume && !in_place {
+                if resume {
                     for (r, row) in acc.iter_mut().enumerate().take(mr) {
                         for (q, v) in row.iter_mut().enumerate().take(nr) {
                             // SAFETY: written by the previous block.
@@ -518,43 +577,19 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                     }
                 }
                 match simd {
-                    // SAFETY: the routine was chosen for this CPU, for T, MR
-                    // and NR. A: either MR full rows of the view read in place
-                    // from column k0 (the view's strides keep every (i+r, p)
-                    // inside `a.data`), or the strip of kc·MR values. The
-                    // panel slice holds the kc·NR values the tile reads.
-                    // Output: the full MR×NR tile of `c` (rows of stride n;
-                    // written by the previous block when `resume`), or `acc`
-                    // (loaded from `c` above when `resume`).
+                    // SAFETY: as above, with `acc` (NR values a row) as the
+                    // output, loaded from `c` above when `resume`.
                     Some(f) if kc > 0 => unsafe {
-                        let (ap, rs, cs) = if direct {
-                            (
-                                a.data.as_ptr().add(i * a.row_stride + k0 * a.col_stride),
-                                a.row_stride,
-                                a.col_stride,
-                            )
-                        } else {
-                            (packed.unwrap_or(&strip).as_ptr(), 1, MR)
-                        };
-                        let (out, ldo) = if full {
-                            (c.as_mut_ptr().add(i * n + j) as *mut T, n)
-                        } else {
-                            (acc.as_mut_ptr() as *mut T, NR)
-                        };
                         f(
                             ap as *const u8,
                             rs,
                             cs,
                             bp.as_ptr() as *const u8,
                             kc,
-                            out as *mut u8,
-                            ldo,
+                            acc.as_mut_ptr() as *mut u8,
+                            NR,
                             resume,
                         );
-                        if full {
-                            j += NR;
-                            continue;
-                        }
                     },
                     _ => tile::<T, MR, NR>(packed.unwrap_or(&strip), bp, kc, &mut acc),
                 }
@@ -592,7 +627,7 @@ fn tile<T: Real, const MR: usize, const NR: usize>(
         for r in 0..MR {
             let x = av[r];
             for q in 0..NR {
-                acc[r][q] = acc[r][q] + x * bv[q];
+                acc[r][q] += x * bv[q];
             }
         }
     }
@@ -609,6 +644,7 @@ mod simd {
          $set1:ident, $mul:ident, $add:ident, $store:ident) => {
             /// # Safety
             /// The CPU supports the feature; pointers as documented on `TileFn`.
+            #[allow(clippy::too_many_arguments)]
             #[target_feature(enable = $feat)]
             pub unsafe fn $name(
                 a: *const u8,
@@ -723,7 +759,7 @@ pub mod reference {
             for j in 0..n {
                 let mut s = T::ZERO;
                 for p in 0..k {
-                    s = s + a.at(i, p) * b.at(p, j);
+                    s += a.at(i, p) * b.at(p, j);
                 }
                 c[i * n + j] = s;
             }
@@ -741,7 +777,7 @@ pub mod reference {
                 for j in 0..n {
                     let mut s = T::ZERO;
                     for p in r0..r1 {
-                        s = s + a.at(p, i) * b.at(p, j);
+                        s += a.at(p, i) * b.at(p, j);
                     }
                     if ci == 0 {
                         total[i * n + j] = s;
@@ -858,6 +894,43 @@ mod tests {
     #[test]
     fn fast_products_match_reference_bits_f64() {
         on_every_path(check_all::<f64>);
+    }
+
+    /// `[A₁ | A₂]·[B₁; B₂]` from the blocks equals the product of the
+    /// concatenated matrices, bit for bit (a sum resumed across blocks).
+    fn check_parts<T: Real>() {
+        for &(m, k1, k2, n) in &[
+            (7, 5, 3, 9),
+            (50, 93, 128, 64),
+            (97, 0, 40, 33),
+            (13, KC + 44, 10, 40),
+        ] {
+            let k = k1 + k2;
+            let a = random::<T>(8 + m as u64, m * k);
+            let b = random::<T>(9 + n as u64, k * n);
+            let (am, bm) = (MatRef::row_major(&a, m, k), MatRef::row_major(&b, k, n));
+            let block = |c0: usize, w: usize| -> Vec<T> {
+                a.chunks_exact(k.max(1))
+                    .flat_map(|r| r[c0..c0 + w].to_vec())
+                    .collect()
+            };
+            let (a1, a2) = (block(0, k1), block(k1, k2));
+            let parts = [
+                (MatRef::row_major(&a1, m, k1), bm.rows(0, k1)),
+                (MatRef::row_major(&a2, m, k2), bm.rows(k1, k2)),
+            ];
+            assert_eq!(
+                bits(&matmul_parts_then(&parts, &mut [], 0, |_, _, _| {})),
+                bits(&matmul(am, bm)),
+                "parts {m}x({k1}+{k2})x{n}"
+            );
+        }
+    }
+
+    #[test]
+    fn products_from_column_blocks_match_the_concatenated_product() {
+        on_every_path(check_parts::<f32>);
+        on_every_path(check_parts::<f64>);
     }
 
     #[test]

@@ -17,8 +17,8 @@ use super::encoding::{encode, encoded_dim};
 use super::linear::InputGrad;
 use super::se3;
 use super::{
-    concat_cols, take_cols, Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked,
-    TimeCache, TimeEmbedding, XYZ_LEVELS,
+    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
+    XYZ_LEVELS,
 };
 use crate::math::Real;
 
@@ -40,10 +40,15 @@ pub(crate) struct MlpNet {
 /// What the MLP's backward needs.
 pub(crate) struct MlpCache<T> {
     time: TimeCache<T>,
-    /// Input of each trunk layer (`inputs[0]` = h₀). Layer `i`'s output is
-    /// `inputs[i + 1]` (its last W columns after the skip), or `head_in`.
-    /// The ReLU backward needs only that output (no pre-activations kept).
-    inputs: Vec<Vec<T>>,
+    /// `γ(x)` `[n, 63]` and `t_feat`: the two blocks of `h₀`, kept apart
+    /// (layer 0 and the layer after the skip read them as column blocks of
+    /// their input, so `h₀` and the skip's concatenation are never built).
+    x_emb: Vec<T>,
+    t_feat: Vec<T>,
+    /// Output of each trunk layer but the last (`[n, W]`, after ReLU); the
+    /// last one's is `head_in`. The ReLU backward needs only that output (no
+    /// pre-activations kept).
+    outputs: Vec<Vec<T>>,
     /// Input of the heads `[n, W]`.
     head_in: Vec<T>,
     /// 6-DoF only: the canonical positions `[n, 3]` and the raw
@@ -87,21 +92,26 @@ impl MlpNet {
         let x_emb = encode(xyz, 3, XYZ_LEVELS);
         let xd = encoded_dim(3, XYZ_LEVELS);
         let (t_feat, time) = self.time.forward(p, t);
-        let h0 = concat_cols(&x_emb, xd, &t_feat, self.in_dim - xd, n);
-        let mut inputs: Vec<Vec<T>> = Vec::with_capacity(self.layers.len());
-        let mut cur = h0;
+        let td = self.in_dim - xd;
+        let mut outputs: Vec<Vec<T>> = Vec::with_capacity(self.layers.len());
+        let mut cur: Vec<T> = Vec::new();
         for (i, l) in self.layers.iter().enumerate() {
-            // ReLU on each block of rows as it leaves the product.
-            let out = l.forward_then(p, &cur, n, &mut [], 0, |_, blk, _| {
-                Activation::Relu.apply_block(blk)
-            });
-            let next = if i == self.skip {
-                let first = inputs.first().unwrap_or(&cur);
-                concat_cols(first, self.in_dim, &out, self.width, n)
+            // Layer 0 reads h₀ = [γ(x) | t_feat], the layer after the skip
+            // [γ(x) | t_feat | h], both as column blocks; bias and ReLU on
+            // each block of rows as it leaves the product.
+            let out = if i == 0 {
+                l.forward_parts_act(p, &[(&x_emb, xd), (&t_feat, td)], n, Activation::Relu)
+            } else if i == self.skip + 1 {
+                let xs = [(&x_emb[..], xd), (&t_feat[..], td), (&cur[..], self.width)];
+                l.forward_parts_act(p, &xs, n, Activation::Relu)
             } else {
-                out
+                l.forward_act(p, &cur, n, Activation::Relu)
             };
-            inputs.push(std::mem::replace(&mut cur, next));
+            if i > 0 {
+                outputs.push(std::mem::replace(&mut cur, out));
+            } else {
+                cur = out;
+            }
         }
         let head_out = Stacked(&self.heads).forward(p, &cur, n);
         let (d, warp) = if self.is_6dof {
@@ -114,7 +124,9 @@ impl MlpNet {
             d,
             MlpCache {
                 time,
-                inputs,
+                x_emb,
+                t_feat,
+                outputs,
                 head_in: cur,
                 warp,
             },
@@ -173,37 +185,35 @@ impl MlpNet {
             .backward(p, &c.head_in, &g_head, n, InputGrad::From(0), gp)
             .expect("input gradient requested");
         let mut g_tfeat = vec![T::ZERO; n * td];
-        let wcat = self.in_dim + self.width;
         for i in (0..self.layers.len()).rev() {
-            if i == self.skip {
-                // dh is the gradient of [γ(x), t_feat, h]: keep the t_feat part.
-                for (acc, v) in g_tfeat.iter_mut().zip(take_cols(&dh, wcat, xd, td)) {
+            // ReLU's vjp from the layer's output (see MlpCache::outputs).
+            let out = c.outputs.get(i).unwrap_or(&c.head_in);
+            relu_backward_from_output(out, self.width, 0, &mut dh, self.width);
+            if i == 0 || i == self.skip + 1 {
+                // Input [γ(x) | t_feat (| h)]: γ(x) is stop-gradient; the
+                // t_feat block's gradient is collected, h's flows on.
+                let h_prev = if i == 0 {
+                    None
+                } else {
+                    Some(&c.outputs[i - 1])
+                };
+                let mut xs = vec![(&c.x_emb[..], xd), (&c.t_feat[..], td)];
+                xs.extend(h_prev.map(|h| (&h[..], self.width)));
+                let mut gin =
+                    self.layers[i].backward_parts(p, &xs, &dh, n, InputGrad::From(xd), gp);
+                let g_t = gin[1].take().expect("input gradient requested");
+                for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
                     *acc += v;
                 }
-                dh = take_cols(&dh, wcat, self.in_dim, self.width);
-            }
-            // ReLU's vjp from the layer's output (see MlpCache::inputs).
-            let (out, out_w, c0) = match c.inputs.get(i + 1) {
-                None => (&c.head_in, self.width, 0),
-                Some(next) if i == self.skip => (next, wcat, self.in_dim),
-                Some(next) => (next, self.width, 0),
-            };
-            relu_backward_from_output(out, out_w, c0, &mut dh, self.width);
-            let want = if i == 0 {
-                InputGrad::From(xd)
+                if i == 0 {
+                    break;
+                }
+                dh = gin[2].take().expect("input gradient requested");
             } else {
-                InputGrad::From(0)
-            };
-            let gin = self.layers[i]
-                .backward(p, &c.inputs[i], &dh, n, want, gp)
-                .expect("input gradient requested");
-            if i == 0 {
-                for (acc, v) in g_tfeat.iter_mut().zip(gin) {
-                    *acc += v;
-                }
-                break;
+                dh = self.layers[i]
+                    .backward(p, &c.outputs[i - 1], &dh, n, InputGrad::From(0), gp)
+                    .expect("input gradient requested");
             }
-            dh = gin;
         }
         self.time.backward(p, t, &c.time, &g_tfeat, gp)
     }

@@ -52,7 +52,10 @@ pub use activation::Activation;
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
 use crate::math::{Real, Rng};
-use linear::{linear_backward, linear_forward, linear_forward_then, InputGrad, LinearShape};
+use linear::{
+    linear_backward, linear_backward_parts, linear_forward, linear_forward_parts_then,
+    linear_forward_then, InputGrad, LinearShape,
+};
 use std::fmt;
 
 /// Which deformation network.
@@ -328,6 +331,84 @@ impl LinearParams {
         linear_forward(x, n, self.shape, self.weight(p), self.bias(p))
     }
 
+    /// `act(x·Wᵀ + b)` on `x` `[n, in]`, the bias and the activation applied
+    /// to each block of output rows while it is in cache (see
+    /// [`forward_parts_act`](Self::forward_parts_act)).
+    pub fn forward_act<T: Real>(&self, p: &[T], x: &[T], n: usize, act: Activation) -> Vec<T> {
+        self.forward_parts_act(p, &[(x, self.shape.in_dim)], n, act)
+    }
+
+    /// `act(x·Wᵀ + b)` for an input given as column blocks `xs` (see
+    /// [`forward_parts_then`](Self::forward_parts_then)): the bias and the
+    /// activation in one pass over each block of output rows while it is in
+    /// cache (the same values as [`forward`](Self::forward) on the
+    /// concatenated input, then the activation).
+    pub fn forward_parts_act<T: Real>(
+        &self,
+        p: &[T],
+        xs: &[(&[T], usize)],
+        n: usize,
+        act: Activation,
+    ) -> Vec<T> {
+        let bias = self.bias(p);
+        linear_forward_parts_then(
+            xs,
+            n,
+            self.shape,
+            self.weight(p),
+            &[],
+            &mut [],
+            0,
+            |_, blk, _| act.add_bias_apply_block(blk, bias),
+        )
+    }
+
+    /// [`forward_then`](Self::forward_then) for an input given as column
+    /// blocks `xs` (`(block, width)`, see [`linear_forward_parts_then`]):
+    /// the same bits as on the concatenated input, without building it.
+    pub fn forward_parts_then<T: Real, F>(
+        &self,
+        p: &[T],
+        xs: &[(&[T], usize)],
+        n: usize,
+        side: &mut [T],
+        side_w: usize,
+        epilogue: F,
+    ) -> Vec<T>
+    where
+        F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    {
+        linear_forward_parts_then(
+            xs,
+            n,
+            self.shape,
+            self.weight(p),
+            self.bias(p),
+            side,
+            side_w,
+            epilogue,
+        )
+    }
+
+    /// [`backward`](Self::backward) for an input given as column blocks:
+    /// writes the weight and bias gradients into `grad` and returns, per
+    /// block, the gradient of its requested columns (see
+    /// [`linear_backward_parts`]).
+    pub fn backward_parts<T: Real>(
+        &self,
+        p: &[T],
+        xs: &[(&[T], usize)],
+        g: &[T],
+        n: usize,
+        input: InputGrad,
+        grad: &mut [T],
+    ) -> Vec<Option<Vec<T>>> {
+        let r = linear_backward_parts(xs, g, n, self.shape, self.weight(p), input);
+        grad[self.w..self.w + r.weight.len()].copy_from_slice(&r.weight);
+        grad[self.b..self.b + r.bias.len()].copy_from_slice(&r.bias);
+        r.input
+    }
+
     /// [`forward`](Self::forward) with an epilogue on each block of output
     /// rows (see [`linear_forward_then`]).
     pub fn forward_then<T: Real, F>(
@@ -557,26 +638,6 @@ impl TimeEmbedding {
             _ => encoding::encode_vjp(t, g_feat, 1, T_LEVELS_REAL),
         }
     }
-}
-
-/// `[a | b]` row by row: `a` `[n, da]`, `b` `[n, db]` → `[n, da + db]`.
-pub(crate) fn concat_cols<T: Real>(a: &[T], da: usize, b: &[T], db: usize, n: usize) -> Vec<T> {
-    let mut out = Vec::with_capacity(n * (da + db));
-    for i in 0..n {
-        out.extend_from_slice(&a[i * da..(i + 1) * da]);
-        out.extend_from_slice(&b[i * db..(i + 1) * db]);
-    }
-    out
-}
-
-/// Columns `c0..c0+k` of a row-major `[n, w]` matrix.
-pub(crate) fn take_cols<T: Real>(a: &[T], w: usize, c0: usize, k: usize) -> Vec<T> {
-    let n = if w == 0 { 0 } else { a.len() / w };
-    let mut out = Vec::with_capacity(n * k);
-    for i in 0..n {
-        out.extend_from_slice(&a[i * w + c0..i * w + c0 + k]);
-    }
-    out
 }
 
 /// The output of a field: per-Gaussian offsets.
