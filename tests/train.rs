@@ -119,7 +119,7 @@ fn training_is_bit_identical_for_1_2_and_3_threads_and_matches_the_record() {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/training/record.json");
     let got = Record {
         crate_version: env!("CARGO_PKG_VERSION").into(),
-        math_library: "libm 0.2.11; f32 field activations: liquid_splat::deform::fastmath".into(),
+        math_library: "libm 0.2.11; matrix products: fused multiply-add; f32 field activations: liquid_splat::deform::fastmath".into(),
         scene: "fixtures/scenes/swing, 300 random initial points (seed 0), CfC D2 W8 gelu backbone 8x1, seed 7, tests/train.rs config()".into(),
         iterations: ITERATIONS,
         state_hash_f32: format!("{:016x}", h32[0]),

@@ -232,8 +232,11 @@ pub fn sigmoid<T: Real>(x: T) -> T {
 /// the fields run on (all give the same bits; see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Isa {
+    /// AVX-512F (its vector FMA included).
     Avx512,
+    /// AVX2 with FMA.
     Avx2,
+    /// The build target's baseline (SSE2 on x86-64).
     Baseline,
 }
 
@@ -260,7 +263,8 @@ fn supported(isa: Isa) -> bool {
     match isa {
         Isa::Baseline => true,
         #[cfg(target_arch = "x86_64")]
-        Isa::Avx2 => std::is_x86_feature_detected!("avx2"),
+        // The AVX2 matrix tile uses FMA (AVX2 CPUs without it are rare).
+        Isa::Avx2 => std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma"),
         #[cfg(target_arch = "x86_64")]
         Isa::Avx512 => std::is_x86_feature_detected!("avx512f"),
         #[cfg(not(target_arch = "x86_64"))]

@@ -90,6 +90,11 @@ pub trait Real:
     fn abs(self) -> Self;
     fn is_finite(self) -> bool;
     fn is_nan(self) -> bool;
+    /// `self · a + b` rounded once (IEEE 754 fusedMultiplyAdd). The result
+    /// is exactly specified, so the hardware instruction (used where the
+    /// build target guarantees one) and the pinned library's software
+    /// version (used otherwise) give the same bits.
+    fn mul_add(self, a: Self, b: Self) -> Self;
 
     /// `max` as CUDA's `fmaxf` for non-NaN inputs: the larger value.
     #[inline(always)]
@@ -125,7 +130,8 @@ pub trait Real:
 
 macro_rules! impl_real {
     ($t:ty, $prec:expr, $size:expr, $exp:path, $ln:path, $sin:path, $cos:path, $tan:path,
-     $atan:path, $tanh:path, $erf:path, $log10:path, $pow:path, $ceil:path, $floor:path, $trunc:path) => {
+     $atan:path, $tanh:path, $erf:path, $log10:path, $pow:path, $ceil:path, $floor:path, $trunc:path,
+     $fma:path) => {
         impl Real for $t {
             const ZERO: Self = 0.0;
             const ONE: Self = 1.0;
@@ -225,6 +231,17 @@ macro_rules! impl_real {
             fn is_nan(self) -> bool {
                 <$t>::is_nan(self)
             }
+            #[inline(always)]
+            fn mul_add(self, a: Self, b: Self) -> Self {
+                #[cfg(any(target_feature = "fma", target_arch = "aarch64"))]
+                {
+                    <$t>::mul_add(self, a, b)
+                }
+                #[cfg(not(any(target_feature = "fma", target_arch = "aarch64")))]
+                {
+                    $fma(self, a, b)
+                }
+            }
         }
     };
 }
@@ -245,7 +262,8 @@ impl_real!(
     libm::powf,
     libm::ceilf,
     libm::floorf,
-    libm::truncf
+    libm::truncf,
+    libm::fmaf
 );
 impl_real!(
     f64,
@@ -263,7 +281,8 @@ impl_real!(
     libm::pow,
     libm::ceil,
     libm::floor,
-    libm::trunc
+    libm::trunc,
+    libm::fma
 );
 
 /// Version string of the pinned math library, recorded beside every
@@ -297,6 +316,94 @@ mod tests {
                 let r = b as f32;
                 let ulp = (r.to_bits() as i64 - a.to_bits() as i64).abs();
                 assert!(ulp <= 2 || (a - r).abs() < 1e-7, "x={x} f32={a} f64={b}");
+            }
+        }
+    }
+
+    /// The pinned software fma is correctly rounded: it agrees bit for bit
+    /// with the CPU's FMA instruction (an independent implementation) on
+    /// random operands of every magnitude and on halfway cases, where a
+    /// product-then-sum in f64 would round twice.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn software_fma_matches_the_hardware_instruction() {
+        use std::arch::x86_64::*;
+        if !std::is_x86_feature_detected!("fma") {
+            eprintln!("no FMA instruction on this CPU: not compared");
+            return;
+        }
+        #[target_feature(enable = "fma")]
+        unsafe fn hw32(a: f32, b: f32, c: f32) -> f32 {
+            _mm_cvtss_f32(_mm_fmadd_ss(_mm_set_ss(a), _mm_set_ss(b), _mm_set_ss(c)))
+        }
+        #[target_feature(enable = "fma")]
+        unsafe fn hw64(a: f64, b: f64, c: f64) -> f64 {
+            _mm_cvtsd_f64(_mm_fmadd_sd(_mm_set_sd(a), _mm_set_sd(b), _mm_set_sd(c)))
+        }
+        let mut rng = crate::math::Rng::new(7);
+        // Random sign and mantissa, exponent within `span` of 0 (so sums
+        // cancel and products over/underflow sometimes).
+        let f32s = |rng: &mut crate::math::Rng, span: u32| -> f32 {
+            let bits = rng.next_u64();
+            let e = 127 + (bits >> 32) as u32 % (2 * span + 1) - span;
+            f32::from_bits(
+                ((bits >> 63) as u32) << 31 | e.clamp(0, 254) << 23 | bits as u32 & 0x7f_ffff,
+            )
+        };
+        let mut cases32 = vec![
+            (
+                f32::from_bits(1266679807),
+                f32::from_bits(1300234242),
+                f32::from_bits(1115553792),
+            ),
+            // (1 + 2^-23)(1 - 2^-23) - 1: the exact result -2^-46 is lost
+            // by a separate multiply and add.
+            (1.0 + f32::EPSILON, 1.0 - f32::EPSILON, -1.0),
+            (0.0, -1.0, 0.0),
+            (f32::MAX, 2.0, -f32::MAX),
+            (f32::from_bits(1), 0.5, 0.0),
+        ];
+        for span in [3, 20, 126] {
+            for _ in 0..20_000 {
+                cases32.push((
+                    f32s(&mut rng, span),
+                    f32s(&mut rng, span),
+                    f32s(&mut rng, span),
+                ));
+            }
+        }
+        for &(a, b, c) in &cases32 {
+            let want = unsafe { hw32(a, b, c) };
+            for got in [libm::fmaf(a, b, c), Real::mul_add(a, b, c)] {
+                assert!(
+                    got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()),
+                    "fmaf({a:e}, {b:e}, {c:e}) = {got:e}, hardware {want:e}"
+                );
+            }
+        }
+        let mut cases64 = vec![
+            (1.0 + f64::EPSILON, 1.0 - f64::EPSILON, -1.0),
+            (0.1, 10.0, -1.0),
+            (f64::MAX, 2.0, -f64::MAX),
+        ];
+        for _ in 0..60_000 {
+            let (a, b, c) = (
+                f32s(&mut rng, 20) as f64,
+                f32s(&mut rng, 20) as f64,
+                f32s(&mut rng, 20) as f64,
+            );
+            // Spread the mantissas over all 52 bits.
+            let j = |x: f64, r: u64| f64::from_bits(x.to_bits() ^ (r & 0x1fff_ffff));
+            let r = rng.next_u64();
+            cases64.push((j(a, r), j(b, r >> 20), j(c, r >> 40)));
+        }
+        for &(a, b, c) in &cases64 {
+            let want = unsafe { hw64(a, b, c) };
+            for got in [libm::fma(a, b, c), Real::mul_add(a, b, c)] {
+                assert!(
+                    got.to_bits() == want.to_bits() || (got.is_nan() && want.is_nan()),
+                    "fma({a:e}, {b:e}, {c:e}) = {got:e}, hardware {want:e}"
+                );
             }
         }
     }
