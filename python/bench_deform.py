@@ -3,8 +3,9 @@
 
 MLP D8 W256 (the D-3DGS DeformNetwork) and CfC D6 W128 (stacked ncps CfCCell, backbone 2x64
 GELU), synthetic variant, f32, N Gaussians, forward and forward+backward, median of --reps
-runs after one warm-up. Run it beside `liquid-splat --threads T bench deform` on the same
-machine with the same thread count to compare.
+runs after one warm-up (and the fastest run), plus the median process CPU time divided by the
+thread count (as `bench deform` prints it; less sensitive to a loaded machine). Run it beside
+`liquid-splat --threads T bench deform` on the same machine with the same thread count.
 
 Usage:
     python bench_deform.py [--threads 2] [--n 20000] [--reps 5]
@@ -19,14 +20,16 @@ import torch
 from reference_deform import CfCField, DeformNetwork
 
 
-def timed(fn, reps):
+def timed(fn, reps, threads):
+    """Median and fastest wall time, and median process CPU time / threads (ms)."""
     fn()  # warm-up (allocator, thread pool)
-    out = []
+    out, cpu = [], []
     for _ in range(reps):
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         fn()
         out.append((time.perf_counter() - t0) * 1e3)
-    return statistics.median(out), min(out)
+        cpu.append((time.process_time() - c0) * 1e3 / threads)
+    return statistics.median(out), min(out), statistics.median(cpu)
 
 
 def main():
@@ -53,10 +56,10 @@ def main():
             dx, dr, ds = net(xyz, tt)
             (dx.sum() + dr.sum() + ds.sum()).backward()
 
-        f, fmin = timed(fwd, a.reps)
-        fb, fbmin = timed(fwd_bwd, a.reps)
+        f, fmin, fcpu = timed(fwd, a.reps, a.threads)
+        fb, fbmin, fbcpu = timed(fwd_bwd, a.reps, a.threads)
         print(f"{name:<14} forward {f:8.1f} ms ({fmin:.1f})   forward+backward {fb:8.1f} ms "
-              f"({fbmin:.1f})")
+              f"({fbmin:.1f})   CPU/threads {fcpu:.1f} / {fbcpu:.1f}")
 
 
 if __name__ == "__main__":

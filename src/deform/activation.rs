@@ -16,6 +16,7 @@ use crate::error::{Error, Result};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::fmt;
+use std::mem::MaybeUninit;
 
 /// An element-wise activation function.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -130,14 +131,14 @@ impl Activation {
 
     /// `f` applied to every element of `pre` (parallel, element-wise).
     pub fn forward<T: Real>(self, pre: &[T]) -> Vec<T> {
-        let mut out = vec![T::ZERO; pre.len()];
-        if pre.len() <= 4096 {
-            apply_slice(self, pre, &mut out);
-            return out;
-        }
-        out.par_chunks_mut(4096)
+        // Every value is written once (the output is never zeroed first).
+        let mut out: Vec<T> = Vec::with_capacity(pre.len());
+        out.spare_capacity_mut()[..pre.len()]
+            .par_chunks_mut(4096)
             .zip(pre.par_chunks(4096))
-            .for_each(|(o, p)| apply_slice(self, p, o));
+            .for_each(|(o, p)| apply_uninit(self, p, o));
+        // SAFETY: apply_uninit wrote every value of every chunk.
+        unsafe { out.set_len(pre.len()) };
         out
     }
 
@@ -156,10 +157,12 @@ impl Activation {
         }
     }
 
-    /// `out = f(pre)` on a block of values (sequential, as
+    /// `out = f(pre)` on a block of values, writing every value of `out`
+    /// (which may start uninitialised; sequential, as
     /// [`add_bias_apply_block`](Self::add_bias_apply_block)).
-    pub fn apply_block_into<T: Real>(self, pre: &[T], out: &mut [T]) {
-        apply_slice(self, pre, out);
+    pub fn apply_block_uninit<T: Real>(self, pre: &[T], out: &mut [MaybeUninit<T>]) {
+        assert_eq!(pre.len(), out.len(), "activation: sizes differ");
+        apply_uninit(self, pre, out);
     }
 
     /// vjp: `g ⊙ f'(pre)`, in place on `g`.
@@ -240,24 +243,24 @@ macro_rules! per_activation {
     };
 }
 
-multiversion!(fn apply_slice<T: Real>(act: Activation, pre: &[T], out: &mut [T]) => apply_slice_body);
 multiversion!(fn add_bias_apply<T: Real>(act: Activation, row: &mut [T], bias: &[T]) => add_bias_apply_body);
+multiversion!(fn apply_uninit<T: Real>(act: Activation, pre: &[T], out: &mut [MaybeUninit<T>]) => apply_uninit_body);
 multiversion!(fn scale_by_derivative<T: Real>(act: Activation, pre: &[T], g: &mut [T]) => scale_by_derivative_body);
-
-#[inline(always)]
-fn apply_slice_body<T: Real>(act: Activation, pre: &[T], out: &mut [T]) {
-    per_activation!(act, |a| {
-        for (o, &p) in out.iter_mut().zip(pre) {
-            *o = a.apply(p);
-        }
-    })
-}
 
 #[inline(always)]
 fn add_bias_apply_body<T: Real>(act: Activation, row: &mut [T], bias: &[T]) {
     per_activation!(act, |a| {
         for (v, &b) in row.iter_mut().zip(bias) {
             *v = a.apply(*v + b);
+        }
+    })
+}
+
+#[inline(always)]
+fn apply_uninit_body<T: Real>(act: Activation, pre: &[T], out: &mut [MaybeUninit<T>]) {
+    per_activation!(act, |a| {
+        for (o, &p) in out.iter_mut().zip(pre) {
+            o.write(a.apply(p));
         }
     })
 }

@@ -23,6 +23,7 @@ use super::{
 };
 use crate::math::Real;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// Rows per parallel task of the fused cell pass (does not affect results).
 const ROWS_PER_TASK: usize = 64;
@@ -123,28 +124,39 @@ impl CfcNet {
             if l == self.skip_at {
                 let s = self
                     .skip
-                    .forward_parts_then(p, &u, n, &mut [], 0, |_, _, _| {});
-                for (hv, sv) in h.iter_mut().zip(s) {
-                    *hv += sv;
-                }
+                    .forward_parts_then::<T, T, _>(p, &u, n, &mut [], 0, |_, _, _| {});
+                let step = (ROWS_PER_TASK * w).max(1);
+                h.par_chunks_mut(step)
+                    .zip(s.par_chunks(step))
+                    .for_each(|(hb, sb)| {
+                        for (hv, &sv) in hb.iter_mut().zip(sb) {
+                            *hv += sv;
+                        }
+                    });
             }
             let mut inputs = Vec::with_capacity(cell.backbone.len() - 1);
             let mut pres = Vec::with_capacity(cell.backbone.len());
             let mut cur: Vec<T> = Vec::new();
             for (j, lin) in cell.backbone.iter().enumerate() {
                 // The activation on each block of rows as it leaves the
-                // product, into `out`. The first layer reads [u; h] as
+                // product, written into `out` (which is never zeroed: every
+                // value is written once). The first layer reads [u; h] as
                 // column blocks.
                 let units = lin.shape.out_dim;
-                let mut out = vec![T::ZERO; n * units];
-                let act =
-                    |_: usize, blk: &mut [T], ob: &mut [T]| self.act.apply_block_into(blk, ob);
+                let mut out: Vec<T> = Vec::with_capacity(n * units);
+                let ob = &mut out.spare_capacity_mut()[..n * units];
+                let act = |_: usize, blk: &mut [T], ob: &mut [MaybeUninit<T>]| {
+                    self.act.apply_block_uninit(blk, ob)
+                };
                 let pre = if j == 0 {
                     let xs = [u[0], u[1], (&h[..], w)];
-                    lin.forward_parts_then(p, &xs, n, &mut out, units, act)
+                    lin.forward_parts_then(p, &xs, n, ob, units, act)
                 } else {
-                    lin.forward_then(p, &cur, n, &mut out, units, act)
+                    lin.forward_then(p, &cur, n, ob, units, act)
                 };
+                // SAFETY: the epilogue ran once on every block of rows and
+                // wrote every value of its rows of `out`.
+                unsafe { out.set_len(n * units) };
                 let prev = std::mem::replace(&mut cur, out);
                 if j > 0 {
                     inputs.push(prev);
@@ -153,12 +165,15 @@ impl CfcNet {
             }
             let z = cur;
             // The four heads, then the fused cell pass on each block of rows
-            // while it is in cache, writing the new state.
-            let mut h_next = vec![T::ZERO; n * w];
-            let gate = Stacked(&cell.heads).forward_then(p, &z, n, &mut h_next, w, |r0, g, hb| {
+            // while it is in cache, writing the new state (never zeroed).
+            let mut h_next: Vec<T> = Vec::with_capacity(n * w);
+            let hb = &mut h_next.spare_capacity_mut()[..n * w];
+            let gate = Stacked(&cell.heads).forward_then(p, &z, n, hb, w, |r0, g, hb| {
                 let rows = hb.len() / w;
                 cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
             });
+            // SAFETY: the cell pass wrote every value of every block of rows.
+            unsafe { h_next.set_len(n * w) };
             cells.push(CellCache {
                 h_in: std::mem::replace(&mut h, h_next),
                 inputs,
@@ -247,10 +262,10 @@ impl CfcNet {
 // four head outputs per row (ff1 | ff2 | time_a | time_b, each W wide) on
 // entry and tanh(ff1) | tanh(ff2) | time_a | σ on exit; `h` receives the new
 // state; `t` is τ per row.
-multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [T], t: &[T], w: usize) => cell_forward_rows_body);
+multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], t: &[T], w: usize) => cell_forward_rows_body);
 
 #[inline(always)]
-fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [T], t: &[T], w: usize) {
+fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], t: &[T], w: usize) {
     // Four simple loops per row (each a zip of at most four slices, which
     // the compiler vectorises; one loop with five streams it would not).
     // The row stays in L1 between them; the arithmetic per element is the
@@ -272,7 +287,7 @@ fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [T], t: &[T], w: usize) 
             *s = fastmath::sigmoid(*s);
         }
         for (((h, &a), &b), &s) in h.iter_mut().zip(f1.iter()).zip(f2.iter()).zip(tb.iter()) {
-            *h = a * (T::ONE - s) + s * b;
+            h.write(a * (T::ONE - s) + s * b);
         }
     }
 }
@@ -281,8 +296,10 @@ fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [T], t: &[T], w: usize) 
 /// `[n, 4W]` given the state gradient `dh` `[n, W]`; adds each row's
 /// gradient with respect to τ (summed over j in order) to `dt`.
 fn cell_backward_fused<T: Real>(gate: &[T], dh: &[T], t: &[T], w: usize, dt: &mut [T]) -> Vec<T> {
-    let mut out = vec![T::ZERO; gate.len()];
-    out.par_chunks_mut(4 * w * ROWS_PER_TASK)
+    // Every value is written once below (never zeroed first).
+    let mut out: Vec<T> = Vec::with_capacity(gate.len());
+    out.spare_capacity_mut()[..gate.len()]
+        .par_chunks_mut(4 * w * ROWS_PER_TASK)
         .zip(gate.par_chunks(4 * w * ROWS_PER_TASK))
         .zip(dh.par_chunks(w * ROWS_PER_TASK))
         .zip(t.par_chunks(ROWS_PER_TASK))
@@ -291,16 +308,18 @@ fn cell_backward_fused<T: Real>(gate: &[T], dh: &[T], t: &[T], w: usize, dt: &mu
             let mut prod = vec![T::ZERO; w];
             cell_backward_rows(o, g, dh, t, dt, &mut prod, w)
         });
+    // SAFETY: cell_backward_rows wrote all 4W values of every row.
+    unsafe { out.set_len(gate.len()) };
     out
 }
 
-multiversion!(fn cell_backward_rows<T: Real>(o: &mut [T], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
+multiversion!(fn cell_backward_rows<T: Real>(o: &mut [MaybeUninit<T>], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
 
 /// Rows of [`cell_backward_fused`]. The per-row sum for τ runs in its own
 /// loop over `prod` (j ascending), so the element-wise loop vectorises.
 #[inline(always)]
 fn cell_backward_rows_body<T: Real>(
-    o: &mut [T],
+    o: &mut [MaybeUninit<T>],
     g: &[T],
     dh: &[T],
     t: &[T],
@@ -337,10 +356,10 @@ fn cell_backward_rows_body<T: Real>(
             let db = gh * s;
             let ds = gh * (b - a);
             let dpre = ds * (s * (T::ONE - s));
-            *o1 = da * (T::ONE - a * a);
-            *o2 = db * (T::ONE - b * b);
-            *o3 = dpre * tau;
-            *o4 = dpre;
+            o1.write(da * (T::ONE - a * a));
+            o2.write(db * (T::ONE - b * b));
+            o3.write(dpre * tau);
+            o4.write(dpre);
             *pr = dpre * ta;
         }
         let mut sum = T::ZERO;

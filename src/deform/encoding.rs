@@ -24,23 +24,33 @@ fn freq<T: Real>(k: usize) -> T {
 pub fn encode<T: Real>(x: &[T], d: usize, levels: usize) -> Vec<T> {
     let w = encoded_dim(d, levels);
     let n = if d == 0 { 0 } else { x.len() / d };
-    let mut out = vec![T::ZERO; n * w];
-    out.par_chunks_mut(w.max(1) * 256)
-        .zip(x.par_chunks(d.max(1) * 256))
+    if n == 0 || w == 0 {
+        return Vec::new();
+    }
+    // Every value of every row is written once (never zeroed first).
+    let mut out: Vec<T> = Vec::with_capacity(n * w);
+    out.spare_capacity_mut()[..n * w]
+        .par_chunks_mut(w * 256)
+        .zip(x.par_chunks(d * 256))
         .for_each(|(o, xi)| {
             for (row, p) in o.chunks_exact_mut(w).zip(xi.chunks_exact(d)) {
-                row[..d].copy_from_slice(p);
+                for (r, &v) in row[..d].iter_mut().zip(p) {
+                    r.write(v);
+                }
                 for k in 0..levels {
                     let f = freq::<T>(k);
                     let base = d + 2 * d * k;
                     for c in 0..d {
                         let a = p[c] * f;
-                        row[base + c] = a.sin();
-                        row[base + d + c] = a.cos();
+                        row[base + c].write(a.sin());
+                        row[base + d + c].write(a.cos());
                     }
                 }
             }
         });
+    // SAFETY: the loop above wrote the d inputs and the 2·d·levels sines
+    // and cosines of each of the n rows, i.e. all n·w values.
+    unsafe { out.set_len(n * w) };
     out
 }
 

@@ -26,25 +26,25 @@ pub enum InputGrad {
 
 /// `y = x·Wᵀ + b` for `x` `[n, in]`; returns `[n, out]`.
 pub fn linear_forward<T: Real>(x: &[T], n: usize, shape: LinearShape, w: &[T], b: &[T]) -> Vec<T> {
-    linear_forward_then(x, n, shape, w, b, &mut [], 0, |_, _, _| {})
+    linear_forward_then::<T, T, _>(x, n, shape, w, b, &mut [], 0, |_, _, _| {})
 }
 
 /// [`linear_forward`], then `epilogue(first_row, y_rows, side_rows)` on each
 /// block of output rows while it is in cache (see
 /// [`super::matmul::matmul_then`]); the bias is already added.
 #[allow(clippy::too_many_arguments)]
-pub fn linear_forward_then<T: Real, F>(
+pub fn linear_forward_then<T: Real, S: Send, F>(
     x: &[T],
     n: usize,
     shape: LinearShape,
     w: &[T],
     b: &[T],
-    side: &mut [T],
+    side: &mut [S],
     side_w: usize,
     epilogue: F,
 ) -> Vec<T>
 where
-    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    F: Fn(usize, &mut [T], &mut [S]) + Sync,
 {
     linear_forward_parts_then(&[(x, shape.in_dim)], n, shape, w, b, side, side_w, epilogue)
 }
@@ -54,18 +54,18 @@ where
 /// widths adding up to `in`), without concatenating them: the same bits as
 /// on the concatenated input.
 #[allow(clippy::too_many_arguments)]
-pub fn linear_forward_parts_then<T: Real, F>(
+pub fn linear_forward_parts_then<T: Real, S: Send, F>(
     xs: &[(&[T], usize)],
     n: usize,
     shape: LinearShape,
     w: &[T],
     b: &[T],
-    side: &mut [T],
+    side: &mut [S],
     side_w: usize,
     epilogue: F,
 ) -> Vec<T>
 where
-    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    F: Fn(usize, &mut [T], &mut [S]) + Sync,
 {
     let LinearShape { in_dim, out_dim } = shape;
     assert_eq!(
@@ -226,7 +226,16 @@ mod tests {
         }
         let xs: Vec<(&[f32], usize)> = blocks.iter().map(|v| &v[..]).zip(widths).collect();
         let fwd = linear_forward(&x, n, shape, &w, &b);
-        let fwd_parts = linear_forward_parts_then(&xs, n, shape, &w, &b, &mut [], 0, |_, _, _| {});
+        let fwd_parts = linear_forward_parts_then::<f32, f32, _>(
+            &xs,
+            n,
+            shape,
+            &w,
+            &b,
+            &mut [],
+            0,
+            |_, _, _| {},
+        );
         assert!(fwd
             .iter()
             .zip(&fwd_parts)

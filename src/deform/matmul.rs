@@ -98,23 +98,25 @@ impl<'a, T: Real> MatRef<'a, T> {
 /// `C = A · B` for `A` `[m, k]` and `B` `[k, n]` (any strides); `C` is
 /// returned row-major `[m, n]`.
 pub fn matmul<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
-    matmul_then(a, b, &mut [], 0, |_, _, _| {})
+    matmul_then::<T, T, _>(a, b, &mut [], 0, |_, _, _| {})
 }
 
 /// [`matmul`], then `epilogue(first_row, c_rows, side_rows)` on each block
 /// of output rows right after it is computed (while it is in cache), with
 /// the matching rows of `side` (row-major, `side_w` values per row of `A`;
 /// empty when `side_w` is 0). Blocks are disjoint and each is visited once,
-/// so an element-wise epilogue gives the same bits as a separate pass.
-pub fn matmul_then<T: Real, F>(
+/// so an element-wise epilogue gives the same bits as a separate pass, and
+/// an epilogue that writes every value of its side rows fills `side` (which
+/// may then start uninitialised: `S = MaybeUninit<T>`).
+pub fn matmul_then<T: Real, S: Send, F>(
     a: MatRef<'_, T>,
     b: MatRef<'_, T>,
-    side: &mut [T],
+    side: &mut [S],
     side_w: usize,
     epilogue: F,
 ) -> Vec<T>
 where
-    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    F: Fn(usize, &mut [T], &mut [S]) + Sync,
 {
     matmul_parts_then(&[(a, b)], side, side_w, epilogue)
 }
@@ -124,14 +126,14 @@ where
 /// copying them into one matrix: each sum runs over `A₁`'s columns, then
 /// continues over `A₂`'s, and so on, so the result has the same bits as
 /// the product of the concatenated matrices.
-pub fn matmul_parts_then<T: Real, F>(
+pub fn matmul_parts_then<T: Real, S: Send, F>(
     parts: &[(MatRef<'_, T>, MatRef<'_, T>)],
-    side: &mut [T],
+    side: &mut [S],
     side_w: usize,
     epilogue: F,
 ) -> Vec<T>
 where
-    F: Fn(usize, &mut [T], &mut [T]) + Sync,
+    F: Fn(usize, &mut [T], &mut [S]) + Sync,
 {
     let (first_a, first_b) = parts.first().expect("matmul: at least one part");
     let (m, n) = (first_a.rows, first_b.cols);
@@ -144,15 +146,22 @@ where
         m * side_w,
         "matmul_then: side has the wrong size"
     );
-    if m == 0 || n == 0 {
-        return vec![T::ZERO; m * n];
+    if m == 0 {
+        return Vec::new();
+    }
+    if n == 0 {
+        // No output, but the epilogue still sees every block of rows.
+        for (blk, sb) in side.chunks_mut((ROW_BLOCK * side_w).max(1)).enumerate() {
+            epilogue(blk * ROW_BLOCK, &mut [], sb);
+        }
+        return Vec::new();
     }
     let packed: Vec<PackedB<T>> = parts.iter().map(|&(_, b)| pack_b(b)).collect();
     // The output is written once, tile by tile, without being zeroed first
     // (zeroing cost as much as a tenth of a product).
     let mut c: Vec<T> = Vec::with_capacity(m * n);
     let out = &mut c.spare_capacity_mut()[..m * n];
-    let run = |blk: usize, cb: &mut [MaybeUninit<T>], sb: &mut [T]| {
+    let run = |blk: usize, cb: &mut [MaybeUninit<T>], sb: &mut [S]| {
         let r0 = blk * ROW_BLOCK;
         let rows = cb.len() / n;
         for (i, ((a, _), pb)) in parts.iter().zip(&packed).enumerate() {
@@ -920,7 +929,12 @@ mod tests {
                 (MatRef::row_major(&a2, m, k2), bm.rows(k1, k2)),
             ];
             assert_eq!(
-                bits(&matmul_parts_then(&parts, &mut [], 0, |_, _, _| {})),
+                bits(&matmul_parts_then::<T, T, _>(
+                    &parts,
+                    &mut [],
+                    0,
+                    |_, _, _| {}
+                )),
                 bits(&matmul(am, bm)),
                 "parts {m}x({k1}+{k2})x{n}"
             );

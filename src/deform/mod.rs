@@ -351,7 +351,7 @@ impl LinearParams {
         act: Activation,
     ) -> Vec<T> {
         let bias = self.bias(p);
-        linear_forward_parts_then(
+        linear_forward_parts_then::<T, T, _>(
             xs,
             n,
             self.shape,
@@ -366,17 +366,17 @@ impl LinearParams {
     /// [`forward_then`](Self::forward_then) for an input given as column
     /// blocks `xs` (`(block, width)`, see [`linear_forward_parts_then`]):
     /// the same bits as on the concatenated input, without building it.
-    pub fn forward_parts_then<T: Real, F>(
+    pub fn forward_parts_then<T: Real, S: Send, F>(
         &self,
         p: &[T],
         xs: &[(&[T], usize)],
         n: usize,
-        side: &mut [T],
+        side: &mut [S],
         side_w: usize,
         epilogue: F,
     ) -> Vec<T>
     where
-        F: Fn(usize, &mut [T], &mut [T]) + Sync,
+        F: Fn(usize, &mut [T], &mut [S]) + Sync,
     {
         linear_forward_parts_then(
             xs,
@@ -411,17 +411,17 @@ impl LinearParams {
 
     /// [`forward`](Self::forward) with an epilogue on each block of output
     /// rows (see [`linear_forward_then`]).
-    pub fn forward_then<T: Real, F>(
+    pub fn forward_then<T: Real, S: Send, F>(
         &self,
         p: &[T],
         x: &[T],
         n: usize,
-        side: &mut [T],
+        side: &mut [S],
         side_w: usize,
         epilogue: F,
     ) -> Vec<T>
     where
-        F: Fn(usize, &mut [T], &mut [T]) + Sync,
+        F: Fn(usize, &mut [T], &mut [S]) + Sync,
     {
         linear_forward_then(
             x,
@@ -486,17 +486,17 @@ impl Stacked<'_> {
     }
     /// [`forward`](Self::forward) with an epilogue on each block of output
     /// rows (see [`linear_forward_then`]).
-    pub fn forward_then<T: Real, F>(
+    pub fn forward_then<T: Real, S: Send, F>(
         &self,
         p: &[T],
         x: &[T],
         n: usize,
-        side: &mut [T],
+        side: &mut [S],
         side_w: usize,
         epilogue: F,
     ) -> Vec<T>
     where
-        F: Fn(usize, &mut [T], &mut [T]) + Sync,
+        F: Fn(usize, &mut [T], &mut [S]) + Sync,
     {
         let (w, b) = self.gather(p);
         linear_forward_then(x, n, self.shape(), &w, &b, side, side_w, epilogue)
