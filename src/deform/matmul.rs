@@ -503,6 +503,58 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
         let kc = kc_max.min(k - k0);
         // Later blocks continue the sums stored by the earlier ones.
         let resume = resume_first || k0 > 0;
+        // Full tiles with A read in place run panel by panel: each panel of
+        // B (kc × NR) stays in L1 while the block's row tiles pass over it,
+        // instead of every row tile streaming all the panels from L2. The
+        // loop below then does only the partial tiles. Each tile is the
+        // same computation either way (same bits).
+        let (full_rows, full_cols) = (rows / MR * MR, n / NR * NR);
+        // A of row tile i: (pointer, row stride, column stride).
+        let tile_a = |i: usize| -> Option<(*const T, usize, usize)> {
+            match a {
+                ASource::View(v) if v.row_stride != 1 => Some((
+                    v.data[i * v.row_stride + k0 * v.col_stride..].as_ptr(),
+                    v.row_stride,
+                    v.col_stride,
+                )),
+                ASource::Strips { data, .. } => {
+                    Some((data[(i / MR) * k * MR + k0 * MR..].as_ptr(), 1, MR))
+                }
+                _ => None,
+            }
+        };
+        let panel_major = match simd {
+            Some(f) if kc > 0 && full_rows > 0 && tile_a(0).is_some() => {
+                for j in (0..full_cols).step_by(NR) {
+                    let p0 = (j / NR) * k * NR + k0 * NR;
+                    let bp = &b.data[p0..p0 + kc * NR];
+                    for i in (0..full_rows).step_by(MR) {
+                        let (ap, rs, cs) = tile_a(i).expect("checked above");
+                        // SAFETY: as for the in-place tiles below: the
+                        // routine suits this CPU, T, MR and NR; A is MR full
+                        // rows of the view from column k0 (inside `v.data`)
+                        // or the tile's strip of kc·MR values; the panel
+                        // slice holds kc·NR values; the output is the full
+                        // MR×NR tile of `c` at (i, j), rows of stride n
+                        // (written by the previous block when `resume`).
+                        unsafe {
+                            f(
+                                ap as *const u8,
+                                rs,
+                                cs,
+                                bp.as_ptr() as *const u8,
+                                kc,
+                                c.as_mut_ptr().add(i * n + j) as *mut u8,
+                                n,
+                                resume,
+                            )
+                        };
+                    }
+                }
+                true
+            }
+            _ => false,
+        };
         let mut i = 0;
         while i < rows {
             let mr = MR.min(rows - i);
@@ -544,6 +596,11 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                 let p0 = panel * k * NR + k0 * NR;
                 let bp = &b.data[p0..p0 + kc * NR];
                 let full = mr == MR && nr == NR;
+                if panel_major && full {
+                    // Done above.
+                    j += NR;
+                    continue;
+                }
                 // Full tiles of the vector path are summed in place in `c`
                 // (no scratch to set up); the others in `acc`.
                 // A for the vector routine: MR full rows of the view read in
