@@ -179,27 +179,13 @@ impl Activation {
 
 /// vjp of ReLU from its output instead of its input: `g ⊙ f'(pre)` with
 /// `f'(pre) = [out > 0]` (the same values, since `out > 0` exactly when
-/// `pre > 0`), in place on `g` `[n, w]`; the outputs are columns
-/// `c0..c0+w` of the row-major `out` `[n, out_w]`. Lets a ReLU layer keep
-/// only its output.
-pub fn relu_backward_from_output<T: Real>(
-    out: &[T],
-    out_w: usize,
-    c0: usize,
-    g: &mut [T],
-    w: usize,
-) {
-    const ROWS: usize = 64;
-    if w == 0 {
-        return;
-    }
-    g.par_chunks_mut(ROWS * w)
-        .zip(out.par_chunks(ROWS * out_w))
-        .for_each(|(g, o)| {
-            for (g, o) in g.chunks_exact_mut(w).zip(o.chunks_exact(out_w)) {
-                relu_mask_row(&o[c0..c0 + w], g);
-            }
-        });
+/// `pre > 0`), in place on `g` (the same shape as `out`). Lets a ReLU layer
+/// keep only its output.
+pub fn relu_backward_from_output<T: Real>(out: &[T], g: &mut [T]) {
+    assert_eq!(out.len(), g.len(), "relu backward: sizes differ");
+    g.par_chunks_mut(4096)
+        .zip(out.par_chunks(4096))
+        .for_each(|(g, o)| relu_mask_row(o, g));
 }
 
 multiversion!(fn relu_mask_row<T: Real>(out: &[T], g: &mut [T]) => relu_mask_row_body);

@@ -26,33 +26,16 @@ pub enum InputGrad {
 
 /// `y = x·Wᵀ + b` for `x` `[n, in]`; returns `[n, out]`.
 pub fn linear_forward<T: Real>(x: &[T], n: usize, shape: LinearShape, w: &[T], b: &[T]) -> Vec<T> {
-    linear_forward_then::<T, T, _>(x, n, shape, w, b, &mut [], 0, |_, _, _| {})
+    let xs = [(x, shape.in_dim)];
+    linear_forward_parts_then::<T, T, _>(&xs, n, shape, w, b, &mut [], 0, |_, _, _| {})
 }
 
-/// [`linear_forward`], then `epilogue(first_row, y_rows, side_rows)` on each
-/// block of output rows while it is in cache (see
-/// [`super::matmul::matmul_then`]); the bias is already added.
-#[allow(clippy::too_many_arguments)]
-pub fn linear_forward_then<T: Real, S: Send, F>(
-    x: &[T],
-    n: usize,
-    shape: LinearShape,
-    w: &[T],
-    b: &[T],
-    side: &mut [S],
-    side_w: usize,
-    epilogue: F,
-) -> Vec<T>
-where
-    F: Fn(usize, &mut [T], &mut [S]) + Sync,
-{
-    linear_forward_parts_then(&[(x, shape.in_dim)], n, shape, w, b, side, side_w, epilogue)
-}
-
-/// [`linear_forward_then`] for an input given as column blocks
-/// `x = [x₁ | x₂ | …]` (`xs[i] = (xᵢ, width of xᵢ)`, each `[n, widthᵢ]`,
-/// widths adding up to `in`), without concatenating them: the same bits as
-/// on the concatenated input.
+/// `y = x·Wᵀ + b` for an input given as column blocks `x = [x₁ | x₂ | …]`
+/// (`xs[i] = (xᵢ, width of xᵢ)`, each `[n, widthᵢ]`, widths adding up to
+/// `in`; one block for a plain input), without concatenating them: the same
+/// bits as on the concatenated input. Then `epilogue(first_row, y_rows,
+/// side_rows)` on each block of output rows while it is in cache (see
+/// [`matmul_parts_then`]); the bias is already added.
 #[allow(clippy::too_many_arguments)]
 pub fn linear_forward_parts_then<T: Real, S: Send, F>(
     xs: &[(&[T], usize)],
@@ -106,7 +89,8 @@ pub struct LinearGrads<T> {
 }
 
 /// vjp of [`linear_forward`] given the layer input `x` `[n, in]` and the
-/// output gradient `g` `[n, out]`.
+/// output gradient `g` `[n, out]` (the one-block case of
+/// [`linear_backward_parts`]).
 pub fn linear_backward<T: Real>(
     x: &[T],
     g: &[T],
@@ -115,22 +99,15 @@ pub fn linear_backward<T: Real>(
     w: &[T],
     input: InputGrad,
 ) -> LinearGrads<T> {
-    let LinearShape { in_dim, out_dim } = shape;
-    let gm = MatRef::row_major(g, n, out_dim);
-    let xm = MatRef::row_major(x, n, in_dim);
-    let weight = matmul_tn(gm, xm);
-    let bias = column_sums(g, n, out_dim);
-    let input = match input {
-        InputGrad::Skip => None,
-        InputGrad::From(c0) => {
-            let wm = MatRef::row_major(w, out_dim, in_dim).cols(c0, in_dim - c0);
-            Some(matmul(gm, wm))
-        }
-    };
+    let mut r = linear_backward_parts(&[(x, shape.in_dim)], g, n, shape, w, input);
     LinearGrads {
-        weight,
-        bias,
-        input,
+        weight: r.weight,
+        bias: r.bias,
+        // Requested from column `in`: an empty gradient, not none.
+        input: match input {
+            InputGrad::Skip => None,
+            InputGrad::From(_) => Some(r.input.pop().flatten().unwrap_or_default()),
+        },
     }
 }
 
@@ -145,9 +122,10 @@ pub struct LinearPartsGrads<T> {
     pub input: Vec<Option<Vec<T>>>,
 }
 
-/// vjp of [`linear_forward_parts_then`]: [`linear_backward`] with the input
-/// as column blocks `xs`, with the same bits (every element of `Gᵀ·X` and
-/// of `G·W` is a sum of its own, unaffected by how the columns are grouped).
+/// vjp of [`linear_forward_parts_then`] with the input as column blocks
+/// `xs`: the same bits as on the concatenated input (every element of `Gᵀ·X`
+/// and of `G·W` is a sum of its own, unaffected by how the columns are
+/// grouped).
 /// With `InputGrad::From(c)`, block `i` gets the gradient of its columns at
 /// or after input column `c`.
 pub fn linear_backward_parts<T: Real>(

@@ -98,34 +98,22 @@ impl<'a, T: Real> MatRef<'a, T> {
 /// `C = A · B` for `A` `[m, k]` and `B` `[k, n]` (any strides); `C` is
 /// returned row-major `[m, n]`.
 pub fn matmul<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
-    matmul_then::<T, T, _>(a, b, &mut [], 0, |_, _, _| {})
+    matmul_parts_then::<T, T, _>(&[(a, b)], &mut [], 0, |_, _, _| {})
 }
 
-/// [`matmul`], then `epilogue(first_row, c_rows, side_rows)` on each block
-/// of output rows right after it is computed (while it is in cache), with
-/// the matching rows of `side` (row-major, `side_w` values per row of `A`;
-/// empty when `side_w` is 0). Blocks are disjoint and each is visited once,
-/// so an element-wise epilogue gives the same bits as a separate pass, and
-/// an epilogue that writes every value of its side rows fills `side` (which
-/// may then start uninitialised: `S = MaybeUninit<T>`).
-pub fn matmul_then<T: Real, S: Send, F>(
-    a: MatRef<'_, T>,
-    b: MatRef<'_, T>,
-    side: &mut [S],
-    side_w: usize,
-    epilogue: F,
-) -> Vec<T>
-where
-    F: Fn(usize, &mut [T], &mut [S]) + Sync,
-{
-    matmul_parts_then(&[(a, b)], side, side_w, epilogue)
-}
-
-/// [`matmul_then`] for `A` given as column blocks `[A₁ | A₂ | …]` and `B`
-/// as the matching row blocks `[B₁; B₂; …]` (`parts[i] = (Aᵢ, Bᵢ)`), without
-/// copying them into one matrix: each sum runs over `A₁`'s columns, then
-/// continues over `A₂`'s, and so on, so the result has the same bits as
-/// the product of the concatenated matrices.
+/// `C = [A₁ | A₂ | …] · [B₁; B₂; …]` for `A` given as column blocks and `B`
+/// as the matching row blocks (`parts[i] = (Aᵢ, Bᵢ)`; one part for a plain
+/// product), without copying them into one matrix: each sum runs over
+/// `A₁`'s columns, then continues over `A₂`'s, and so on, so the result has
+/// the same bits as the product of the concatenated matrices.
+///
+/// Then `epilogue(first_row, c_rows, side_rows)` on each block of output
+/// rows right after it is computed (while it is in cache), with the
+/// matching rows of `side` (row-major, `side_w` values per row of `A`; empty
+/// when `side_w` is 0). Blocks are disjoint and each is visited once, so an
+/// element-wise epilogue gives the same bits as a separate pass, and an
+/// epilogue that writes every value of its side rows fills `side` (which may
+/// then start uninitialised: `S = MaybeUninit<T>`).
 pub fn matmul_parts_then<T: Real, S: Send, F>(
     parts: &[(MatRef<'_, T>, MatRef<'_, T>)],
     side: &mut [S],
@@ -141,11 +129,7 @@ where
         assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
         assert_eq!((a.rows, b.cols), (m, n), "matmul: parts differ in shape");
     }
-    assert_eq!(
-        side.len(),
-        m * side_w,
-        "matmul_then: side has the wrong size"
-    );
+    assert_eq!(side.len(), m * side_w, "matmul: side has the wrong size");
     if m == 0 {
         return Vec::new();
     }
@@ -529,22 +513,16 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                     let p0 = (j / NR) * k * NR + k0 * NR;
                     let bp = &b.data[p0..p0 + kc * NR];
                     for i in (0..full_rows).step_by(MR) {
-                        let (ap, rs, cs) = tile_a(i).expect("checked above");
-                        // SAFETY: as for the in-place tiles below: the
-                        // routine suits this CPU, T, MR and NR; A is MR full
-                        // rows of the view from column k0 (inside `v.data`)
-                        // or the tile's strip of kc·MR values; the panel
-                        // slice holds kc·NR values; the output is the full
-                        // MR×NR tile of `c` at (i, j), rows of stride n
-                        // (written by the previous block when `resume`).
+                        let ap = tile_a(i).expect("checked above");
+                        // SAFETY: see run_tile; A of a full row tile, the
+                        // tile's panel, the full tile of `c` at (i, j).
                         unsafe {
-                            f(
-                                ap as *const u8,
-                                rs,
-                                cs,
-                                bp.as_ptr() as *const u8,
+                            run_tile(
+                                f,
+                                ap,
+                                bp,
                                 kc,
-                                c.as_mut_ptr().add(i * n + j) as *mut u8,
+                                c.as_mut_ptr().add(i * n + j).cast(),
                                 n,
                                 resume,
                             )
@@ -601,35 +579,25 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                     j += NR;
                     continue;
                 }
+                // A for the vector routine: read in place (MR full rows of
+                // the view from column k0, or the tile's packed strip), or
+                // the gathered strip.
+                let ap = if direct || packed.is_some() {
+                    tile_a(i).expect("a view with rows apart, or strips")
+                } else {
+                    (strip.as_ptr(), 1, MR)
+                };
                 // Full tiles of the vector path are summed in place in `c`
                 // (no scratch to set up); the others in `acc`.
-                // A for the vector routine: MR full rows of the view read in
-                // place from column k0, or the strip of kc·MR values.
-                let (ap, rs, cs) = if direct {
-                    (
-                        a.data[i * a.row_stride + k0 * a.col_stride..].as_ptr(),
-                        a.row_stride,
-                        a.col_stride,
-                    )
-                } else {
-                    (packed.unwrap_or(&strip).as_ptr(), 1, MR)
-                };
                 if let (Some(f), true, true) = (simd, full, kc > 0) {
-                    // SAFETY: the routine was chosen for this CPU, for T, MR
-                    // and NR. A: either MR full rows of the view read in place
-                    // from column k0 (the view's strides keep every (i+r, p)
-                    // inside `a.data`), or the strip of kc·MR values. The
-                    // panel slice holds the kc·NR values the tile reads.
-                    // Output: the full MR×NR tile of `c` (rows of stride n;
-                    // written by the previous block when `resume`).
+                    // SAFETY: see run_tile; the full tile of `c` at (i, j).
                     unsafe {
-                        f(
-                            ap as *const u8,
-                            rs,
-                            cs,
-                            bp.as_ptr() as *const u8,
+                        run_tile(
+                            f,
+                            ap,
+                            bp,
                             kc,
-                            c.as_mut_ptr().add(i * n + j) as *mut u8,
+                            c.as_mut_ptr().add(i * n + j).cast(),
                             n,
                             resume,
                         )
@@ -647,19 +615,10 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                     }
                 }
                 match simd {
-                    // SAFETY: as above, with `acc` (NR values a row) as the
+                    // SAFETY: see run_tile; `acc` (NR values a row) as the
                     // output, loaded from `c` above when `resume`.
                     Some(f) if kc > 0 => unsafe {
-                        f(
-                            ap as *const u8,
-                            rs,
-                            cs,
-                            bp.as_ptr() as *const u8,
-                            kc,
-                            acc.as_mut_ptr() as *mut u8,
-                            NR,
-                            resume,
-                        );
+                        run_tile(f, ap, bp, kc, acc.as_mut_ptr().cast(), NR, resume)
                     },
                     _ => tile::<T, MR, NR>(packed.unwrap_or(&strip), bp, kc, &mut acc),
                 }
@@ -678,6 +637,39 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
             break;
         }
     }
+}
+
+/// Run the vector tile routine `f` (type-erasing its arguments).
+///
+/// # Safety
+/// `f` was chosen for this CPU, for `T` and for the tile shape `(MR, NR)`
+/// of the driver; `a = (pointer, row stride, column stride)` addresses MR
+/// rows of `kc` values of A (MR full rows of a view read in place from the
+/// block's column k0, whose strides keep every element inside the view's
+/// data, or a strip of kc·MR values); `panel` holds the kc·NR values the
+/// tile reads; `out` is the MR × NR output tile, rows `ldo` apart (a full
+/// tile of `c`, or the `acc` scratch), holding the running sums when
+/// `resume`.
+unsafe fn run_tile<T>(
+    f: TileFn,
+    a: (*const T, usize, usize),
+    panel: &[T],
+    kc: usize,
+    out: *mut T,
+    ldo: usize,
+    resume: bool,
+) {
+    let (ap, rs, cs) = a;
+    f(
+        ap as *const u8,
+        rs,
+        cs,
+        panel.as_ptr() as *const u8,
+        kc,
+        out as *mut u8,
+        ldo,
+        resume,
+    )
 }
 
 /// `acc[r][q] += Σ_p strip[p][r] · panel[p][q]`, p ascending, one term at a

@@ -188,7 +188,7 @@ impl MlpNet {
         for i in (0..self.layers.len()).rev() {
             // ReLU's vjp from the layer's output (see MlpCache::outputs).
             let out = c.outputs.get(i).unwrap_or(&c.head_in);
-            relu_backward_from_output(out, self.width, 0, &mut dh, self.width);
+            relu_backward_from_output(out, &mut dh);
             if i == 0 || i == self.skip + 1 {
                 // Input [γ(x) | t_feat (| h)]: γ(x) is stop-gradient; the
                 // t_feat block's gradient is collected, h's flows on.

@@ -53,8 +53,8 @@ use crate::error::{Error, Result};
 use crate::io::TensorFile;
 use crate::math::{Real, Rng};
 use linear::{
-    linear_backward, linear_backward_parts, linear_forward, linear_forward_parts_then,
-    linear_forward_then, InputGrad, LinearShape,
+    linear_backward, linear_backward_parts, linear_forward, linear_forward_parts_then, InputGrad,
+    LinearShape,
 };
 use std::fmt;
 
@@ -410,7 +410,7 @@ impl LinearParams {
     }
 
     /// [`forward`](Self::forward) with an epilogue on each block of output
-    /// rows (see [`linear_forward_then`]).
+    /// rows (see [`linear_forward_parts_then`]).
     pub fn forward_then<T: Real, S: Send, F>(
         &self,
         p: &[T],
@@ -423,20 +423,12 @@ impl LinearParams {
     where
         F: Fn(usize, &mut [T], &mut [S]) + Sync,
     {
-        linear_forward_then(
-            x,
-            n,
-            self.shape,
-            self.weight(p),
-            self.bias(p),
-            side,
-            side_w,
-            epilogue,
-        )
+        self.forward_parts_then(p, &[(x, self.shape.in_dim)], n, side, side_w, epilogue)
     }
 
     /// Backward: writes the weight and bias gradients into `grad` (same
-    /// layout as the parameters) and returns the requested input gradient.
+    /// layout as the parameters) and returns the requested input gradient
+    /// (the one-block case of [`backward_parts`](Self::backward_parts)).
     pub fn backward<T: Real>(
         &self,
         p: &[T],
@@ -446,10 +438,12 @@ impl LinearParams {
         input: InputGrad,
         grad: &mut [T],
     ) -> Option<Vec<T>> {
-        let r = linear_backward(x, g, n, self.shape, self.weight(p), input);
-        grad[self.w..self.w + r.weight.len()].copy_from_slice(&r.weight);
-        grad[self.b..self.b + r.bias.len()].copy_from_slice(&r.bias);
-        r.input
+        let mut r = self.backward_parts(p, &[(x, self.shape.in_dim)], g, n, input, grad);
+        match input {
+            InputGrad::Skip => None,
+            // Requested from column `in`: an empty gradient, not none.
+            InputGrad::From(_) => Some(r.pop().flatten().unwrap_or_default()),
+        }
     }
 }
 
@@ -485,7 +479,7 @@ impl Stacked<'_> {
         linear_forward(x, n, self.shape(), &w, &b)
     }
     /// [`forward`](Self::forward) with an epilogue on each block of output
-    /// rows (see [`linear_forward_then`]).
+    /// rows (see [`linear_forward_parts_then`]).
     pub fn forward_then<T: Real, S: Send, F>(
         &self,
         p: &[T],
@@ -499,7 +493,8 @@ impl Stacked<'_> {
         F: Fn(usize, &mut [T], &mut [S]) + Sync,
     {
         let (w, b) = self.gather(p);
-        linear_forward_then(x, n, self.shape(), &w, &b, side, side_w, epilogue)
+        let xs = [(x, self.in_dim())];
+        linear_forward_parts_then(&xs, n, self.shape(), &w, &b, side, side_w, epilogue)
     }
     /// Backward; `g` is `[n, Σ out]`.
     pub fn backward<T: Real>(
