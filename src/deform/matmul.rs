@@ -391,13 +391,17 @@ pub fn kernel_path() -> KernelPath {
 }
 
 /// The tile shape `(MR, NR)` of a kernel path for `T`; `NR` is also the
-/// width of the packed panels of `B`.
+/// width of the packed panels of `B`. AVX-512 has 32 vector registers: a
+/// 12 × 2-vector tile keeps 24 sums in registers, so each loaded panel row
+/// serves 12 rows of `A` (measured: the f32 MLP forward 6% faster than with
+/// 6 rows); AVX2's 16 registers hold a 6 × 2-vector tile.
 fn tile_shape<T: Real>(path: KernelPath) -> (usize, usize) {
     let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
     let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
     match (path, f32, f64) {
-        (KernelPath::Avx512, true, _) => (6, 32),
-        (KernelPath::Avx512, _, true) | (KernelPath::Avx2, true, _) => (6, 16),
+        (KernelPath::Avx512, true, _) => (12, 32),
+        (KernelPath::Avx512, _, true) => (12, 16),
+        (KernelPath::Avx2, true, _) => (6, 16),
         (KernelPath::Avx2, _, true) => (6, 8),
         _ => (4, 8),
     }
@@ -429,10 +433,10 @@ fn block_product<'c, T: Real>(
         let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
         match (b.path, f32, f64) {
             (KernelPath::Avx512, true, _) => {
-                block_body::<T, 6, 32>(a, b, k, n, c, resume, Some(simd::f32_avx512))
+                block_body::<T, 12, 32>(a, b, k, n, c, resume, Some(simd::f32_avx512))
             }
             (KernelPath::Avx512, _, true) => {
-                block_body::<T, 6, 16>(a, b, k, n, c, resume, Some(simd::f64_avx512))
+                block_body::<T, 12, 16>(a, b, k, n, c, resume, Some(simd::f64_avx512))
             }
             (KernelPath::Avx2, true, _) => {
                 block_body::<T, 6, 16>(a, b, k, n, c, resume, Some(simd::f32_avx2))
@@ -738,7 +742,7 @@ mod simd {
                         c[r][0] = $fma(x, b0, c[r][0]);
                         c[r][1] = $fma(x, b1, c[r][1]);
                     }
-                    p += cs;
+                    p = p.wrapping_add(cs);
                     panel = panel.add(2 * $lanes);
                 }
                 for r in 0..$mr {
@@ -755,7 +759,7 @@ mod simd {
         f32,
         __m512,
         16,
-        6,
+        12,
         _mm512_setzero_ps,
         _mm512_loadu_ps,
         _mm512_set1_ps,
@@ -768,7 +772,7 @@ mod simd {
         f64,
         __m512d,
         8,
-        6,
+        12,
         _mm512_setzero_pd,
         _mm512_loadu_pd,
         _mm512_set1_pd,
