@@ -573,9 +573,8 @@ pub(crate) enum TimeCache<T> {
     Timenet {
         /// γ₆(t) `[n, 13]`.
         enc: Vec<T>,
-        /// Pre-activation of the hidden layer `[n, 256]`.
-        pre: Vec<T>,
-        /// ReLU output `[n, 256]`.
+        /// ReLU output of the hidden layer `[n, 256]` (its backward needs
+        /// only the output, so no pre-activation is kept).
         hidden: Vec<T>,
     },
     Encoded,
@@ -600,10 +599,9 @@ impl TimeEmbedding {
         match self {
             TimeEmbedding::Timenet { l0, l1 } => {
                 let enc = encoding::encode(t, 1, T_LEVELS_SYNTHETIC);
-                let pre = l0.forward(p, &enc, n);
-                let hidden = Activation::Relu.forward(&pre);
+                let hidden = l0.forward_act(p, &enc, n, Activation::Relu);
                 let feat = l1.forward(p, &hidden, n);
-                (feat, TimeCache::Timenet { enc, pre, hidden })
+                (feat, TimeCache::Timenet { enc, hidden })
             }
             TimeEmbedding::Encoded => (encoding::encode(t, 1, T_LEVELS_REAL), TimeCache::Encoded),
         }
@@ -620,11 +618,11 @@ impl TimeEmbedding {
     ) -> Vec<T> {
         let n = t.len();
         match (self, cache) {
-            (TimeEmbedding::Timenet { l0, l1 }, TimeCache::Timenet { enc, pre, hidden }) => {
+            (TimeEmbedding::Timenet { l0, l1 }, TimeCache::Timenet { enc, hidden }) => {
                 let mut gh = l1
                     .backward(p, hidden, g_feat, n, InputGrad::From(0), grad)
                     .expect("input gradient requested");
-                Activation::Relu.backward_in_place(pre, &mut gh);
+                activation::relu_backward_from_output(hidden, &mut gh);
                 let genc = l0
                     .backward(p, enc, &gh, n, InputGrad::From(0), grad)
                     .expect("input gradient requested");
