@@ -7,6 +7,7 @@
 //! powers of two (so the argument `2^k · p` is exact). Output width
 //! `d + 2·d·L`.
 
+use super::fastmath;
 use crate::math::Real;
 use rayon::prelude::*;
 
@@ -20,30 +21,54 @@ fn freq<T: Real>(k: usize) -> T {
     T::from_f64((1u64 << k) as f64)
 }
 
+/// `sin(2^k·p)` and `cos(2^k·p)` for each row `p` of `x` `[rows, d]`, laid
+/// out `[rows, L, d]`, in one vector loop (libm's bits, see
+/// [`fastmath::sin_cos_slices`]).
+fn sin_cos_of_arguments<T: Real>(x: &[T], d: usize, levels: usize) -> (Vec<T>, Vec<T>) {
+    let mut args = Vec::with_capacity(x.len() * levels);
+    for p in x.chunks_exact(d) {
+        for k in 0..levels {
+            let f = freq::<T>(k);
+            args.extend(p.iter().map(|&v| v * f));
+        }
+    }
+    let (mut sin, mut cos) = (vec![T::ZERO; args.len()], vec![T::ZERO; args.len()]);
+    fastmath::sin_cos_slices(&args, &mut sin, &mut cos);
+    (sin, cos)
+}
+
 /// Encode `x` `[n, d]` row-major into `[n, d + 2dL]`.
 pub fn encode<T: Real>(x: &[T], d: usize, levels: usize) -> Vec<T> {
     let w = encoded_dim(d, levels);
-    let n = if d == 0 { 0 } else { x.len() / d };
+    let n = x.len().checked_div(d).unwrap_or(0);
     if n == 0 || w == 0 {
         return Vec::new();
     }
-    // Every value of every row is written once (never zeroed first).
+    // Every value of every row is written once (never zeroed first). Per
+    // block of rows, the arguments 2^k·p first, then all their sines and
+    // cosines in one vector loop (libm's bits, see `sin_cos_slices`).
     let mut out: Vec<T> = Vec::with_capacity(n * w);
     out.spare_capacity_mut()[..n * w]
         .par_chunks_mut(w * 256)
         .zip(x.par_chunks(d * 256))
         .for_each(|(o, xi)| {
-            for (row, p) in o.chunks_exact_mut(w).zip(xi.chunks_exact(d)) {
-                for (r, &v) in row[..d].iter_mut().zip(p) {
+            let m = d * levels;
+            let (sin, cos) = sin_cos_of_arguments(xi, d, levels);
+            for (i, (row, p)) in o.chunks_exact_mut(w).zip(xi.chunks_exact(d)).enumerate() {
+                let (row_p, row_sc) = row.split_at_mut(d);
+                for (r, &v) in row_p.iter_mut().zip(p) {
                     r.write(v);
                 }
-                for k in 0..levels {
-                    let f = freq::<T>(k);
-                    let base = d + 2 * d * k;
-                    for c in 0..d {
-                        let a = p[c] * f;
-                        row[base + c].write(a.sin());
-                        row[base + d + c].write(a.cos());
+                // Level k: d sines, then d cosines.
+                let (sn, cs) = (&sin[i * m..(i + 1) * m], &cos[i * m..(i + 1) * m]);
+                for ((dst, sk), ck) in row_sc
+                    .chunks_exact_mut(2 * d)
+                    .zip(sn.chunks_exact(d))
+                    .zip(cs.chunks_exact(d))
+                {
+                    let (ds, dc) = dst.split_at_mut(d);
+                    for (r, &v) in ds.iter_mut().zip(sk).chain(dc.iter_mut().zip(ck)) {
+                        r.write(v);
                     }
                 }
             }
@@ -66,19 +91,16 @@ pub fn encode_vjp<T: Real>(x: &[T], g: &[T], d: usize, levels: usize) -> Vec<T> 
         .zip(x.par_chunks(d.max(1) * 256))
         .zip(g.par_chunks(w.max(1) * 256))
         .for_each(|((o, xi), gi)| {
-            for ((orow, p), grow) in o
-                .chunks_exact_mut(d)
-                .zip(xi.chunks_exact(d))
-                .zip(gi.chunks_exact(w))
-            {
+            let m = d * levels;
+            let (sin, cos) = sin_cos_of_arguments(xi, d, levels);
+            for (i, (orow, grow)) in o.chunks_exact_mut(d).zip(gi.chunks_exact(w)).enumerate() {
                 for c in 0..d {
                     let mut s = grow[c];
                     for k in 0..levels {
                         let f = freq::<T>(k);
                         let base = d + 2 * d * k;
-                        let a = p[c] * f;
-                        s += grow[base + c] * (f * a.cos());
-                        s -= grow[base + d + c] * (f * a.sin());
+                        s += grow[base + c] * (f * cos[i * m + k * d + c]);
+                        s -= grow[base + d + c] * (f * sin[i * m + k * d + c]);
                     }
                     orow[c] = s;
                 }

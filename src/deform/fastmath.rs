@@ -1,5 +1,14 @@
 //! Vectorisable, deterministic `exp`, `erf`, `tanh` and `sigmoid` for the f32
-//! deformation fields, written in plain arithmetic (no libm, no FMA).
+//! deformation fields, written in plain arithmetic (no libm, no FMA); and
+//! libm's own f32 `sin`/`cos`, rewritten so that it vectorises.
+//!
+//! **`sin`/`cos`** ([`sin_cos_f32`], used by the positional encoding) are not
+//! approximations of this module's own: they are the pinned libm's `sinf` and
+//! `cosf`, the same f64 operations in the same order, with the branches
+//! replaced by selects. They give libm's bits for every one of the 2³² f32
+//! inputs (the ignored test `sin_cos_every_f32` checks them all, in a few
+//! minutes; every test run checks a strided sample and each range boundary),
+//! so the encoding's values are unchanged, about 8× cheaper.
 //!
 //! **Decision (deform DECISIONS).** In f32 the deformation fields evaluate
 //! every `exp`, `erf`, `tanh` and `sigmoid` of their activations and of the CfC
@@ -170,6 +179,115 @@ pub fn sigmoid_f32(x: f32) -> f32 {
     1.0 / (1.0 + exp_f32(-x))
 }
 
+/// `(sin x, cos x)` in f32, the same bits as the pinned libm's `sinf` and
+/// `cosf` for `|x| < 2²⁸·π/2` (larger or non-finite `x`: see
+/// [`sin_cos_slices`], which hands those to libm).
+///
+/// This is libm 0.2.11's algorithm (FreeBSD's `s_sinf.c`/`s_cosf.c`, kernels
+/// `k_sinf`/`k_cosf`, medium branch of `rem_pio2f`), the same f64
+/// operations in the same order, rearranged without branches so that a loop
+/// over it vectorises:
+/// - `a` is the reduced argument: `x` for `|x| ≲ π/4`; `x ∓ k·π/2` (k = 1…4,
+///   the same double constants, sign of `x` chooses) up to `9π/4`; beyond,
+///   `rem_pio2f`'s `x − n·pio2_1 − n·pio2_1t` with `n = rint(x·2/π)`.
+/// - With quadrant `q` (`k` or `n` mod 4; `−k` mod 4 for negative `x`),
+///   `sin x = [s, c, −s, −c][q]` and `cos x = [c, −s, −c, s][q]` where
+///   `s = k_sinf(a)`, `c = k_cosf(a)`. libm's branches compute the same
+///   values: each calls one kernel on `±a`, and `k_sinf(−a) = −k_sinf(a)`,
+///   `k_cosf(−a) = k_cosf(a)` exactly (round-to-nearest is symmetric; `a` is
+///   never zero there, as no multiple of the double π/2 is an f32).
+/// - `|x| < 2⁻¹²`: `sin x = x`, `cos x = 1`, as libm returns.
+#[inline(always)]
+pub fn sin_cos_f32(x: f32) -> (f32, f32) {
+    use std::f64::consts::FRAC_PI_2;
+    // rem_pio2f's constants, as libm writes them (INV_PIO2 is 2/π).
+    const TOINT: f64 = 1.5 / f64::EPSILON;
+    #[allow(clippy::approx_constant)]
+    const INV_PIO2: f64 = 6.366_197_723_675_813_824_33e-1;
+    const PIO2_1: f64 = 1.570_796_310_901_641_845_70e0;
+    const PIO2_1T: f64 = 1.589_325_477_352_819_669_16e-8;
+    #[inline(always)]
+    fn k_sin(x: f64) -> f32 {
+        const S1: f64 = -0.166_666_666_416_265_235_595;
+        const S2: f64 = 0.008_333_329_385_889_463_175_6;
+        const S3: f64 = -0.000_198_393_348_360_966_317_347;
+        const S4: f64 = 0.000_002_718_311_493_989_821_906_4;
+        let z = x * x;
+        let w = z * z;
+        let r = S3 + z * S4;
+        let s = z * x;
+        ((x + s * (S1 + z * S2)) + s * w * r) as f32
+    }
+    #[inline(always)]
+    fn k_cos(x: f64) -> f32 {
+        const C0: f64 = -0.499_999_997_251_031_003_120;
+        const C1: f64 = 0.041_666_623_323_739_063_189_4;
+        const C2: f64 = -0.001_388_676_377_460_992_946_92;
+        const C3: f64 = 0.000_024_390_448_796_277_409_065_4;
+        let z = x * x;
+        let w = z * z;
+        let r = C2 + z * C3;
+        (((1.0 + z * C0) + w * C1) + (w * z) * r) as f32
+    }
+    let x64 = x as f64;
+    let ix = x.to_bits() & 0x7fff_ffff;
+    let negative = x.to_bits() >> 31 != 0;
+    // Which of sinf's ranges: |x| ≲ π/4, 3π/4, 5π/4, 7π/4, 9π/4, beyond.
+    let k = (ix > 0x3f49_0fda) as u32
+        + (ix > 0x4016_cbe3) as u32
+        + (ix > 0x407b_53d1) as u32
+        + (ix > 0x40af_eddf) as u32
+        + (ix > 0x40e2_31d5) as u32;
+    // rem_pio2f (medium): n = rint(x·2/π) by adding and subtracting 1.5·2⁵²;
+    // n mod 4 from the low bits of tmp (tmp = 1.5·2⁵² + n, exactly).
+    let tmp = x64 * INV_PIO2 + TOINT;
+    let f_n = tmp - TOINT;
+    let n = (tmp.to_bits().wrapping_sub(TOINT.to_bits()) & 3) as u32;
+    let y = x64 - f_n * PIO2_1 - f_n * PIO2_1T;
+    // Small ranges: x ∓ k·π/2 (k·π/2 rounded as libm's constants are; the
+    // sign of x chooses: x − (−o) is the same operation as x + o).
+    let off = ((k as f64) * FRAC_PI_2).copysign(x64);
+    let a = if k == 5 { y } else { x64 - off };
+    let q = if k == 5 {
+        n
+    } else if negative {
+        (4 - k) & 3
+    } else {
+        k & 3
+    };
+    let (s, c) = (k_sin(a), k_cos(a));
+    // Quadrant q: sin = [s, c, −s, −c][q], cos = [c, −s, −c, s][q]
+    // (written as selects and sign flips so that the loop vectorises).
+    let odd = q & 1 != 0;
+    let sin = f32::from_bits(if odd { c } else { s }.to_bits() ^ ((q & 2) << 30));
+    let cos = f32::from_bits(if odd { s } else { c }.to_bits() ^ (((q + 1) & 2) << 30));
+    if ix < 0x3980_0000 {
+        (x, 1.0)
+    } else {
+        (sin, cos)
+    }
+}
+
+/// `sin[i] = sin x[i]`, `cos[i] = cos x[i]` with the pinned libm's bits in
+/// both precisions: f32 runs [`sin_cos_f32`] in a vector loop (libm for the
+/// rare `|x| ≥ 2²⁸·π/2`, infinities and NaN), f64 calls libm.
+pub fn sin_cos_slices<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) {
+    assert!(
+        sin.len() == x.len() && cos.len() == x.len(),
+        "sin_cos_slices: sizes differ"
+    );
+    sin_cos_loop(x, sin, cos);
+    if is_f32::<T>() {
+        for (i, &v) in x.iter().enumerate() {
+            let v = to_f32(v);
+            if v.to_bits() & 0x7fff_ffff >= 0x4dc9_0fdb {
+                sin[i] = from_f32(libm::sinf(v));
+                cos[i] = from_f32(libm::cosf(v));
+            }
+        }
+    }
+}
+
 #[inline(always)]
 fn is_f32<T: 'static>() -> bool {
     TypeId::of::<T>() == TypeId::of::<f32>()
@@ -320,6 +438,22 @@ macro_rules! multiversion {
 }
 pub(crate) use multiversion;
 
+multiversion!(fn sin_cos_loop<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) => sin_cos_body);
+
+#[inline(always)]
+fn sin_cos_body<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) {
+    for ((&v, s), c) in x.iter().zip(sin.iter_mut()).zip(cos.iter_mut()) {
+        if is_f32::<T>() {
+            let (a, b) = sin_cos_f32(to_f32(v));
+            *s = from_f32(a);
+            *c = from_f32(b);
+        } else {
+            *s = v.sin();
+            *c = v.cos();
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -459,6 +593,83 @@ mod tests {
         for x in sweep(0.0, 10.0, 10_000) {
             assert_eq!(tanh_f32(-x).to_bits(), (-tanh_f32(x)).to_bits());
         }
+    }
+
+    /// f32 inputs for the sin/cos checks: a stride through all 2³² bit
+    /// patterns, every value within 3000 ulp of each range boundary of
+    /// libm's sinf/cosf (both signs), and special values.
+    fn sin_cos_inputs() -> Vec<f32> {
+        let mut v: Vec<f32> = (0..=u32::MAX).step_by(4093).map(f32::from_bits).collect();
+        for b in [
+            0x3980_0000u32,
+            0x3f49_0fda,
+            0x4016_cbe3,
+            0x407b_53d1,
+            0x40af_eddf,
+            0x40e2_31d5,
+            0x4dc9_0fdb,
+        ] {
+            for bits in b - 3000..=b + 3000 {
+                v.push(f32::from_bits(bits));
+                v.push(-f32::from_bits(bits));
+            }
+        }
+        v.extend([0.0, -0.0, f32::MIN_POSITIVE, 1e-45, f32::MAX, f32::INFINITY]);
+        v.extend([f32::NEG_INFINITY, f32::NAN, 1.0, -1.0, 665.6, -1300.0]);
+        v
+    }
+
+    fn assert_libm_sin_cos(xs: &[f32], sin: &[f32], cos: &[f32]) {
+        for ((&x, s), c) in xs.iter().zip(sin).zip(cos) {
+            assert_eq!(s.to_bits(), libm::sinf(x).to_bits(), "sin {x:e} ({:#x})", x.to_bits());
+            assert_eq!(c.to_bits(), libm::cosf(x).to_bits(), "cos {x:e} ({:#x})", x.to_bits());
+        }
+    }
+
+    #[test]
+    fn sin_cos_gives_the_libm_bits() {
+        let xs = sin_cos_inputs();
+        // The scalar function, on its whole range.
+        for &x in &xs {
+            if x.to_bits() & 0x7fff_ffff < 0x4dc9_0fdb {
+                let (s, c) = sin_cos_f32(std::hint::black_box(x));
+                assert_libm_sin_cos(&[x], &[s], &[c]);
+            }
+        }
+        // The vector loops on every path, huge and non-finite values included.
+        for isa in [Some(Isa::Baseline), Some(Isa::Avx2), Some(Isa::Avx512), None] {
+            if !force_isa(isa) {
+                continue;
+            }
+            let (mut s, mut c) = (vec![0.0; xs.len()], vec![0.0; xs.len()]);
+            sin_cos_slices(&xs, &mut s, &mut c);
+            assert_libm_sin_cos(&xs, &s, &c);
+        }
+        force_isa(None);
+        // f64 is libm's.
+        let xd: Vec<f64> = xs.iter().map(|&x| x as f64 * 1.000_000_1).collect();
+        let (mut s, mut c) = (vec![0.0; xd.len()], vec![0.0; xd.len()]);
+        sin_cos_slices(&xd, &mut s, &mut c);
+        for ((&x, s), c) in xd.iter().zip(&s).zip(&c) {
+            assert_eq!(s.to_bits(), libm::sin(x).to_bits());
+            assert_eq!(c.to_bits(), libm::cos(x).to_bits());
+        }
+    }
+
+    /// Every one of the 2³² f32 values (a few minutes in release:
+    /// `cargo test --release --lib -- --ignored sin_cos_every_f32`).
+    #[test]
+    #[ignore]
+    fn sin_cos_every_f32() {
+        use rayon::prelude::*;
+        (0..=u16::MAX).into_par_iter().for_each(|hi| {
+            let xs: Vec<f32> = (0..=u16::MAX)
+                .map(|lo| f32::from_bits((hi as u32) << 16 | lo as u32))
+                .collect();
+            let (mut s, mut c) = (vec![0.0; xs.len()], vec![0.0; xs.len()]);
+            sin_cos_slices(&xs, &mut s, &mut c);
+            assert_libm_sin_cos(&xs, &s, &c);
+        });
     }
 
     multiversion!(fn tanh_all<T: Real>(x: &mut [T]) => tanh_all_body);
