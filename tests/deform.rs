@@ -498,7 +498,10 @@ fn scalar_mlp(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
 
 #[test]
 fn forward_matches_scalar_reimplementation() {
-    let n = 4;
+    // More rows than two blocks of the products (48 rows), so that the
+    // layers chained into a product's epilogue (heads, time network) run on
+    // several blocks, including a partial one.
+    let n = 100;
     for (cfg, scalar) in [
         (
             config(FieldKind::Cfc, Variant::Synthetic, 3, 8, Activation::Gelu),

@@ -4,7 +4,10 @@
 //! Each output is `(Σ_k x_k·W_jk, k ascending from zero) + b_j`: the bias is
 //! added after the dot product.
 
-use super::matmul::{column_sums, matmul, matmul_parts_then, matmul_tn, MatRef};
+use super::matmul::{
+    column_sums, matmul, matmul_block_into, matmul_parts_then, matmul_tn, pack, MatRef, Packed,
+};
+use std::mem::MaybeUninit;
 use crate::math::Real;
 
 /// Shape of a linear layer.
@@ -76,6 +79,45 @@ where
         }
         epilogue(r0, blk, sb)
     })
+}
+
+/// A linear layer with `Wᵀ` packed once, for forwards on one block of rows
+/// at a time on the calling thread (inside another product's epilogue, while
+/// its input block is in cache): the same bits as [`linear_forward`].
+pub struct PackedLinear<T> {
+    wt: Packed<T>,
+    b: Vec<T>,
+    shape: LinearShape,
+}
+
+impl<T: Real> PackedLinear<T> {
+    /// Pack `W` `[out, in]` and keep `b` `[out]`.
+    pub fn new(w: &[T], b: &[T], shape: LinearShape) -> Self {
+        let wt = MatRef::row_major(w, shape.out_dim, shape.in_dim).t();
+        PackedLinear {
+            wt: pack(wt),
+            b: b.to_vec(),
+            shape,
+        }
+    }
+
+    /// Output width.
+    pub fn out_dim(&self) -> usize {
+        self.shape.out_dim
+    }
+
+    /// `y = x·Wᵀ + b` for the `rows` rows of `x` (`[rows, in]`), written into
+    /// `out` (`[rows, out]`, may start uninitialised).
+    pub fn forward_block_into(&self, x: &[T], rows: usize, out: &mut [MaybeUninit<T>]) {
+        let y = matmul_block_into(MatRef::row_major(x, rows, self.shape.in_dim), &self.wt, out);
+        if self.shape.out_dim > 0 {
+            for row in y.chunks_exact_mut(self.shape.out_dim) {
+                for (v, &bj) in row.iter_mut().zip(&self.b) {
+                    *v += bj;
+                }
+            }
+        }
+    }
 }
 
 /// Gradients of a linear layer.
@@ -174,6 +216,40 @@ pub fn linear_backward_parts<T: Real>(
 mod tests {
     use super::*;
     use crate::math::gradcheck::{compare, cotangent, numeric_gradient};
+
+    /// A packed layer run block by block (blocks of any height, as inside
+    /// another product's epilogue) gives the same bits as the whole forward.
+    #[test]
+    fn packed_blocks_match_the_whole_forward() {
+        for (n, in_dim, out) in [(150, 256, 10), (97, 13, 30), (5, 7, 40)] {
+            let shape = LinearShape { in_dim, out_dim: out };
+            let f = |seed, len| -> Vec<f32> {
+                cotangent(seed, len).iter().map(|&v| v as f32).collect()
+            };
+            let (x, w, b) = (f(5, n * in_dim), f(6, out * in_dim), f(7, out));
+            let want = linear_forward(&x, n, shape, &w, &b);
+            let packed = PackedLinear::new(&w, &b, shape);
+            let mut got = vec![MaybeUninit::new(f32::NAN); n * out];
+            let mut r0 = 0;
+            for rows in [1, 12, 47, 48, 13].iter().cycle() {
+                let rows = (*rows).min(n - r0);
+                packed.forward_block_into(
+                    &x[r0 * in_dim..(r0 + rows) * in_dim],
+                    rows,
+                    &mut got[r0 * out..(r0 + rows) * out],
+                );
+                r0 += rows;
+                if r0 == n {
+                    break;
+                }
+            }
+            // SAFETY: initialised with NaN above (a value left unwritten
+            // would show as a mismatch).
+            let got: Vec<u32> = got.iter().map(|v| unsafe { v.assume_init() }.to_bits()).collect();
+            let want: Vec<u32> = want.iter().map(|v| v.to_bits()).collect();
+            assert_eq!(got, want, "{n}x{in_dim}->{out}");
+        }
+    }
 
     /// An input given as column blocks gives the same bits, forward and
     /// backward, as the concatenated input.

@@ -175,6 +175,41 @@ where
     c
 }
 
+/// `B` `[k, n]` packed once for products with many blocks of rows of `A`
+/// (see [`matmul_block_into`]).
+pub struct Packed<T> {
+    b: PackedB<T>,
+    k: usize,
+    n: usize,
+}
+
+/// Pack `B` for [`matmul_block_into`].
+pub fn pack<T: Real>(b: MatRef<'_, T>) -> Packed<T> {
+    Packed {
+        b: pack_b(b),
+        k: b.rows,
+        n: b.cols,
+    }
+}
+
+/// `c = A · B` for a block of rows of `A` (`[rows, k]`, any strides) and a
+/// packed `B`, on the calling thread (for example inside another product's
+/// epilogue, on a block of rows while it is in cache): the same bits as
+/// [`matmul`]. Writes every element of `c` (`rows × n`) and returns it.
+pub fn matmul_block_into<'c, T: Real>(
+    a: MatRef<'_, T>,
+    b: &Packed<T>,
+    c: &'c mut [MaybeUninit<T>],
+) -> &'c mut [T] {
+    assert_eq!(a.cols, b.k, "matmul: inner dimensions differ");
+    assert_eq!(c.len(), a.rows * b.n, "matmul: output has the wrong size");
+    if c.is_empty() {
+        // SAFETY: an empty slice has nothing to initialise.
+        return unsafe { &mut *(c as *mut [MaybeUninit<T>] as *mut [T]) };
+    }
+    block_product(ASource::View(a), &b.b, b.k, b.n, c, false)
+}
+
 /// `C = Aᵀ · B` for `A` `[r, m]` and `B` `[r, n]`: a reduction over the `r`
 /// rows, done in fixed chunks of [`REDUCTION_CHUNK`] rows whose partials are
 /// added in chunk order. Returns `[m, n]` row-major.

@@ -95,17 +95,30 @@ impl MlpNet {
         let td = self.in_dim - xd;
         let mut outputs: Vec<Vec<T>> = Vec::with_capacity(self.layers.len());
         let mut cur: Vec<T> = Vec::new();
+        // The heads run on each block of rows of the last layer's output as
+        // it leaves that layer, while the block is in cache.
+        let heads = Stacked(&self.heads).packed(p);
+        let hw = heads.out_dim();
+        let mut head_out: Vec<T> = Vec::with_capacity(n * hw);
+        let last = self.layers.len() - 1;
         for (i, l) in self.layers.iter().enumerate() {
             // Layer 0 reads h₀ = [γ(x) | t_feat], the layer after the skip
             // [γ(x) | t_feat | h], both as column blocks; bias and ReLU on
             // each block of rows as it leaves the product.
-            let out = if i == 0 {
-                l.forward_parts_act(p, &[(&x_emb, xd), (&t_feat, td)], n, Activation::Relu)
+            let xs: Vec<(&[T], usize)> = if i == 0 {
+                vec![(&x_emb, xd), (&t_feat, td)]
             } else if i == self.skip + 1 {
-                let xs = [(&x_emb[..], xd), (&t_feat[..], td), (&cur[..], self.width)];
-                l.forward_parts_act(p, &xs, n, Activation::Relu)
+                vec![(&x_emb, xd), (&t_feat, td), (&cur, self.width)]
             } else {
-                l.forward_act(p, &cur, n, Activation::Relu)
+                vec![(&cur, self.width)]
+            };
+            let out = if i == last {
+                let side = &mut head_out.spare_capacity_mut()[..n * hw];
+                l.forward_parts_act_then(p, &xs, n, Activation::Relu, side, hw, |_, h, o| {
+                    heads.forward_block_into(h, o.len() / hw.max(1), o)
+                })
+            } else {
+                l.forward_parts_act(p, &xs, n, Activation::Relu)
             };
             if i > 0 {
                 outputs.push(std::mem::replace(&mut cur, out));
@@ -113,7 +126,9 @@ impl MlpNet {
                 cur = out;
             }
         }
-        let head_out = Stacked(&self.heads).forward(p, &cur, n);
+        // SAFETY: the last layer's epilogue wrote every row of `head_out`
+        // (each block of rows is visited once).
+        unsafe { head_out.set_len(n * hw) };
         let (d, warp) = if self.is_6dof {
             let (d, wv) = warp_forward(&head_out, xyz);
             (d, Some((xyz.to_vec(), wv)))

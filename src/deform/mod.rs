@@ -54,7 +54,7 @@ use crate::io::TensorFile;
 use crate::math::{Real, Rng};
 use linear::{
     linear_backward, linear_backward_parts, linear_forward, linear_forward_parts_then, InputGrad,
-    LinearShape,
+    LinearShape, PackedLinear,
 };
 use std::fmt;
 
@@ -331,11 +331,10 @@ impl LinearParams {
         linear_forward(x, n, self.shape, self.weight(p), self.bias(p))
     }
 
-    /// `act(x·Wᵀ + b)` on `x` `[n, in]`, the bias and the activation applied
-    /// to each block of output rows while it is in cache (see
-    /// [`forward_parts_act`](Self::forward_parts_act)).
-    pub fn forward_act<T: Real>(&self, p: &[T], x: &[T], n: usize, act: Activation) -> Vec<T> {
-        self.forward_parts_act(p, &[(x, self.shape.in_dim)], n, act)
+    /// The layer packed for forwards one block of rows at a time (the same
+    /// bits as [`forward`](Self::forward)).
+    pub fn packed<T: Real>(&self, p: &[T]) -> PackedLinear<T> {
+        PackedLinear::new(self.weight(p), self.bias(p), self.shape)
     }
 
     /// `act(x·Wᵀ + b)` for an input given as column blocks `xs` (see
@@ -350,16 +349,39 @@ impl LinearParams {
         n: usize,
         act: Activation,
     ) -> Vec<T> {
+        self.forward_parts_act_then::<T, T, _>(p, xs, n, act, &mut [], 0, |_, _, _| {})
+    }
+
+    /// [`forward_parts_act`](Self::forward_parts_act), then `epilogue` on
+    /// each block of output rows, after the activation (see
+    /// [`linear_forward_parts_then`]).
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_parts_act_then<T: Real, S: Send, F>(
+        &self,
+        p: &[T],
+        xs: &[(&[T], usize)],
+        n: usize,
+        act: Activation,
+        side: &mut [S],
+        side_w: usize,
+        epilogue: F,
+    ) -> Vec<T>
+    where
+        F: Fn(usize, &mut [T], &mut [S]) + Sync,
+    {
         let bias = self.bias(p);
-        linear_forward_parts_then::<T, T, _>(
+        linear_forward_parts_then(
             xs,
             n,
             self.shape,
             self.weight(p),
             &[],
-            &mut [],
-            0,
-            |_, blk, _| act.add_bias_apply_block(blk, bias),
+            side,
+            side_w,
+            |r0, blk, sb| {
+                act.add_bias_apply_block(blk, bias);
+                epilogue(r0, blk, sb)
+            },
         )
     }
 
@@ -473,10 +495,11 @@ impl Stacked<'_> {
             out_dim: self.out_dim(),
         }
     }
-    /// Forward on `x` `[n, in]`: `[n, Σ out]`, the layers' outputs side by side.
-    pub fn forward<T: Real>(&self, p: &[T], x: &[T], n: usize) -> Vec<T> {
+    /// The stacked layers packed for forwards one block of rows at a time:
+    /// `[rows, Σ out]`, the layers' outputs side by side.
+    pub fn packed<T: Real>(&self, p: &[T]) -> PackedLinear<T> {
         let (w, b) = self.gather(p);
-        linear_forward(x, n, self.shape(), &w, &b)
+        PackedLinear::new(&w, &b, self.shape())
     }
     /// [`forward`](Self::forward) with an epilogue on each block of output
     /// rows (see [`linear_forward_parts_then`]).
@@ -599,8 +622,23 @@ impl TimeEmbedding {
         match self {
             TimeEmbedding::Timenet { l0, l1 } => {
                 let enc = encoding::encode(t, 1, T_LEVELS_SYNTHETIC);
-                let hidden = l0.forward_act(p, &enc, n, Activation::Relu);
-                let feat = l1.forward(p, &hidden, n);
+                // timenet.2 runs on each block of hidden rows as it leaves
+                // timenet.0 (bias, ReLU), while the block is in cache.
+                let l1 = l1.packed(p);
+                let w1 = l1.out_dim();
+                let mut feat: Vec<T> = Vec::with_capacity(n * w1);
+                let hidden = l0.forward_parts_act_then(
+                    p,
+                    &[(&enc, l0.shape.in_dim)],
+                    n,
+                    Activation::Relu,
+                    &mut feat.spare_capacity_mut()[..n * w1],
+                    w1,
+                    |_, h, f| l1.forward_block_into(h, f.len() / w1.max(1), f),
+                );
+                // SAFETY: the epilogue wrote every row of `feat` (each block
+                // of rows is visited once).
+                unsafe { feat.set_len(n * w1) };
                 (feat, TimeCache::Timenet { enc, hidden })
             }
             TimeEmbedding::Encoded => (encoding::encode(t, 1, T_LEVELS_REAL), TimeCache::Encoded),
