@@ -258,6 +258,29 @@ fn bench_deform<T: Real>(
         "CPU/threads fwd / f+b"
     );
     let (xyz, t, g) = deform_inputs::<T>(n);
+    {
+        // One trunk-layer-sized product alone: the matrix kernel's rate.
+        use liquid_splat::deform::matmul::{matmul, MatRef};
+        let (k, w) = (256, 256);
+        let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
+        let (a, b) = (cast(cotangent(15, n * k)), cast(cotangent(16, k * w)));
+        let run = || matmul(MatRef::row_major(&a, n, k), MatRef::row_major(&b, k, w));
+        drop(run());
+        let times: Vec<f64> = (0..reps)
+            .map(|_| {
+                let t0 = Instant::now();
+                drop(run());
+                t0.elapsed().as_secs_f64()
+            })
+            .collect();
+        let s = median(times);
+        println!(
+            "{:<16} {:>11.1} {:>10.1}   (one [N, 256]·[256, 256] product, as in a trunk layer)",
+            "matmul N×256×256",
+            s * 1e3,
+            2.0 * (n * k * w) as f64 / s / 1e9
+        );
+    }
     for (name, config) in [
         ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
         ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
