@@ -18,7 +18,9 @@ mod peak {
                 *v = _mm512_fmadd_ps(a, *v, b);
             }
         }
-        let s = c.iter().fold(_mm512_set1_ps(0.0), |s, &v| _mm512_add_ps(s, v));
+        let s = c
+            .iter()
+            .fold(_mm512_set1_ps(0.0), |s, &v| _mm512_add_ps(s, v));
         _mm512_reduce_add_ps(s)
     }
 
@@ -33,7 +35,9 @@ mod peak {
             }
         }
         let mut out = [0.0f32; 8];
-        let s = c.iter().fold(_mm256_set1_ps(0.0), |s, &v| _mm256_add_ps(s, v));
+        let s = c
+            .iter()
+            .fold(_mm256_set1_ps(0.0), |s, &v| _mm256_add_ps(s, v));
         _mm256_storeu_ps(out.as_mut_ptr(), s);
         out.iter().sum()
     }

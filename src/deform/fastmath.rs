@@ -621,8 +621,18 @@ mod tests {
 
     fn assert_libm_sin_cos(xs: &[f32], sin: &[f32], cos: &[f32]) {
         for ((&x, s), c) in xs.iter().zip(sin).zip(cos) {
-            assert_eq!(s.to_bits(), libm::sinf(x).to_bits(), "sin {x:e} ({:#x})", x.to_bits());
-            assert_eq!(c.to_bits(), libm::cosf(x).to_bits(), "cos {x:e} ({:#x})", x.to_bits());
+            assert_eq!(
+                s.to_bits(),
+                libm::sinf(x).to_bits(),
+                "sin {x:e} ({:#x})",
+                x.to_bits()
+            );
+            assert_eq!(
+                c.to_bits(),
+                libm::cosf(x).to_bits(),
+                "cos {x:e} ({:#x})",
+                x.to_bits()
+            );
         }
     }
 
@@ -637,7 +647,12 @@ mod tests {
             }
         }
         // The vector loops on every path, huge and non-finite values included.
-        for isa in [Some(Isa::Baseline), Some(Isa::Avx2), Some(Isa::Avx512), None] {
+        for isa in [
+            Some(Isa::Baseline),
+            Some(Isa::Avx2),
+            Some(Isa::Avx512),
+            None,
+        ] {
             if !force_isa(isa) {
                 continue;
             }
