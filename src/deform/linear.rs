@@ -7,8 +7,8 @@
 use super::matmul::{
     column_sums, matmul, matmul_block_into, matmul_parts_then, matmul_tn, pack, MatRef, Packed,
 };
-use std::mem::MaybeUninit;
 use crate::math::Real;
+use std::mem::MaybeUninit;
 
 /// Shape of a linear layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -70,15 +70,21 @@ where
         })
         .collect();
     matmul_parts_then(&parts, side, side_w, |r0, blk, sb| {
-        if out_dim > 0 {
-            for row in blk.chunks_exact_mut(out_dim) {
-                for (v, &bj) in row.iter_mut().zip(b) {
-                    *v += bj;
-                }
-            }
-        }
+        add_bias(blk, b, out_dim);
         epilogue(r0, blk, sb)
     })
+}
+
+/// `y += b` on each row of a block `[rows, out]` (nothing when `b` is
+/// empty: the bias is added elsewhere).
+fn add_bias<T: Real>(blk: &mut [T], b: &[T], out_dim: usize) {
+    if out_dim > 0 {
+        for row in blk.chunks_exact_mut(out_dim) {
+            for (v, &bj) in row.iter_mut().zip(b) {
+                *v += bj;
+            }
+        }
+    }
 }
 
 /// A linear layer with `Wᵀ` packed once, for forwards on one block of rows
@@ -110,13 +116,7 @@ impl<T: Real> PackedLinear<T> {
     /// `out` (`[rows, out]`, may start uninitialised).
     pub fn forward_block_into(&self, x: &[T], rows: usize, out: &mut [MaybeUninit<T>]) {
         let y = matmul_block_into(MatRef::row_major(x, rows, self.shape.in_dim), &self.wt, out);
-        if self.shape.out_dim > 0 {
-            for row in y.chunks_exact_mut(self.shape.out_dim) {
-                for (v, &bj) in row.iter_mut().zip(&self.b) {
-                    *v += bj;
-                }
-            }
-        }
+        add_bias(y, &self.b, self.shape.out_dim);
     }
 }
 
@@ -222,7 +222,10 @@ mod tests {
     #[test]
     fn packed_blocks_match_the_whole_forward() {
         for (n, in_dim, out) in [(150, 256, 10), (97, 13, 30), (5, 7, 40)] {
-            let shape = LinearShape { in_dim, out_dim: out };
+            let shape = LinearShape {
+                in_dim,
+                out_dim: out,
+            };
             let f = |seed, len| -> Vec<f32> {
                 cotangent(seed, len).iter().map(|&v| v as f32).collect()
             };
@@ -245,7 +248,10 @@ mod tests {
             }
             // SAFETY: initialised with NaN above (a value left unwritten
             // would show as a mismatch).
-            let got: Vec<u32> = got.iter().map(|v| unsafe { v.assume_init() }.to_bits()).collect();
+            let got: Vec<u32> = got
+                .iter()
+                .map(|v| unsafe { v.assume_init() }.to_bits())
+                .collect();
             let want: Vec<u32> = want.iter().map(|v| v.to_bits()).collect();
             assert_eq!(got, want, "{n}x{in_dim}->{out}");
         }

@@ -98,8 +98,7 @@ impl MlpNet {
         // The heads run on each block of rows of the last layer's output as
         // it leaves that layer, while the block is in cache.
         let heads = Stacked(&self.heads).packed(p);
-        let hw = heads.out_dim();
-        let mut head_out: Vec<T> = Vec::with_capacity(n * hw);
+        let mut head_out = Vec::new();
         let last = self.layers.len() - 1;
         for (i, l) in self.layers.iter().enumerate() {
             // Layer 0 reads h₀ = [γ(x) | t_feat], the layer after the skip
@@ -113,10 +112,9 @@ impl MlpNet {
                 vec![(&cur, self.width)]
             };
             let out = if i == last {
-                let side = &mut head_out.spare_capacity_mut()[..n * hw];
-                l.forward_parts_act_then(p, &xs, n, Activation::Relu, side, hw, |_, h, o| {
-                    heads.forward_block_into(h, o.len() / hw.max(1), o)
-                })
+                let (out, y) = l.forward_parts_act_chain(p, &xs, n, Activation::Relu, &heads);
+                head_out = y;
+                out
             } else {
                 l.forward_parts_act(p, &xs, n, Activation::Relu)
             };
@@ -126,9 +124,6 @@ impl MlpNet {
                 cur = out;
             }
         }
-        // SAFETY: the last layer's epilogue wrote every row of `head_out`
-        // (each block of rows is visited once).
-        unsafe { head_out.set_len(n * hw) };
         let (d, warp) = if self.is_6dof {
             let (d, wv) = warp_forward(&head_out, xyz);
             (d, Some((xyz.to_vec(), wv)))

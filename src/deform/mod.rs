@@ -337,6 +337,35 @@ impl LinearParams {
         PackedLinear::new(self.weight(p), self.bias(p), self.shape)
     }
 
+    /// [`forward_parts_act`](Self::forward_parts_act) with the next layer
+    /// `next` run on each block of output rows as it leaves this product,
+    /// while the block is in cache. Returns (this layer's output, `next`'s
+    /// output), the same bits as two separate forwards.
+    pub fn forward_parts_act_chain<T: Real>(
+        &self,
+        p: &[T],
+        xs: &[(&[T], usize)],
+        n: usize,
+        act: Activation,
+        next: &PackedLinear<T>,
+    ) -> (Vec<T>, Vec<T>) {
+        let nw = next.out_dim();
+        let mut y: Vec<T> = Vec::with_capacity(n * nw);
+        let h = self.forward_parts_act_then(
+            p,
+            xs,
+            n,
+            act,
+            &mut y.spare_capacity_mut()[..n * nw],
+            nw,
+            |_, blk, out| next.forward_block_into(blk, out.len() / nw.max(1), out),
+        );
+        // SAFETY: the epilogue wrote every row of `y` (each block of rows is
+        // visited once, and forward_block_into writes all of its output).
+        unsafe { y.set_len(n * nw) };
+        (h, y)
+    }
+
     /// `act(x·Wᵀ + b)` for an input given as column blocks `xs` (see
     /// [`forward_parts_then`](Self::forward_parts_then)): the bias and the
     /// activation in one pass over each block of output rows while it is in
@@ -426,8 +455,7 @@ impl LinearParams {
         grad: &mut [T],
     ) -> Vec<Option<Vec<T>>> {
         let r = linear_backward_parts(xs, g, n, self.shape, self.weight(p), input);
-        grad[self.w..self.w + r.weight.len()].copy_from_slice(&r.weight);
-        grad[self.b..self.b + r.bias.len()].copy_from_slice(&r.bias);
+        self.store_grads(grad, &r.weight, &r.bias);
         r.input
     }
 
@@ -449,8 +477,7 @@ impl LinearParams {
     }
 
     /// Backward: writes the weight and bias gradients into `grad` (same
-    /// layout as the parameters) and returns the requested input gradient
-    /// (the one-block case of [`backward_parts`](Self::backward_parts)).
+    /// layout as the parameters) and returns the requested input gradient.
     pub fn backward<T: Real>(
         &self,
         p: &[T],
@@ -460,12 +487,16 @@ impl LinearParams {
         input: InputGrad,
         grad: &mut [T],
     ) -> Option<Vec<T>> {
-        let mut r = self.backward_parts(p, &[(x, self.shape.in_dim)], g, n, input, grad);
-        match input {
-            InputGrad::Skip => None,
-            // Requested from column `in`: an empty gradient, not none.
-            InputGrad::From(_) => Some(r.pop().flatten().unwrap_or_default()),
-        }
+        let r = linear_backward(x, g, n, self.shape, self.weight(p), input);
+        self.store_grads(grad, &r.weight, &r.bias);
+        r.input
+    }
+
+    /// Write a weight and a bias gradient into `grad` (same layout as the
+    /// parameters).
+    fn store_grads<T: Real>(&self, grad: &mut [T], weight: &[T], bias: &[T]) {
+        grad[self.w..self.w + weight.len()].copy_from_slice(weight);
+        grad[self.b..self.b + bias.len()].copy_from_slice(bias);
     }
 }
 
@@ -535,9 +566,11 @@ impl Stacked<'_> {
         let mut row = 0;
         for l in self.0 {
             let o = l.shape.out_dim;
-            grad[l.w..l.w + o * in_dim]
-                .copy_from_slice(&r.weight[row * in_dim..(row + o) * in_dim]);
-            grad[l.b..l.b + o].copy_from_slice(&r.bias[row..row + o]);
+            l.store_grads(
+                grad,
+                &r.weight[row * in_dim..(row + o) * in_dim],
+                &r.bias[row..row + o],
+            );
             row += o;
         }
         r.input
@@ -624,21 +657,9 @@ impl TimeEmbedding {
                 let enc = encoding::encode(t, 1, T_LEVELS_SYNTHETIC);
                 // timenet.2 runs on each block of hidden rows as it leaves
                 // timenet.0 (bias, ReLU), while the block is in cache.
-                let l1 = l1.packed(p);
-                let w1 = l1.out_dim();
-                let mut feat: Vec<T> = Vec::with_capacity(n * w1);
-                let hidden = l0.forward_parts_act_then(
-                    p,
-                    &[(&enc, l0.shape.in_dim)],
-                    n,
-                    Activation::Relu,
-                    &mut feat.spare_capacity_mut()[..n * w1],
-                    w1,
-                    |_, h, f| l1.forward_block_into(h, f.len() / w1.max(1), f),
-                );
-                // SAFETY: the epilogue wrote every row of `feat` (each block
-                // of rows is visited once).
-                unsafe { feat.set_len(n * w1) };
+                let xs = [(&enc[..], l0.shape.in_dim)];
+                let (hidden, feat) =
+                    l0.forward_parts_act_chain(p, &xs, n, Activation::Relu, &l1.packed(p));
                 (feat, TimeCache::Timenet { enc, hidden })
             }
             TimeEmbedding::Encoded => (encoding::encode(t, 1, T_LEVELS_REAL), TimeCache::Encoded),
