@@ -17,12 +17,15 @@
 //! - [`math`]: the `Real` scalar trait (f32 / f64), the pinned math library,
 //!   the seeded generator and the finite-difference gradient checker.
 //! - [`camera`]: pinhole cameras and the matrices the rasterizer consumes.
-//! - [`io`]: atomic writes, named-tensor (safetensors) files, PNG and EXR.
+//! - [`io`]: atomic writes, named-tensor (safetensors) files, PNG and EXR,
+//!   PyTorch `.pth` reading.
 //! - [`dataset`]: D-NeRF and nerfies loaders, initial points, built-in scenes.
 //! - [`deform`]: the MLP and CfC deformation fields, forward and backward.
 //! - [`gaussians`]: raw per-Gaussian parameters, activations, Inria PLY.
 //! - [`render`]: the rasterizer, forward and backward (`exact` or `inria`).
 //! - [`loss`]: L1, SSIM and their backward; PSNR/SSIM metrics.
+//! - [`lpips`]: LPIPS v0.1 (VGG16) as the `lpips` package computes it, with
+//!   weights read from PyTorch `.pth` files ([`io::pth`]).
 //! - [`optim`], [`densify`]: Adam and schedules; clone, split, prune, reset.
 //! - [`train`]: [`train::Trainer::step`], checkpoints, whole runs.
 //! - [`oracle`]: case files for every stage and the comparison report.
@@ -45,6 +48,7 @@ pub mod error;
 pub mod gaussians;
 pub mod io;
 pub mod loss;
+pub mod lpips;
 pub mod math;
 pub mod optim;
 pub mod oracle;

@@ -1,7 +1,8 @@
 //! File plumbing shared by every stage: atomic writes and named-tensor files
-//! (safetensors with string metadata).
+//! (safetensors with string metadata), and reading PyTorch `.pth` files.
 
 pub mod image;
+pub mod pth;
 pub mod tensor_file;
 
 pub use tensor_file::{Tensor, TensorData, TensorFile};
