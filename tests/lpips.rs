@@ -450,3 +450,207 @@ fn weights_load_from_files_and_bad_files_are_named_errors() {
     );
     let _ = std::fs::remove_dir_all(&d);
 }
+
+// ---- the commands ----
+
+fn cli(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
+        .args(args)
+        .output()
+        .unwrap()
+}
+
+fn text(o: &std::process::Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn json(p: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
+}
+
+/// `train` and `eval` report LPIPS per view and mean when weights are given
+/// (labelled with the convention and the weight files), and never without.
+#[test]
+fn train_and_eval_report_lpips_only_with_weights() {
+    let d = tmp("cli");
+    let vgg = d.join("vgg16-formula.pth");
+    write_formula_vgg(&vgg, 1);
+    let lin = fixtures().join("vgg.pth");
+    let (vs, ls) = (vgg.to_str().unwrap(), lin.to_str().unwrap());
+    let out = d.join("run");
+    let o = out.to_str().unwrap();
+    let base = [
+        "train",
+        "--scene",
+        "swing",
+        "--resolution",
+        "24",
+        "--iterations",
+        "6",
+        "--init-points",
+        "100",
+        "--depth",
+        "2",
+        "--width",
+        "8",
+        "--eval-every",
+        "3",
+        "--quiet",
+        "--out",
+        o,
+    ];
+    // Not the published backbone: refused unless --lpips-unverified.
+    let mut args = base.to_vec();
+    args.extend(["--lpips-vgg", vs, "--lpips-lin", ls]);
+    let r = cli(&args);
+    assert_eq!(r.status.code(), Some(2), "{}", text(&r));
+    assert!(text(&r).contains("vgg16-formula.pth"), "{}", text(&r));
+    args.push("--lpips-unverified");
+    let r = cli(&args);
+    assert!(r.status.success(), "{}", text(&r));
+    assert!(text(&r).contains("LPIPS"), "{}", text(&r));
+    let results = json(&out.join("results.json"));
+    let per_view = json(&out.join("per_view.json"));
+    let mean = results["lpips"].as_f64().unwrap();
+    assert!(mean > 0.0 && mean < 1.0, "{mean}");
+    assert_eq!(results["lpips_info"]["convention"], "d3dgs");
+    assert_eq!(results["lpips_info"]["vgg"]["official"], false);
+    assert_eq!(results["lpips_info"]["lin"]["official"], true);
+    let views = per_view["lpips"].as_object().unwrap();
+    assert_eq!(views.len(), 8);
+    let avg = views.values().map(|v| v.as_f64().unwrap()).sum::<f64>() / 8.0;
+    assert!((avg - mean).abs() < 1e-12);
+    let curve = json(&out.join("checkpoints/iteration_000006/curve.json"));
+    let evals: Vec<&serde_json::Value> = curve
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|p| p["test_lpips"].is_number())
+        .collect();
+    assert_eq!(evals.len(), 2, "{curve}");
+    assert_eq!(evals[1]["test_lpips"].as_f64().unwrap(), mean);
+
+    // eval from the saved PNGs: the same numbers.
+    let r = cli(&[
+        "eval",
+        o,
+        "--lpips-vgg",
+        vs,
+        "--lpips-lin",
+        ls,
+        "--lpips-unverified",
+    ]);
+    assert!(r.status.success(), "{}", text(&r));
+    assert_eq!(json(&out.join("results.json")), results);
+    assert_eq!(json(&out.join("per_view.json")), per_view);
+    // The other convention: another number, labelled as such.
+    let r = cli(&[
+        "eval",
+        o,
+        "--lpips-vgg",
+        vs,
+        "--lpips-lin",
+        ls,
+        "--lpips-unverified",
+        "--lpips-normalize",
+    ]);
+    assert!(r.status.success(), "{}", text(&r));
+    let n = json(&out.join("results.json"));
+    assert_eq!(n["lpips_info"]["convention"], "normalize");
+    assert_ne!(n["lpips"], results["lpips"]);
+    // Without weights: no LPIPS key anywhere, and the output says so.
+    let r = cli(&["eval", o]);
+    assert!(r.status.success(), "{}", text(&r));
+    assert!(text(&r).contains("LPIPS not computed"), "{}", text(&r));
+    let plain = json(&out.join("results.json"));
+    assert!(plain.get("lpips").is_none() && plain.get("lpips_info").is_none());
+    assert!(json(&out.join("per_view.json")).get("lpips").is_none());
+    assert_eq!(plain["psnr"], results["psnr"]);
+    // A missing weight file: exit 2, named.
+    let r = cli(&["eval", o, "--lpips-vgg", "nowhere.pth", "--lpips-lin", ls]);
+    assert_eq!(r.status.code(), Some(2), "{}", text(&r));
+    assert!(text(&r).contains("nowhere.pth"), "{}", text(&r));
+    let _ = std::fs::remove_dir_all(&d);
+}
+
+/// The experiment report gives, for every run, the final metrics and the
+/// best of the periodic evaluations with their iterations, labelled.
+#[test]
+fn experiment_reports_final_and_best_of_evaluations_with_lpips() {
+    let d = tmp("exp");
+    let vgg = d.join("vgg16-formula.pth");
+    write_formula_vgg(&vgg, 1);
+    let lin = fixtures().join("vgg.pth");
+    let out = d.join("exp");
+    let r = cli(&[
+        "experiment",
+        "--scenes",
+        "swing",
+        "--iterations",
+        "6",
+        "--resolution",
+        "16",
+        "--init-points",
+        "100",
+        "--evals",
+        "3",
+        "--sweep-times",
+        "5",
+        "--out",
+        out.to_str().unwrap(),
+        "--lpips-vgg",
+        vgg.to_str().unwrap(),
+        "--lpips-lin",
+        lin.to_str().unwrap(),
+        "--lpips-unverified",
+    ]);
+    assert!(r.status.success(), "{}", text(&r));
+    let rec = json(&out.join("runs/swing__cfc-d6-w128-gelu__seed0.json"));
+    let best = &rec["best"];
+    assert_eq!(best["evaluations"], 3);
+    // The best is the best of the curve's evaluations, at the iteration recorded.
+    let curve = rec["curves"].as_array().unwrap();
+    let evals: Vec<(u64, f64, f64)> = curve
+        .iter()
+        .filter(|p| p["test_psnr"].is_number())
+        .map(|p| {
+            (
+                p["iteration"].as_u64().unwrap(),
+                p["test_psnr"].as_f64().unwrap(),
+                p["test_lpips"].as_f64().unwrap(),
+            )
+        })
+        .collect();
+    assert_eq!(evals.iter().map(|e| e.0).collect::<Vec<_>>(), [2, 4, 6]);
+    let bp = evals
+        .iter()
+        .fold(evals[0], |b, e| if e.1 > b.1 { *e } else { b });
+    let bl = evals
+        .iter()
+        .fold(evals[0], |b, e| if e.2 < b.2 { *e } else { b });
+    assert_eq!(best["psnr"]["value"].as_f64().unwrap(), bp.1);
+    assert_eq!(best["psnr"]["iteration"].as_u64().unwrap(), bp.0);
+    assert_eq!(best["lpips"]["value"].as_f64().unwrap(), bl.2);
+    assert_eq!(best["lpips"]["iteration"].as_u64().unwrap(), bl.0);
+    // The final metrics are the last evaluation's.
+    assert_eq!(rec["test_psnr"].as_f64().unwrap(), evals[2].1);
+    assert_eq!(rec["test_lpips"].as_f64().unwrap(), evals[2].2);
+    let md = std::fs::read_to_string(out.join("report.md")).unwrap();
+    for needle in [
+        "Best of the periodic test evaluations",
+        "best PSNR (iteration)",
+        "best LPIPS (iteration)",
+        "final LPIPS",
+        "D-3DGS convention",
+        "not the published file",
+    ] {
+        assert!(md.contains(needle), "report.md lacks {needle:?}:\n{md}");
+    }
+    let csv = std::fs::read_to_string(out.join("runs.csv")).unwrap();
+    assert!(csv.lines().next().unwrap().contains("best_lpips_iteration"));
+    let _ = std::fs::remove_dir_all(&d);
+}

@@ -148,6 +148,7 @@ fn run(
         checkpoint_every: every,
         eval_every: 0,
         resume,
+        lpips: None,
     };
     train::run::<f32>(config, data, &opts, &mut |_: Event| {}).unwrap()
 }

@@ -3,6 +3,7 @@
 use clap::Subcommand;
 use liquid_splat::deform::count::{macs_per_gaussian, MacConvention};
 use liquid_splat::deform::{Deformation, Field, FieldConfig, FieldKind};
+use liquid_splat::lpips;
 use liquid_splat::math::{gradcheck::cotangent, Real, Rng};
 use liquid_splat::render::{self, scene};
 use std::process::ExitCode;
@@ -36,6 +37,22 @@ pub enum BenchWhat {
         #[arg(long)]
         field: Option<String>,
     },
+    /// LPIPS (VGG16) of one image pair: milliseconds per pair and the convolutions' GFLOP/s.
+    Lpips {
+        /// Image width and height.
+        #[arg(long, default_value_t = 800)]
+        size: usize,
+        /// Repetitions (the median is reported).
+        #[arg(long, default_value_t = 3)]
+        reps: usize,
+        /// Run in f64 instead of f32.
+        #[arg(long)]
+        f64: bool,
+        /// torchvision's vgg16-397923af.pth and the lpips package's vgg.pth; without them,
+        /// random weights of the same shapes (the time does not depend on the values).
+        #[arg(long, num_args = 2, value_names = ["VGG16_PTH", "LIN_PTH"])]
+        weights: Option<Vec<std::path::PathBuf>>,
+    },
 }
 
 /// Run a `bench` subcommand.
@@ -59,7 +76,95 @@ pub fn run(what: BenchWhat) -> liquid_splat::Result<ExitCode> {
                 bench_deform::<f32>(n, reps, only)
             }
         }
+        BenchWhat::Lpips {
+            size,
+            reps,
+            f64,
+            weights,
+        } => {
+            let w = match weights.as_deref() {
+                Some([vgg, lin]) => lpips::LpipsWeights::load(vgg, lin, lpips::Verify::Any)?,
+                _ => random_lpips_weights(0)?,
+            };
+            if f64 {
+                bench_lpips::<f64>(&w, size, reps)
+            } else {
+                bench_lpips::<f32>(&w, size, reps)
+            }
+        }
     }
+}
+
+/// LPIPS weights of the right shapes with uniform random values (for timing only).
+fn random_lpips_weights(seed: u64) -> liquid_splat::Result<lpips::LpipsWeights> {
+    let mut r = Rng::new(seed);
+    let mut u =
+        |n: usize, s: f64| -> Vec<f32> { (0..n).map(|_| r.uniform_range(-s, s) as f32).collect() };
+    let convs = lpips::VGG16_CONVS
+        .iter()
+        .map(|&(cin, cout)| {
+            (
+                u(cout * cin * 9, (6.0 / (9 * cin) as f64).sqrt()),
+                u(cout, 0.05),
+            )
+        })
+        .collect();
+    let lins = lpips::LAYER_CHANNELS.iter().map(|&c| u(c, 0.1)).collect();
+    let id = || lpips::WeightFile {
+        path: "random weights (benchmark)".into(),
+        sha256: String::new(),
+        official: false,
+    };
+    lpips::LpipsWeights::from_parts(convs, lins, id(), id())
+}
+
+fn bench_lpips<T: Real>(
+    w: &lpips::LpipsWeights,
+    size: usize,
+    reps: usize,
+) -> liquid_splat::Result<ExitCode> {
+    let net = lpips::Lpips::<T>::new(w);
+    let mut r = Rng::new(1);
+    let n = 3 * size * size;
+    let a: Vec<T> = (0..n).map(|_| T::from_f64(r.uniform())).collect();
+    let b: Vec<T> = a
+        .iter()
+        .map(|&v| (v + T::from_f64(r.uniform_range(-0.1, 0.1))).clamp(T::ZERO, T::ONE))
+        .collect();
+    // Multiply-adds of the 13 convolutions of one image (pool floors included).
+    let (mut h, mut wd, mut flops) = (size, size, 0.0f64);
+    for (i, &(cin, cout)) in lpips::VGG16_CONVS.iter().enumerate() {
+        if [2, 4, 7, 10].contains(&i) {
+            (h, wd) = (h / 2, wd / 2);
+        }
+        flops += 2.0 * 9.0 * (cin * cout * h * wd) as f64;
+    }
+    let mut times = Vec::new();
+    let mut value = 0.0;
+    for _ in 0..reps.max(1) {
+        let t0 = Instant::now();
+        value = net
+            .distance(&a, &b, size, size, lpips::Convention::D3dgs)?
+            .value
+            .to_f64();
+        times.push(t0.elapsed().as_secs_f64());
+    }
+    let t = median(times);
+    println!(
+        "lpips vgg {size}x{size} pair, {} ({}), {} threads: {:.0} ms per pair (median of {}), {:.1} GFLOP/s in the convolutions ({:.0} GFLOP per pair); value {value:.6}",
+        std::any::type_name::<T>(),
+        if w.vgg.official && w.lin.official {
+            "published weights"
+        } else {
+            "unpublished weights"
+        },
+        rayon::current_num_threads(),
+        t * 1e3,
+        reps.max(1),
+        2.0 * flops / t / 1e9,
+        2.0 * flops / 1e9,
+    );
+    Ok(ExitCode::SUCCESS)
 }
 
 pub(crate) fn median(mut v: Vec<f64>) -> f64 {

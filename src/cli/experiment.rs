@@ -55,6 +55,8 @@ pub struct ExperimentArgs {
     /// Smoothness sweep: number of Gaussians (the first ones of the canonical set).
     #[arg(long, default_value_t = 1000)]
     pub sweep_gaussians: usize,
+    #[command(flatten)]
+    pub lpips: super::train::LpipsArgs,
 }
 
 /// The field configurations of a sweep: the paper's comparison (MLP D8 W256
@@ -108,9 +110,11 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
             })
             .collect()
     };
+    let lpips = a.lpips.metric()?;
+    let eval_every = (a.iterations / a.evals.max(1)).max(1);
     let meta = ReportMeta {
         command: std::env::args().collect::<Vec<_>>().join(" "),
-        settings: settings(&a),
+        settings: settings(&a, eval_every),
         machine: MachineInfo::detect(),
         ablation_base: Default::default(),
     };
@@ -164,8 +168,9 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
         let opts = RunOptions {
             out: work.clone(),
             checkpoint_every: (a.iterations / 4).max(1),
-            eval_every: (a.iterations / a.evals.max(1)).max(1),
+            eval_every,
             resume: true,
+            lpips: lpips.clone(),
         };
         let mut stages = StageTimes::default();
         let mut stage_n = 0u64;
@@ -182,8 +187,14 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
                 }
             }
             Event::Eval {
-                iteration, psnr, ..
-            } => eprintln!("  iteration {iteration}: test PSNR {psnr:.3}"),
+                iteration,
+                psnr,
+                lpips,
+                ..
+            } => eprintln!(
+                "  iteration {iteration}: test PSNR {psnr:.3}{}",
+                lpips.map_or(String::new(), |v| format!(", LPIPS {v:.4}"))
+            ),
             Event::Resumed { iteration } => eprintln!("  resumed from iteration {iteration}"),
             Event::Checkpoint(_) => {}
         })?;
@@ -205,6 +216,17 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
             .zip(stages.values())
             .map(|(name, v)| (name.to_string(), 1e3 * v / n))
             .collect();
+        let curves: Vec<report::CurvePoint> = summary
+            .curve
+            .iter()
+            .map(|c| report::CurvePoint {
+                iteration: c.iteration as usize,
+                loss: c.loss,
+                test_psnr: c.test_psnr,
+                test_ssim: c.test_ssim,
+                test_lpips: c.test_lpips,
+            })
+            .collect();
         let record = RunRecord {
             scene: scene.clone(),
             field: label,
@@ -222,18 +244,13 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
             final_gaussians: summary.gaussians,
             test_psnr: summary.psnr,
             test_ssim: summary.ssim,
+            test_lpips: summary.lpips,
+            lpips_info: lpips.as_ref().map(|m| m.info()),
+            best: report::best_of_evaluations(&curves),
             ms_per_iteration: 1e3 * summary.train_seconds / summary.iterations_run.max(1) as f64,
             stage_ms,
             temporal_smoothness: Some(smooth),
-            curves: summary
-                .curve
-                .iter()
-                .map(|c| report::CurvePoint {
-                    iteration: c.iteration as usize,
-                    loss: c.loss,
-                    test_psnr: c.test_psnr,
-                })
-                .collect(),
+            curves,
             wall_seconds: clock.elapsed().as_secs_f64(),
         };
         report::write_record(&a.out, &record)?;
@@ -265,7 +282,7 @@ fn spec(a: &ExperimentArgs, data: Option<PathBuf>, scene: Option<String>) -> Run
     }
 }
 
-fn settings(a: &ExperimentArgs) -> Vec<(String, String)> {
+fn settings(a: &ExperimentArgs, eval_every: u64) -> Vec<(String, String)> {
     let s = |k: &str, v: String| (k.to_string(), v);
     vec![
         s("precision", "f32".into()),
@@ -277,7 +294,11 @@ fn settings(a: &ExperimentArgs) -> Vec<(String, String)> {
             "schedule",
             "upstream D-3DGS scaled to the iteration count (positions × s, intervals × √s, s = iterations / 40,000)".into(),
         ),
-        s("test PSNR / SSIM", "8-bit quantised renders, mean over the test views (upstream metrics.py)".into()),
+        s("test PSNR / SSIM / LPIPS", "8-bit quantised renders, mean over the test views (upstream metrics.py); LPIPS only with --lpips-vgg/--lpips-lin".into()),
+        s(
+            "periodic test evaluations",
+            format!("every {eval_every} iterations and at the last one; the best of them is reported apart from the final metrics"),
+        ),
         s(
             "smoothness sweep",
             format!(

@@ -8,6 +8,7 @@ use liquid_splat::dataset::{self, synth, Dataset, DatasetKind, LoadOptions};
 use liquid_splat::deform::{Activation, FieldConfig, FieldKind, Variant};
 use liquid_splat::error::{Error, Result};
 use liquid_splat::io::image;
+use liquid_splat::lpips;
 use liquid_splat::math::Real;
 use liquid_splat::train::{
     self, checkpoint, run::file_stem, Event, RunOptions, TrainConfig, View, ViewMetrics,
@@ -99,6 +100,57 @@ impl FieldArgs {
         c.is_6dof = self.six_dof;
         c.validate()?;
         Ok(c)
+    }
+}
+
+/// LPIPS weight files and convention (`train`, `eval`, `experiment`).
+#[derive(Args, Clone, Debug, Default)]
+pub struct LpipsArgs {
+    /// torchvision's VGG16 ImageNet weights, vgg16-397923af.pth (torchvision puts it in
+    /// ~/.cache/torch/hub/checkpoints/). With --lpips-lin: report LPIPS (VGG, v0.1).
+    #[arg(long, requires = "lpips_lin", value_name = "PTH")]
+    pub lpips_vgg: Option<PathBuf>,
+    /// The lpips package's weights/v0.1/vgg.pth (inside the installed package).
+    #[arg(long, requires = "lpips_vgg", value_name = "PTH")]
+    pub lpips_lin: Option<PathBuf>,
+    /// LPIPS with normalize=True ([0,1] mapped to [-1,1] first). Default: as D-3DGS's
+    /// metrics.py calls it, [0,1] images passed as they are.
+    #[arg(long)]
+    pub lpips_normalize: bool,
+    /// Accept weight files other than the published ones (reported with their SHA-256).
+    #[arg(long)]
+    pub lpips_unverified: bool,
+}
+
+impl LpipsArgs {
+    /// The metric, when weights were given.
+    pub fn metric(&self) -> Result<Option<std::sync::Arc<lpips::Metric>>> {
+        let (Some(vgg), Some(lin)) = (&self.lpips_vgg, &self.lpips_lin) else {
+            return Ok(None);
+        };
+        let verify = if self.lpips_unverified {
+            lpips::Verify::Any
+        } else {
+            lpips::Verify::Official
+        };
+        let convention = if self.lpips_normalize {
+            lpips::Convention::Normalize
+        } else {
+            lpips::Convention::D3dgs
+        };
+        let m = lpips::Metric::load(vgg, lin, verify, convention)?;
+        let info = m.info();
+        for w in [&info.vgg, &info.lin] {
+            if !w.official {
+                eprintln!(
+                    "warning: {} is not the published file (SHA-256 {}); LPIPS is reported with this hash",
+                    w.path.display(),
+                    w.sha256
+                );
+            }
+        }
+        eprintln!("{}", info.description);
+        Ok(Some(std::sync::Arc::new(m)))
     }
 }
 
@@ -213,6 +265,8 @@ pub struct TrainArgs {
     /// No progress output.
     #[arg(long, short)]
     pub quiet: bool,
+    #[command(flatten)]
+    pub lpips: LpipsArgs,
 }
 
 fn mkdir(p: &Path) -> Result<()> {
@@ -258,6 +312,7 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
         checkpoint_every: a.checkpoint_every,
         eval_every: a.eval_every,
         resume: a.resume,
+        lpips: a.lpips.metric()?,
     };
     let mut progress = Progress::new(config.iterations, a.quiet);
     let summary = match a.spec.precision {
@@ -266,9 +321,10 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
     };
     progress.finish();
     println!(
-        "test PSNR {:.3} dB  SSIM {:.4}  ({} views, {} Gaussians, {} iterations, {:.1} ms/iteration)",
+        "test PSNR {:.3} dB  SSIM {:.4}  {}({} views, {} Gaussians, {} iterations, {:.1} ms/iteration)",
         summary.psnr,
         summary.ssim,
+        lpips_text(summary.lpips),
         summary.per_view.len(),
         summary.gaussians,
         summary.iterations,
@@ -352,9 +408,13 @@ impl Progress {
                 iteration,
                 psnr,
                 ssim,
+                lpips,
             } => {
                 self.clear();
-                eprintln!("[eval] iteration {iteration}: test PSNR {psnr:.3} dB, SSIM {ssim:.4}");
+                eprintln!(
+                    "[eval] iteration {iteration}: test PSNR {psnr:.3} dB, SSIM {ssim:.4} {}",
+                    lpips_text(lpips)
+                );
             }
             Event::Checkpoint(p) => {
                 self.clear();
@@ -413,7 +473,7 @@ fn render_as<T: Real>(spec: &RunSpec, a: &RenderArgs) -> Result<ExitCode> {
     })?;
     let trainer = checkpoint::load::<T>(&ckpt, &config)?;
     let test: Vec<View<T>> = train::run::views(train::run::eval_frames(&data));
-    let per_view = train::run::render_views(&trainer, &test, &a.out.join("test"))?;
+    let per_view = train::run::render_views(&trainer, &test, &a.out.join("test"), None)?;
     eprintln!(
         "rendered {} test views from {} into {}",
         per_view.len(),
@@ -464,12 +524,15 @@ fn render_as<T: Real>(spec: &RunSpec, a: &RenderArgs) -> Result<ExitCode> {
 pub struct EvalArgs {
     /// Output folder holding test/renders and test/gt (PNG).
     pub out: PathBuf,
+    #[command(flatten)]
+    pub lpips: LpipsArgs,
 }
 
-/// `eval OUT`: PSNR and SSIM of `OUT/test/renders/*.png` against
-/// `OUT/test/gt/*.png` (8-bit images, as upstream's metrics.py), written to
-/// `OUT/results.json` and `OUT/per_view.json`.
+/// `eval OUT`: PSNR, SSIM (and LPIPS with weights) of `OUT/test/renders/*.png`
+/// against `OUT/test/gt/*.png` (8-bit images, as upstream's metrics.py),
+/// written to `OUT/results.json` and `OUT/per_view.json`.
 pub fn eval(a: EvalArgs) -> Result<ExitCode> {
+    let metric = a.lpips.metric()?;
     let renders = a.out.join("test").join("renders");
     let gt_dir = a.out.join("test").join("gt");
     let mut names: Vec<String> = std::fs::read_dir(&renders)
@@ -495,10 +558,18 @@ pub fn eval(a: EvalArgs) -> Result<ExitCode> {
                 format!("{n}: render is {w}x{h}, ground truth {gw}x{gh}"),
             ));
         }
-        let m = train::trainer::view_metrics::<f32>(n.trim_end_matches(".png"), &r, &g, h, w)?;
+        let m = train::trainer::view_metrics_with::<f32>(
+            n.trim_end_matches(".png"),
+            &r,
+            &g,
+            h,
+            w,
+            metric.as_deref(),
+        )?;
         per_view.push(m);
     }
-    train::run::write_metrics(&a.out, &per_view)?;
+    let info = metric.as_ref().map(|m| m.info());
+    train::run::write_metrics(&a.out, &per_view, info.as_ref())?;
     print_metrics(&per_view)?;
     Ok(ExitCode::SUCCESS)
 }
@@ -512,9 +583,30 @@ fn read_rgb(path: &Path) -> Result<(Vec<f32>, usize, usize)> {
 
 fn print_metrics(per_view: &[ViewMetrics]) -> Result<()> {
     for m in per_view {
-        println!("{:<24} PSNR {:>8.3}  SSIM {:.4}", m.name, m.psnr, m.ssim);
+        println!(
+            "{:<24} PSNR {:>8.3}  SSIM {:.4}  {}",
+            m.name,
+            m.psnr,
+            m.ssim,
+            lpips_text(m.lpips)
+        );
     }
     let (p, s) = train::run::mean_metrics(per_view)?;
-    println!("{:<24} PSNR {:>8.3}  SSIM {:.4}", "mean", p, s);
+    let l = train::run::mean_lpips(per_view);
+    println!(
+        "{:<24} PSNR {:>8.3}  SSIM {:.4}  {}",
+        "mean",
+        p,
+        s,
+        lpips_text(l)
+    );
+    if l.is_none() {
+        println!("LPIPS not computed (no weights: --lpips-vgg and --lpips-lin)");
+    }
     Ok(())
+}
+
+/// `LPIPS 0.1234 ` or nothing: absent, never a placeholder number.
+fn lpips_text(v: Option<f64>) -> String {
+    v.map_or(String::new(), |v| format!("LPIPS {v:.4} "))
 }

@@ -613,7 +613,7 @@ impl<'p, R: Read> PickleReader<'p, R> {
         Ok(())
     }
     fn set_items(&mut self, items: Vec<Value>) -> Result<()> {
-        if items.len() % 2 != 0 {
+        if !items.len().is_multiple_of(2) {
             return Err(self.err("odd number of dictionary items"));
         }
         let (at, path) = (self.pos, self.path);

@@ -44,7 +44,6 @@ pub use weights::{LpipsWeights, Verify, WeightFile};
 use crate::deform::matmul::{matmul_block_into, pack, MatRef, Packed};
 use crate::error::{Error, Result};
 use crate::loss::check_image_pair;
-use crate::loss::metrics::quantize_image;
 use crate::math::Real;
 use rayon::prelude::*;
 
@@ -260,27 +259,80 @@ impl<T: Real> Lpips<T> {
         }
         Ok(LpipsValue { value, per_layer })
     }
+}
 
-    /// LPIPS after 8-bit quantisation of both images (as PSNR and SSIM in
-    /// [`crate::loss::metrics`]: the evaluation reads saved PNGs).
-    pub fn distance_u8(
-        &self,
-        render: &[T],
-        gt: &[T],
-        h: usize,
-        w: usize,
+/// LPIPS as the evaluation reports it: an f32 network (as the package runs
+/// on the GPU or CPU) applied to 8-bit-quantised renders and ground truth
+/// (`u8 / 255` in f32, as `torchvision.transforms.functional.to_tensor`
+/// reads a saved PNG), under one input convention.
+pub struct Metric {
+    net: Lpips<f32>,
+    pub convention: Convention,
+}
+
+/// What produced an LPIPS number: convention and weight files.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct MetricInfo {
+    pub convention: Convention,
+    /// [`Convention::describe`].
+    pub description: String,
+    pub vgg: WeightFile,
+    pub lin: WeightFile,
+}
+
+impl std::fmt::Debug for Metric {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Metric")
+            .field("convention", &self.convention)
+            .field("vgg", &self.net.vgg)
+            .field("lin", &self.net.lin)
+            .finish()
+    }
+}
+
+impl Metric {
+    pub fn new(weights: &LpipsWeights, convention: Convention) -> Metric {
+        Metric {
+            net: Lpips::new(weights),
+            convention,
+        }
+    }
+
+    /// Read the weight files ([`LpipsWeights::load`]) and build the metric.
+    pub fn load(
+        vgg: &std::path::Path,
+        lin: &std::path::Path,
+        verify: Verify,
         convention: Convention,
-    ) -> Result<T> {
+    ) -> Result<Metric> {
+        Ok(Metric::new(
+            &LpipsWeights::load(vgg, lin, verify)?,
+            convention,
+        ))
+    }
+
+    /// LPIPS of one `[3, h, w]` render against its ground truth, both
+    /// quantised to 8 bits first.
+    pub fn view<T: Real>(&self, render: &[T], gt: &[T], h: usize, w: usize) -> Result<f64> {
         check_image_pair(render.len(), gt.len(), h, w)?;
+        let u8_f32 = |v: &[T]| -> Vec<f32> {
+            v.iter()
+                .map(|&x| crate::loss::metrics::to_u8(x) as f32 / 255.0)
+                .collect()
+        };
         Ok(self
-            .distance(
-                &quantize_image(render),
-                &quantize_image(gt),
-                h,
-                w,
-                convention,
-            )?
-            .value)
+            .net
+            .distance(&u8_f32(render), &u8_f32(gt), h, w, self.convention)?
+            .value as f64)
+    }
+
+    pub fn info(&self) -> MetricInfo {
+        MetricInfo {
+            convention: self.convention,
+            description: self.convention.describe().to_string(),
+            vgg: self.net.vgg.clone(),
+            lin: self.net.lin.clone(),
+        }
     }
 }
 

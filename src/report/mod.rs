@@ -26,7 +26,10 @@ use crate::io::write_atomic;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use tables::{by_field, csv_line, field_order, MS_PER_ITER, PSNR, SMOOTHNESS, SSIM};
+use tables::{
+    by_field, csv_line, field_order, BEST_LPIPS, BEST_PSNR, BEST_SSIM, LPIPS, MS_PER_ITER, PSNR,
+    SMOOTHNESS, SSIM,
+};
 
 /// One logged point of a training curve.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -36,6 +39,64 @@ pub struct CurvePoint {
     pub loss: f64,
     /// Test-set PSNR (dB) when it was evaluated at this iteration.
     pub test_psnr: Option<f64>,
+    /// Test-set SSIM and LPIPS of the same evaluation (LPIPS only with weights).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_ssim: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_lpips: Option<f64>,
+}
+
+/// The best value of one metric over a run's periodic test evaluations, and
+/// the iteration it was evaluated at (the first such iteration on ties).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BestValue {
+    pub value: f64,
+    pub iteration: usize,
+}
+
+/// Best of the periodic test evaluations (highest PSNR and SSIM, lowest
+/// LPIPS, each metric on its own): how D-3DGS's published numbers were
+/// chosen (its author: the best test metrics of evaluations every 1,000
+/// iterations), as opposed to the final model's metrics.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BestOfEvaluations {
+    /// Number of evaluations the best was chosen from (the last iteration included).
+    pub evaluations: usize,
+    pub psnr: BestValue,
+    pub ssim: Option<BestValue>,
+    pub lpips: Option<BestValue>,
+}
+
+/// [`BestOfEvaluations`] of a curve; `None` when no point has a test PSNR.
+pub fn best_of_evaluations(curve: &[CurvePoint]) -> Option<BestOfEvaluations> {
+    fn best(
+        curve: &[CurvePoint],
+        get: impl Fn(&CurvePoint) -> Option<f64>,
+        higher: bool,
+    ) -> Option<BestValue> {
+        let mut b: Option<BestValue> = None;
+        for p in curve {
+            if let Some(v) = get(p) {
+                let better = match b {
+                    None => true,
+                    Some(o) => (higher && v > o.value) || (!higher && v < o.value),
+                };
+                if better {
+                    b = Some(BestValue {
+                        value: v,
+                        iteration: p.iteration,
+                    });
+                }
+            }
+        }
+        b
+    }
+    Some(BestOfEvaluations {
+        evaluations: curve.iter().filter(|p| p.test_psnr.is_some()).count(),
+        psnr: best(curve, |p| p.test_psnr, true)?,
+        ssim: best(curve, |p| p.test_ssim, true),
+        lpips: best(curve, |p| p.test_lpips, false),
+    })
 }
 
 /// Everything measured in one training run (one scene, field, seed).
@@ -61,8 +122,18 @@ pub struct RunRecord {
     /// MACs per Gaussian, ptflops aten convention (linear layers only).
     pub macs_per_gaussian: u64,
     pub final_gaussians: usize,
+    /// Metrics of the final model (after the last iteration).
     pub test_psnr: f64,
     pub test_ssim: f64,
+    /// Final test LPIPS; absent when the run had no LPIPS weights.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_lpips: Option<f64>,
+    /// How LPIPS was computed (convention, weight files), when it was.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips_info: Option<crate::lpips::MetricInfo>,
+    /// Best of the periodic test evaluations (see [`BestOfEvaluations`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub best: Option<BestOfEvaluations>,
     /// Mean wall-clock milliseconds per training iteration.
     pub ms_per_iteration: f64,
     /// Optional mean milliseconds per iteration of each stage.
@@ -110,17 +181,29 @@ impl RunRecord {
                 "temporal_smoothness",
                 self.temporal_smoothness.unwrap_or(0.0),
             ),
+            ("test_lpips", self.test_lpips.unwrap_or(0.0)),
         ];
         let curves = self.curves.iter().map(|p| ("curves.loss", p.loss));
-        let psnrs = self
-            .curves
-            .iter()
-            .map(|p| ("curves.test_psnr", p.test_psnr.unwrap_or(0.0)));
+        let psnrs = self.curves.iter().flat_map(|p| {
+            [
+                ("curves.test_psnr", p.test_psnr.unwrap_or(0.0)),
+                ("curves.test_ssim", p.test_ssim.unwrap_or(0.0)),
+                ("curves.test_lpips", p.test_lpips.unwrap_or(0.0)),
+            ]
+        });
+        let best = self.best.iter().flat_map(|b| {
+            [
+                ("best.psnr", b.psnr.value),
+                ("best.ssim", b.ssim.map_or(0.0, |v| v.value)),
+                ("best.lpips", b.lpips.map_or(0.0, |v| v.value)),
+            ]
+        });
         let stages = self.stage_ms.values().map(|v| ("stage_ms", *v));
         match scalars
             .into_iter()
             .chain(curves)
             .chain(psnrs)
+            .chain(best)
             .chain(stages)
             .find(|x| !x.1.is_finite())
         {
@@ -264,6 +347,42 @@ const SMOOTHNESS_NOTE: &str = "S = 1/((K−2)·M) · Σ_k Σ_j |o_j(t_{k+1}) −
     over K uniform times t_k with spacing Δt and the M offset values o_j of the swept Gaussians: the mean \
     magnitude of the discrete second time derivative of the offsets. Lower is smoother.";
 
+/// How the records' LPIPS was computed (convention, weights), or that it was not.
+fn lpips_note(records: &[RunRecord]) -> String {
+    let infos: Vec<&crate::lpips::MetricInfo> = records
+        .iter()
+        .filter_map(|r| r.lpips_info.as_ref())
+        .collect();
+    if infos.is_empty() {
+        return " LPIPS not computed (no weights given).".into();
+    }
+    let mut lines: Vec<String> = infos
+        .iter()
+        .map(|i| {
+            let w = |f: &crate::lpips::WeightFile| {
+                if f.official {
+                    format!("{} (published file)", f.path.display())
+                } else {
+                    format!(
+                        "{} (not the published file, SHA-256 {})",
+                        f.path.display(),
+                        f.sha256
+                    )
+                }
+            };
+            format!("{}; weights {} and {}", i.description, w(&i.vgg), w(&i.lin))
+        })
+        .collect();
+    lines.sort();
+    lines.dedup();
+    let missing = records.iter().filter(|r| r.test_lpips.is_none()).count();
+    let mut s = format!(" LPIPS: {}.", lines.join("; "));
+    if missing > 0 {
+        s += &format!(" {missing} run(s) have no LPIPS (trained without weights).");
+    }
+    s
+}
+
 /// Write `report.md`, the CSV files, `meta.json` and the plots into `dir`.
 pub fn write_report(dir: &Path, records: &[RunRecord], meta: &ReportMeta) -> Result<()> {
     create_dir(&dir.join("plots"))?;
@@ -324,12 +443,43 @@ pub fn write_report(dir: &Path, records: &[RunRecord], meta: &ReportMeta) -> Res
         format!("Wall-clock mean over each run, {threads} thread(s), on the machine above.")
     };
     let fields = by_field(records);
+    let has_lpips = records.iter().any(|r| r.test_lpips.is_some());
+    let final_metrics: &[tables::Metric] = if has_lpips {
+        &[PSNR, SSIM, LPIPS]
+    } else {
+        &[PSNR, SSIM]
+    };
+    let best_metrics: &[tables::Metric] = if has_lpips {
+        &[BEST_PSNR, BEST_SSIM, BEST_LPIPS]
+    } else {
+        &[BEST_PSNR, BEST_SSIM]
+    };
+    let lpips_note = lpips_note(records);
     let sections = [
         (
-            "1. Test-set quality per scene",
-            format!("PSNR in dB, SSIM. {best}"),
+            "1. Test-set quality per scene (final model)",
+            format!(
+                "Metrics of the model after the last iteration. PSNR in dB, SSIM{}. {best}",
+                if has_lpips { ", LPIPS (lower is better)" } else { "" }
+            ) + &lpips_note,
             "quality",
-            tables::matrix("field", &fields, &[PSNR, SSIM]),
+            tables::matrix("field", &fields, final_metrics),
+        ),
+        (
+            "1b. Best of the periodic test evaluations",
+            format!(
+                "The best value of each metric over the test evaluations made during each run                  (the last iteration included), each metric on its own: how D-3DGS's published                  numbers were chosen (best of evaluations every 1,000 iterations), so higher                  than the final model's. Table 1c gives the iteration of each. {best}"
+            ),
+            "quality_best",
+            tables::matrix("field", &fields, best_metrics),
+        ),
+        (
+            "1c. Final and best-of-evaluations metrics of every run",
+            "`final`: after the last iteration. `best (iteration)`: best of the periodic \
+             evaluations and the iteration it came from."
+                .to_string(),
+            "final_and_best",
+            tables::final_and_best(records),
         ),
         (
             "2. Parameters and MACs per Gaussian",
@@ -439,15 +589,29 @@ pub fn write_report(dir: &Path, records: &[RunRecord], meta: &ReportMeta) -> Res
     }
 
     write_atomic(&dir.join("runs.csv"), runs_csv(records).as_bytes())?;
-    let mut curves =
-        csv_line(["scene", "field", "seed", "iteration", "loss", "test_psnr"].into_iter());
+    let mut curves = csv_line(
+        [
+            "scene",
+            "field",
+            "seed",
+            "iteration",
+            "loss",
+            "test_psnr",
+            "test_ssim",
+            "test_lpips",
+        ]
+        .into_iter(),
+    );
+    let opt = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
     for r in records {
         for p in &r.curves {
             let v = [
                 r.seed.to_string(),
                 p.iteration.to_string(),
                 p.loss.to_string(),
-                p.test_psnr.map_or(String::new(), |v| v.to_string()),
+                opt(p.test_psnr),
+                opt(p.test_ssim),
+                opt(p.test_lpips),
             ];
             curves += &csv_line(
                 [r.scene.as_str(), r.field.as_str()]
@@ -465,7 +629,7 @@ pub fn write_report(dir: &Path, records: &[RunRecord], meta: &ReportMeta) -> Res
 }
 
 /// Column names of `runs.csv`.
-pub const RUNS_CSV_COLUMNS: [&str; 21] = [
+pub const RUNS_CSV_COLUMNS: [&str; 28] = [
     "scene",
     "field",
     "kind",
@@ -483,6 +647,13 @@ pub const RUNS_CSV_COLUMNS: [&str; 21] = [
     "final_gaussians",
     "test_psnr",
     "test_ssim",
+    "test_lpips",
+    "best_psnr",
+    "best_psnr_iteration",
+    "best_ssim",
+    "best_ssim_iteration",
+    "best_lpips",
+    "best_lpips_iteration",
     "ms_per_iteration",
     "temporal_smoothness",
     "wall_seconds",
@@ -492,7 +663,10 @@ pub const RUNS_CSV_COLUMNS: [&str; 21] = [
 /// One row per run, every scalar at full precision (shortest round-trip form).
 pub fn runs_csv(records: &[RunRecord]) -> String {
     let mut s = csv_line(RUNS_CSV_COLUMNS.into_iter());
+    let opt = |v: Option<f64>| v.map_or(String::new(), |v| v.to_string());
+    let it = |v: Option<BestValue>| v.map_or(String::new(), |v| v.iteration.to_string());
     for r in records {
+        let b = r.best.as_ref();
         let v = [
             r.scene.clone(),
             r.field.clone(),
@@ -511,6 +685,13 @@ pub fn runs_csv(records: &[RunRecord]) -> String {
             r.final_gaussians.to_string(),
             r.test_psnr.to_string(),
             r.test_ssim.to_string(),
+            opt(r.test_lpips),
+            opt(b.map(|b| b.psnr.value)),
+            it(b.map(|b| b.psnr)),
+            opt(b.and_then(|b| b.ssim).map(|v| v.value)),
+            it(b.and_then(|b| b.ssim)),
+            opt(b.and_then(|b| b.lpips).map(|v| v.value)),
+            it(b.and_then(|b| b.lpips)),
             r.ms_per_iteration.to_string(),
             r.temporal_smoothness
                 .map_or(String::new(), |v| v.to_string()),
@@ -556,6 +737,9 @@ pub(crate) mod tests {
             final_gaussians: 1000 + depth,
             test_psnr: psnr,
             test_ssim: ssim,
+            test_lpips: None,
+            lpips_info: None,
+            best: None,
             ms_per_iteration: 10.0 + width as f64 / 64.0,
             stage_ms: BTreeMap::new(),
             temporal_smoothness: None,
@@ -564,10 +748,13 @@ pub(crate) mod tests {
                     iteration: 50 * i,
                     loss: 0.1 / (1.0 + i as f64),
                     test_psnr: (i % 2 == 0).then_some(psnr - 4.0 + i as f64),
+                    test_ssim: (i % 2 == 0).then_some(ssim),
+                    test_lpips: None,
                 })
                 .collect(),
             wall_seconds: 3.5,
         };
+        r.best = best_of_evaluations(&r.curves);
         let c = r.field_config().unwrap();
         r.field = field_label(&c);
         r.params = param_count(&c).unwrap();

@@ -156,6 +156,30 @@ pub const SSIM: Metric = Metric {
     cell: |v| Cell::num(v, 4),
     better: Better::Higher,
 };
+pub const LPIPS: Metric = Metric {
+    name: "LPIPS",
+    get: |r| r.test_lpips,
+    cell: |v| Cell::num(v, 4),
+    better: Better::Lower,
+};
+pub const BEST_PSNR: Metric = Metric {
+    name: "best PSNR",
+    get: |r| r.best.as_ref().map(|b| b.psnr.value),
+    cell: |v| Cell::num(v, 2),
+    better: Better::Higher,
+};
+pub const BEST_SSIM: Metric = Metric {
+    name: "best SSIM",
+    get: |r| r.best.as_ref().and_then(|b| b.ssim).map(|b| b.value),
+    cell: |v| Cell::num(v, 4),
+    better: Better::Higher,
+};
+pub const BEST_LPIPS: Metric = Metric {
+    name: "best LPIPS",
+    get: |r| r.best.as_ref().and_then(|b| b.lpips).map(|b| b.value),
+    cell: |v| Cell::num(v, 4),
+    better: Better::Lower,
+};
 pub const MS_PER_ITER: Metric = Metric {
     name: "ms/iter",
     get: |r| Some(r.ms_per_iteration),
@@ -267,6 +291,74 @@ pub fn matrix(
         t.bold_best(c, metrics[(c - t.left) % metrics.len()].better);
     }
     Some(t)
+}
+
+/// One row per run: the final model's metrics and the best of the periodic
+/// evaluations with the iteration each came from. `None` without records.
+pub fn final_and_best(records: &[RunRecord]) -> Option<Table> {
+    if records.is_empty() {
+        return None;
+    }
+    let lpips = records.iter().any(|r| r.test_lpips.is_some());
+    let mut headers: Vec<String> = [
+        "scene",
+        "field",
+        "seed",
+        "evaluations",
+        "final PSNR",
+        "final SSIM",
+    ]
+    .map(String::from)
+    .to_vec();
+    if lpips {
+        headers.push("final LPIPS".into());
+    }
+    headers.extend(["best PSNR (iteration)", "best SSIM (iteration)"].map(String::from));
+    if lpips {
+        headers.push("best LPIPS (iteration)".into());
+    }
+    let mut runs: Vec<&RunRecord> = records.iter().collect();
+    runs.sort_by(|a, b| {
+        (a.scene.as_str(), field_order(a), a.seed).cmp(&(b.scene.as_str(), field_order(b), b.seed))
+    });
+    let with_it = |b: Option<super::BestValue>, decimals: usize| -> Cell {
+        b.map_or_else(Cell::missing, |b| {
+            Cell::text(format!(
+                "{:.*} ({})",
+                decimals,
+                b.value,
+                thousands(b.iteration as u64)
+            ))
+        })
+    };
+    let rows = runs
+        .iter()
+        .map(|r| {
+            let b = r.best.as_ref();
+            let mut row = vec![
+                Cell::text(&r.scene),
+                Cell::text(&r.field),
+                Cell::text(r.seed.to_string()),
+                b.map_or_else(Cell::missing, |b| Cell::count(b.evaluations as u64)),
+                Cell::num(r.test_psnr, 2),
+                Cell::num(r.test_ssim, 4),
+            ];
+            if lpips {
+                row.push(r.test_lpips.map_or_else(Cell::missing, |v| Cell::num(v, 4)));
+            }
+            row.push(with_it(b.map(|b| b.psnr), 2));
+            row.push(with_it(b.and_then(|b| b.ssim), 4));
+            if lpips {
+                row.push(with_it(b.and_then(|b| b.lpips), 4));
+            }
+            row
+        })
+        .collect();
+    Some(Table {
+        headers,
+        left: 3,
+        rows,
+    })
 }
 
 /// Group records by a key, in key order.

@@ -7,7 +7,8 @@
 //! OUT/test/renders/NAME.png           8-bit renders (torchvision save_image rounding)
 //! OUT/test/renders_exr/NAME.exr       float renders
 //! OUT/test/gt/NAME.png                ground truth, saved the same way
-//! OUT/results.json, OUT/per_view.json test PSNR / SSIM (upstream metrics.py layout)
+//! OUT/results.json, OUT/per_view.json test PSNR / SSIM, LPIPS with weights (upstream
+//!                                     metrics.py layout)
 //! ```
 
 use super::checkpoint;
@@ -20,6 +21,7 @@ use crate::gaussians::Gaussians;
 use crate::io::{image, write_atomic};
 use crate::math::Real;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// How a run is driven (not part of its result).
@@ -33,6 +35,9 @@ pub struct RunOptions {
     pub eval_every: u64,
     /// Continue from the newest checkpoint in `OUT/checkpoints` if there is one.
     pub resume: bool,
+    /// LPIPS for every evaluation (periodic and final) when given; without
+    /// it LPIPS is absent from every record.
+    pub lpips: Option<Arc<crate::lpips::Metric>>,
 }
 
 /// One point of the training curve.
@@ -41,7 +46,13 @@ pub struct CurvePoint {
     pub iteration: u64,
     /// Mean training loss over the iterations since the previous point.
     pub loss: f64,
+    /// Mean test metrics when the test views were evaluated at this
+    /// iteration (LPIPS only with weights).
     pub test_psnr: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_ssim: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_lpips: Option<f64>,
     pub gaussians: usize,
 }
 
@@ -56,6 +67,7 @@ pub enum Event<'a> {
         iteration: u64,
         psnr: f64,
         ssim: f64,
+        lpips: Option<f64>,
     },
     Checkpoint(&'a Path),
 }
@@ -67,6 +79,8 @@ pub struct RunSummary {
     pub gaussians: usize,
     pub psnr: f64,
     pub ssim: f64,
+    /// Mean test LPIPS, with [`RunOptions::lpips`] only.
+    pub lpips: Option<f64>,
     pub per_view: Vec<ViewMetrics>,
     /// [`Trainer::state_hash`] of the final state, hexadecimal.
     pub state_hash: String,
@@ -83,6 +97,13 @@ pub fn views<T: Real>(frames: &[Frame]) -> Vec<View<T>> {
         .iter()
         .map(|f| View::new(&f.name, &f.camera, f.time, &f.image))
         .collect()
+}
+
+/// Mean LPIPS over views: `None` unless every view has one.
+pub fn mean_lpips(per_view: &[ViewMetrics]) -> Option<f64> {
+    let v: Option<Vec<f64>> = per_view.iter().map(|m| m.lpips).collect();
+    v.filter(|v| !v.is_empty())
+        .map(|v| v.iter().sum::<f64>() / v.len() as f64)
 }
 
 /// Mean PSNR and SSIM over views (0 views: an error).
@@ -120,6 +141,17 @@ pub fn run<T: Real>(
 ) -> Result<RunSummary> {
     let train = views::<T>(&data.train);
     let test = views::<T>(eval_frames(data));
+    if opts.lpips.is_some() {
+        if let Some(v) = test.iter().find(|v| v.height < 16 || v.width < 16) {
+            return Err(Error::invalid(
+                "LPIPS",
+                format!(
+                    "test view {} is {}x{}: VGG16 needs at least 16x16 pixels",
+                    v.name, v.width, v.height
+                ),
+            ));
+        }
+    }
     let ckpt_dir = opts.out.join("checkpoints");
 
     let (mut trainer, mut curve) = match opts
@@ -162,21 +194,26 @@ pub fn run<T: Real>(
         let last = it == config.iterations;
         let eval = last || (opts.eval_every > 0 && it % opts.eval_every == 0);
         if eval || it % curve_every == 0 {
-            let test_psnr = if eval && !test.is_empty() {
-                let (psnr, ssim) = mean_metrics(&trainer.evaluate(&test)?)?;
+            let (test_psnr, test_ssim, test_lpips) = if eval && !test.is_empty() {
+                let per_view = trainer.evaluate_with(&test, opts.lpips.as_deref())?;
+                let (psnr, ssim) = mean_metrics(&per_view)?;
+                let lpips = mean_lpips(&per_view);
                 on_event(Event::Eval {
                     iteration: it,
                     psnr,
                     ssim,
+                    lpips,
                 });
-                Some(psnr)
+                (Some(psnr), Some(ssim), lpips)
             } else {
-                None
+                (None, None, None)
             };
             curve.push(CurvePoint {
                 iteration: it,
                 loss: loss_sum / loss_n as f64,
                 test_psnr,
+                test_ssim,
+                test_lpips,
                 gaussians: r.gaussians,
             });
             (loss_sum, loss_n) = (0.0, 0);
@@ -189,14 +226,16 @@ pub fn run<T: Real>(
     }
     let train_seconds = clock.elapsed().as_secs_f64();
 
-    let per_view = render_views(&trainer, &test, &opts.out.join("test"))?;
+    let lpips = opts.lpips.as_deref();
+    let per_view = render_views(&trainer, &test, &opts.out.join("test"), lpips)?;
     let (psnr, ssim) = mean_metrics(&per_view)?;
-    write_metrics(&opts.out, &per_view)?;
+    write_metrics(&opts.out, &per_view, lpips.map(|m| m.info()).as_ref())?;
     Ok(RunSummary {
         iterations: trainer.iteration,
         gaussians: trainer.gaussians.len(),
         psnr,
         ssim,
+        lpips: mean_lpips(&per_view),
         per_view,
         state_hash: format!("{:016x}", trainer.state_hash()),
         train_seconds,
@@ -232,11 +271,12 @@ fn with_sh_degree<T: Real>(mut g: Gaussians<T>, deg: usize) -> Gaussians<T> {
 }
 
 /// Render `views`, save renders (PNG, EXR) and ground truth (PNG) under
-/// `dir`, and return the 8-bit metrics of each view.
+/// `dir`, and return the 8-bit metrics of each view (LPIPS with `lpips`).
 pub fn render_views<T: Real>(
     trainer: &Trainer<T>,
     views: &[View<T>],
     dir: &Path,
+    lpips: Option<&crate::lpips::Metric>,
 ) -> Result<Vec<ViewMetrics>> {
     for sub in ["renders", "renders_exr", "gt"] {
         std::fs::create_dir_all(dir.join(sub)).map_err(|e| Error::io(dir.join(sub), e))?;
@@ -263,8 +303,8 @@ pub fn render_views<T: Real>(
             v.height,
             v.width,
         )?;
-        per_view.push(super::trainer::view_metrics(
-            &name, &out.color, &v.image, v.height, v.width,
+        per_view.push(super::trainer::view_metrics_with(
+            &name, &out.color, &v.image, v.height, v.width, lpips,
         )?);
     }
     Ok(per_view)
@@ -278,22 +318,35 @@ pub fn file_stem(name: &str) -> String {
 
 /// `results.json` (`{"psnr", "ssim", "views"}`) and `per_view.json`
 /// (`{"psnr": {name: v}, "ssim": {name: v}}`), as upstream's metrics.py.
-pub fn write_metrics(out: &Path, per_view: &[ViewMetrics]) -> Result<()> {
+/// With LPIPS (every view has a value and `lpips` says how it was computed):
+/// `"lpips"` in both, and `"lpips_info"` (convention, weight files and
+/// their SHA-256) in `results.json`; without, no `lpips` key at all.
+pub fn write_metrics(
+    out: &Path,
+    per_view: &[ViewMetrics],
+    lpips: Option<&crate::lpips::MetricInfo>,
+) -> Result<()> {
     let (psnr, ssim) = mean_metrics(per_view)?;
-    write_json(
-        &out.join("results.json"),
-        &serde_json::json!({ "psnr": psnr, "ssim": ssim, "views": per_view.len() }),
-    )?;
+    let mut results = serde_json::json!({ "psnr": psnr, "ssim": ssim, "views": per_view.len() });
     let mut p = serde_json::Map::new();
     let mut s = serde_json::Map::new();
+    let mut l = serde_json::Map::new();
     for m in per_view {
         p.insert(m.name.clone(), m.psnr.into());
         s.insert(m.name.clone(), m.ssim.into());
+        if let Some(v) = m.lpips {
+            l.insert(m.name.clone(), v.into());
+        }
     }
-    write_json(
-        &out.join("per_view.json"),
-        &serde_json::json!({ "psnr": p, "ssim": s }),
-    )
+    let mut views = serde_json::json!({ "psnr": p, "ssim": s });
+    if let (Some(mean), Some(info)) = (mean_lpips(per_view), lpips) {
+        results["lpips"] = mean.into();
+        results["lpips_info"] =
+            serde_json::to_value(info).map_err(|e| Error::invalid("lpips_info", e.to_string()))?;
+        views["lpips"] = l.into();
+    }
+    write_json(&out.join("results.json"), &results)?;
+    write_json(&out.join("per_view.json"), &views)
 }
 
 pub fn write_json(path: &Path, v: &impl serde::Serialize) -> Result<()> {

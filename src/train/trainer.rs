@@ -129,12 +129,16 @@ impl Lap {
     }
 }
 
-/// PSNR and SSIM of one test view (8-bit quantised, as upstream's metrics).
+/// PSNR, SSIM and (when weights were given) LPIPS of one test view (8-bit
+/// quantised, as upstream's metrics).
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct ViewMetrics {
     pub name: String,
     pub psnr: f64,
     pub ssim: f64,
+    /// Absent when no LPIPS weights were given (never a placeholder number).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub lpips: Option<f64>,
 }
 
 /// The complete state of a run: everything a checkpoint stores.
@@ -442,11 +446,20 @@ impl<T: Real> Trainer<T> {
 
     /// PSNR and SSIM of each view on 8-bit quantised renders.
     pub fn evaluate(&self, views: &[View<T>]) -> Result<Vec<ViewMetrics>> {
+        self.evaluate_with(views, None)
+    }
+
+    /// [`evaluate`](Self::evaluate), with LPIPS too when `lpips` is given.
+    pub fn evaluate_with(
+        &self,
+        views: &[View<T>],
+        lpips: Option<&crate::lpips::Metric>,
+    ) -> Result<Vec<ViewMetrics>> {
         views
             .iter()
             .map(|v| {
                 let out = self.render(&v.camera, v.time)?;
-                view_metrics(&v.name, &out.color, &v.image, v.height, v.width)
+                view_metrics_with(&v.name, &out.color, &v.image, v.height, v.width, lpips)
             })
             .collect()
     }
@@ -500,10 +513,24 @@ pub fn view_metrics<T: Real>(
     h: usize,
     w: usize,
 ) -> Result<ViewMetrics> {
+    view_metrics_with(name, render, gt, h, w, None)
+}
+
+/// [`view_metrics`], with LPIPS ([`crate::lpips::Metric::view`], on the
+/// same 8-bit images) when `lpips` is given.
+pub fn view_metrics_with<T: Real>(
+    name: &str,
+    render: &[T],
+    gt: &[T],
+    h: usize,
+    w: usize,
+    lpips: Option<&crate::lpips::Metric>,
+) -> Result<ViewMetrics> {
     Ok(ViewMetrics {
         name: name.to_string(),
         psnr: metrics::psnr(render, gt, h, w)?.to_f64(),
         ssim: metrics::ssim_u8(render, gt, h, w)?.to_f64(),
+        lpips: lpips.map(|m| m.view(render, gt, h, w)).transpose()?,
     })
 }
 
