@@ -41,10 +41,12 @@ enum Command {
     Synth(cli::data::SynthArgs),
     /// Train a deformable Gaussian model (liquid CfC or MLP field) on a dataset or built-in scene.
     Train(cli::train::TrainArgs),
-    /// Render a trained run's test views and a time sweep (PNG and EXR).
+    /// Render a trained run's test views, a time sweep and any times (PNG and EXR).
     Render(cli::train::RenderArgs),
-    /// PSNR and SSIM of a run's saved renders (results.json, per_view.json).
+    /// PSNR, SSIM (and LPIPS with weights) of a run's saved renders (results.json, per_view.json).
     Eval(cli::train::EvalArgs),
+    /// The deformed Gaussians of a trained run at given times, as Inria PLY files.
+    Export(cli::train::ExportArgs),
     /// Train and compare the MLP and liquid fields on several scenes; write a report folder.
     Experiment(cli::experiment::ExperimentArgs),
     /// Parameters and MACs of a deformation field (ptflops conventions).
@@ -108,6 +110,7 @@ fn main() -> ExitCode {
         Command::Train(a) => report(cli::train::train(a)),
         Command::Render(a) => report(cli::train::render(a)),
         Command::Eval(a) => report(cli::train::eval(a)),
+        Command::Export(a) => report(cli::train::export(a)),
         Command::Experiment(a) => report(cli::experiment::experiment(a)),
         Command::Bench { what } => report(cli::bench::run(what)),
         Command::Count(a) => report(cli::count::run(a)),

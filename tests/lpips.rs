@@ -44,8 +44,11 @@ fn uniform(seed: u64, n: usize) -> Vec<f64> {
         .collect()
 }
 
+/// The 13 convolutions' (weight, bias) and the 5 linear layers' weights.
+type Formula = (Vec<(Vec<f32>, Vec<f32>)>, Vec<Vec<f32>>);
+
 /// `python/reference_lpips.py`'s `formula_weights` (exact f32 values).
-fn formula_weights(base: u64) -> (Vec<(Vec<f32>, Vec<f32>)>, Vec<Vec<f32>>) {
+fn formula_weights(base: u64) -> Formula {
     let convs = CONVS
         .iter()
         .enumerate()

@@ -7,7 +7,6 @@ use clap::{Args, ValueEnum};
 use liquid_splat::dataset::{self, synth, Dataset, DatasetKind, LoadOptions};
 use liquid_splat::deform::{Activation, FieldConfig, FieldKind, Variant};
 use liquid_splat::error::{Error, Result};
-use liquid_splat::io::image;
 use liquid_splat::lpips;
 use liquid_splat::math::Real;
 use liquid_splat::train::{
@@ -450,28 +449,43 @@ pub struct RenderArgs {
     /// Frames of the time sweep (0: no sweep).
     #[arg(long, default_value_t = 30)]
     pub sweep_frames: usize,
-    /// Test view (index) the time sweep is rendered from.
+    /// Test view (index) the time sweep and --times are rendered from.
     #[arg(long, default_value_t = 0)]
     pub sweep_view: usize,
+    /// Also render these times (comma-separated, any finite value; the dataset's span
+    /// is 0..1) into OUT/times/.
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub times: Vec<f64>,
 }
 
-/// `render OUT`: test views to `OUT/test/`, a time sweep to `OUT/sweep/`.
+/// The newest checkpoint of a `train` run folder, loaded, with its dataset.
+fn load_run<T: Real>(out: &Path) -> Result<(RunSpec, Dataset, PathBuf, train::Trainer<T>)> {
+    let spec = read_spec(out)?;
+    let data = spec.load_dataset()?;
+    let config = spec.train_config(&data)?;
+    let ckpt_dir = out.join("checkpoints");
+    let ckpt = checkpoint::latest(&ckpt_dir)?.ok_or_else(|| {
+        Error::invalid(
+            "run folder",
+            format!("no checkpoint in {}", ckpt_dir.display()),
+        )
+    })?;
+    let trainer = checkpoint::load::<T>(&ckpt, &config)?;
+    Ok((spec, data, ckpt, trainer))
+}
+
+/// `render OUT`: test views to `OUT/test/`, a time sweep to `OUT/sweep/`,
+/// `--times` to `OUT/times/`.
 pub fn render(a: RenderArgs) -> Result<ExitCode> {
     let spec = read_spec(&a.out)?;
     match spec.precision {
-        PrecisionArg::F32 => render_as::<f32>(&spec, &a),
-        PrecisionArg::F64 => render_as::<f64>(&spec, &a),
+        PrecisionArg::F32 => render_as::<f32>(&a),
+        PrecisionArg::F64 => render_as::<f64>(&a),
     }
 }
 
-fn render_as<T: Real>(spec: &RunSpec, a: &RenderArgs) -> Result<ExitCode> {
-    let data = spec.load_dataset()?;
-    let config = spec.train_config(&data)?;
-    let ckpt_dir = a.out.join("checkpoints");
-    let ckpt = checkpoint::latest(&ckpt_dir)?.ok_or_else(|| {
-        Error::invalid("render", format!("no checkpoint in {}", ckpt_dir.display()))
-    })?;
-    let trainer = checkpoint::load::<T>(&ckpt, &config)?;
+fn render_as<T: Real>(a: &RenderArgs) -> Result<ExitCode> {
+    let (_, data, ckpt, trainer) = load_run::<T>(&a.out)?;
     let test: Vec<View<T>> = train::run::views(train::run::eval_frames(&data));
     let per_view = train::run::render_views(&trainer, &test, &a.out.join("test"), None)?;
     eprintln!(
@@ -480,35 +494,27 @@ fn render_as<T: Real>(spec: &RunSpec, a: &RenderArgs) -> Result<ExitCode> {
         ckpt.display(),
         a.out.join("test").display()
     );
+    if a.sweep_frames == 0 && a.times.is_empty() {
+        return Ok(ExitCode::SUCCESS);
+    }
+    let v = test.get(a.sweep_view).ok_or_else(|| {
+        Error::invalid(
+            "--sweep-view",
+            format!("{} (there are {} test views)", a.sweep_view, test.len()),
+        )
+    })?;
     if a.sweep_frames > 0 {
-        let v = test.get(a.sweep_view).ok_or_else(|| {
-            Error::invalid(
-                "--sweep-view",
-                format!("{} (there are {} test views)", a.sweep_view, test.len()),
-            )
-        })?;
         let dir = a.out.join("sweep");
-        mkdir(&dir)?;
-        for k in 0..a.sweep_frames {
-            let t = if a.sweep_frames == 1 {
-                0.0
-            } else {
-                k as f64 / (a.sweep_frames - 1) as f64
-            };
-            let out = trainer.render(&v.camera, t)?;
-            image::write_png(
-                &dir.join(format!("{k:04}.png")),
-                &out.color,
-                v.height,
-                v.width,
-            )?;
-            image::write_exr(
-                &dir.join(format!("{k:04}.exr")),
-                &out.color,
-                v.height,
-                v.width,
-            )?;
-        }
+        let times: Vec<f64> = (0..a.sweep_frames)
+            .map(|k| {
+                if a.sweep_frames == 1 {
+                    0.0
+                } else {
+                    k as f64 / (a.sweep_frames - 1) as f64
+                }
+            })
+            .collect();
+        train::run::render_times(&trainer, v, &times, &dir, |k, _| format!("{k:04}"))?;
         eprintln!(
             "time sweep of test view {} ({}): {} frames, t = 0..1, in {}",
             a.sweep_view,
@@ -516,6 +522,65 @@ fn render_as<T: Real>(spec: &RunSpec, a: &RenderArgs) -> Result<ExitCode> {
             a.sweep_frames,
             dir.display()
         );
+    }
+    if !a.times.is_empty() {
+        let dir = a.out.join("times");
+        let stem = file_stem(&v.name);
+        let files = train::run::render_times(&trainer, v, &a.times, &dir, |_, t| {
+            format!("{stem}_t{t:.6}")
+        })?;
+        for f in files {
+            println!("{}", f.display());
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+#[derive(Args)]
+pub struct ExportArgs {
+    /// Output folder of a `train` run.
+    pub out: PathBuf,
+    /// Times to export (comma-separated, any finite value; the dataset's span is 0..1).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        required = true,
+        allow_hyphen_values = true
+    )]
+    pub times: Vec<f64>,
+    /// Folder for the PLY files (default OUT/export).
+    #[arg(long)]
+    pub dir: Option<PathBuf>,
+}
+
+/// `export OUT --times ...`: the deformed Gaussians at each time as an Inria PLY.
+pub fn export(a: ExportArgs) -> Result<ExitCode> {
+    match read_spec(&a.out)?.precision {
+        PrecisionArg::F32 => export_as::<f32>(&a),
+        PrecisionArg::F64 => export_as::<f64>(&a),
+    }
+}
+
+fn export_as<T: Real>(a: &ExportArgs) -> Result<ExitCode> {
+    let (_, _, ckpt, trainer) = load_run::<T>(&a.out)?;
+    let dir = a.dir.clone().unwrap_or_else(|| a.out.join("export"));
+    let reports = train::export::export_times(&trainer, &a.times, &dir)?;
+    eprintln!(
+        "deformed Gaussians of {} ({} each):",
+        ckpt.display(),
+        trainer.gaussians.len()
+    );
+    for r in &reports {
+        println!("{}", r.path.display());
+        if r.nonpositive_scales + r.flat > 0 {
+            eprintln!(
+                "  t = {}: {} Gaussians with a deformed scale <= 0 (written from their covariance), {} flat (scale {:e})",
+                r.time,
+                r.nonpositive_scales,
+                r.flat,
+                train::export::MIN_SCALE
+            );
+        }
     }
     Ok(ExitCode::SUCCESS)
 }

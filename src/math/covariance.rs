@@ -90,6 +90,108 @@ pub fn cov3d<T: Real>(scale: [T; 3], modifier: T, q: [T; 4]) -> [T; 6] {
     [e(0, 0), e(0, 1), e(0, 2), e(1, 1), e(1, 2), e(2, 2)]
 }
 
+/// Eigen-decomposition of a symmetric 3×3 matrix by cyclic Jacobi rotations
+/// (f64, a fixed sequence of operations: deterministic): eigenvalues `λ` and
+/// the matrix `V` whose columns are the eigenvectors, `A = V diag(λ) Vᵀ`,
+/// with `det V = +1`.
+pub fn sym3_eigen(a: [[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
+    let mut a = a;
+    let mut v = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+    let mul = |x: &[[f64; 3]; 3], y: &[[f64; 3]; 3]| {
+        let mut z = [[0.0; 3]; 3];
+        for i in 0..3 {
+            for j in 0..3 {
+                z[i][j] = x[i][0] * y[0][j] + x[i][1] * y[1][j] + x[i][2] * y[2][j];
+            }
+        }
+        z
+    };
+    for _sweep in 0..64 {
+        let off = a[0][1] * a[0][1] + a[0][2] * a[0][2] + a[1][2] * a[1][2];
+        let diag = a[0][0] * a[0][0] + a[1][1] * a[1][1] + a[2][2] * a[2][2];
+        if off == 0.0 || off <= 1e-36 * diag {
+            break;
+        }
+        for (p, q) in [(0, 1), (0, 2), (1, 2)] {
+            if a[p][q] == 0.0 {
+                continue;
+            }
+            // Numerical Recipes' rotation: zeroes a[p][q].
+            let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+            let t = if theta.abs() > 1e150 {
+                0.5 / theta
+            } else {
+                theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt())
+            };
+            let c = 1.0 / (t * t + 1.0).sqrt();
+            let s = t * c;
+            let mut j = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
+            j[p][p] = c;
+            j[q][q] = c;
+            j[p][q] = s;
+            j[q][p] = -s;
+            let mut jt = j;
+            jt[p][q] = -s;
+            jt[q][p] = s;
+            a = mul(&mul(&jt, &a), &j);
+            a[p][q] = 0.0;
+            a[q][p] = 0.0;
+            v = mul(&v, &j);
+        }
+    }
+    let det = v[0][0] * (v[1][1] * v[2][2] - v[1][2] * v[2][1])
+        - v[0][1] * (v[1][0] * v[2][2] - v[1][2] * v[2][0])
+        + v[0][2] * (v[1][0] * v[2][1] - v[1][1] * v[2][0]);
+    if det < 0.0 {
+        for row in v.iter_mut() {
+            row[2] = -row[2];
+        }
+    }
+    ([a[0][0], a[1][1], a[2][2]], v)
+}
+
+/// The unit quaternion `(r, x, y, z)`, `r ≥ 0`, whose [`quat_to_rotmat`] is
+/// the rotation matrix `m` (`det m = +1`), by Shepperd's method.
+pub fn rotmat_to_quat(m: [[f64; 3]; 3]) -> [f64; 4] {
+    let tr = m[0][0] + m[1][1] + m[2][2];
+    let q = if tr > 0.0 {
+        let s = 2.0 * (tr + 1.0).sqrt();
+        [
+            s / 4.0,
+            (m[2][1] - m[1][2]) / s,
+            (m[0][2] - m[2][0]) / s,
+            (m[1][0] - m[0][1]) / s,
+        ]
+    } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
+        let s = 2.0 * (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt();
+        [
+            (m[2][1] - m[1][2]) / s,
+            s / 4.0,
+            (m[0][1] + m[1][0]) / s,
+            (m[0][2] + m[2][0]) / s,
+        ]
+    } else if m[1][1] > m[2][2] {
+        let s = 2.0 * (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt();
+        [
+            (m[0][2] - m[2][0]) / s,
+            (m[0][1] + m[1][0]) / s,
+            s / 4.0,
+            (m[1][2] + m[2][1]) / s,
+        ]
+    } else {
+        let s = 2.0 * (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt();
+        [
+            (m[1][0] - m[0][1]) / s,
+            (m[0][2] + m[2][0]) / s,
+            (m[1][2] + m[2][1]) / s,
+            s / 4.0,
+        ]
+    };
+    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
+    let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
+    q.map(|v| sign * v / n)
+}
+
 /// The full symmetric 3×3 from the 6 stored values.
 #[inline]
 pub fn sym3<T: Real>(c: &[T; 6]) -> [[T; 3]; 3] {
@@ -143,6 +245,38 @@ pub fn cov3d_vjp_scaled<T: Real>(
         }
     }
     (gs, quat_to_rotmat_vjp(q, gr))
+}
+
+#[cfg(test)]
+mod decompose_tests {
+    use super::*;
+    use crate::math::Rng;
+
+    /// `Σ` of random non-unit quaternions and scales of both signs is
+    /// recovered from its eigen-decomposition as a unit quaternion and
+    /// positive scales.
+    #[test]
+    fn covariance_is_recovered_from_a_unit_quaternion_and_positive_scales() {
+        let mut r = Rng::new(9);
+        for k in 0..2000 {
+            let q = [(); 4].map(|_| r.uniform_range(-1.5, 1.5));
+            let mut s = [(); 3].map(|_| r.uniform_range(-0.5, 0.5));
+            if k % 7 == 0 {
+                s[1] = s[0]; // repeated eigenvalues
+            }
+            let c = cov3d(s, 1.0, q);
+            let (lam, v) = sym3_eigen(sym3(&c));
+            let u = rotmat_to_quat(v);
+            let norm: f64 = u.iter().map(|x| x * x).sum::<f64>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-14 && u[0] >= 0.0);
+            let s2 = lam.map(|l| l.max(0.0).sqrt());
+            let c2 = cov3d(s2, 1.0, u);
+            let scale = c.iter().fold(0.0f64, |m, x| m.max(x.abs()));
+            for (a, b) in c.iter().zip(&c2) {
+                assert!((a - b).abs() <= 1e-12 * scale, "{k}: {c:?} vs {c2:?}");
+            }
+        }
+    }
 }
 
 #[cfg(test)]

@@ -5,12 +5,14 @@
 //! - [`deformed`]: canonical Gaussians + offsets → rasterizer inputs, and back.
 //! - [`trainer`]: [`Trainer::step`], one iteration.
 //! - [`checkpoint`]: atomic, verified checkpoints; resume.
+//! - [`export`]: the deformed Gaussians at a time as a static Inria PLY.
 //! - [`run`](mod@run): a whole run with evaluation and outputs.
 
 pub mod cameras;
 pub mod checkpoint;
 pub mod config;
 pub mod deformed;
+pub mod export;
 pub mod run;
 pub mod trainer;
 

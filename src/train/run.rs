@@ -310,6 +310,37 @@ pub fn render_views<T: Real>(
     Ok(per_view)
 }
 
+/// Render `view`'s camera at each of `times` (any finite time, not only the
+/// dataset's) into `dir` as `NAME.png` (8-bit, `save_image` rounding) and
+/// `NAME.exr` (float), with `NAME = name(k, t)`. Returns the PNG paths.
+pub fn render_times<T: Real>(
+    trainer: &Trainer<T>,
+    view: &View<T>,
+    times: &[f64],
+    dir: &Path,
+    name: impl Fn(usize, f64) -> String,
+) -> Result<Vec<PathBuf>> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    let mut out = Vec::with_capacity(times.len());
+    for (k, &t) in times.iter().enumerate() {
+        if !t.is_finite() {
+            return Err(Error::invalid("render time", format!("{t} is not finite")));
+        }
+        let img = trainer.render(&view.camera, t)?;
+        let n = name(k, t);
+        let png = dir.join(format!("{n}.png"));
+        image::write_png(&png, &img.color, view.height, view.width)?;
+        image::write_exr(
+            &dir.join(format!("{n}.exr")),
+            &img.color,
+            view.height,
+            view.width,
+        )?;
+        out.push(png);
+    }
+    Ok(out)
+}
+
 /// A frame name usable as a file name (`./test/r_000` → `r_000`).
 pub fn file_stem(name: &str) -> String {
     let base = name.rsplit(['/', '\\']).next().unwrap_or(name);

@@ -432,6 +432,18 @@ impl<T: Real> Trainer<T> {
         Ok(rasterize(&self.raster_input(&fwd, camera))?.0)
     }
 
+    /// The deformed, activated Gaussians the renderer receives at `time`
+    /// (means, scales, rotations, opacities; the SH are `self.gaussians.sh`).
+    pub fn deformed(&self, time: f64) -> Result<super::deformed::Deformed<T>> {
+        let f = self.forward(time, self.field_active(self.iteration.max(1)))?;
+        Ok(super::deformed::Deformed {
+            means: f.means,
+            scales: f.scales,
+            rotations: f.rotations,
+            opacities: f.opacities,
+        })
+    }
+
     /// The field's offsets at `time` for every Gaussian (zeros during warm-up).
     pub fn offsets(&self, time: f64) -> Result<Offsets<T>> {
         let n = self.gaussians.len();
