@@ -2,9 +2,11 @@
 """Independent PyTorch reference of the Inria 3DGS rasterizer forward (R1p: with depth).
 
 Written from the project's specification (UPSTREAM.md sections 1-3, DECISIONS.md section 1),
-not from the Rust code. Gradients come from PyTorch autograd of this forward, so they are the
-`exact` gradient mode: the true derivative of the forward as computed (zero through the 0.99
-alpha clamp where it clamps, the exact tz term under the tx/tz clamp, stored transmittance).
+not from the Rust code. With `gradient=exact` (the default) gradients come from PyTorch
+autograd of this forward: the true derivative of the forward as computed (zero through the
+0.99 alpha clamp where it clamps, the exact tz term under the tx/tz clamp, stored
+transmittance). With `gradient=inria` they come from `reference_raster_inria.py`, a port of
+the Inria backward's formulas as written (UPSTREAM.md section 4).
 
 Usage:
     python reference_raster.py CASE.safetensors OUT.safetensors
@@ -13,18 +15,20 @@ Case (stage `rasterize`): tensors means3D [N,3], shs [N,M,3] or colors_precomp [
 opacities [N,1], scales [N,3] + rotations [N,4] or cov3D_precomp [N,6], viewmatrix [4,4],
 projmatrix [4,4] (Inria memory layout: W2C^T and (P W2C)^T), campos [3], bg [3],
 grad_out_color [3,H,W], optional grad_out_depth [1,H,W]; metadata image_height,
-image_width, tanfovx, tanfovy, scale_modifier, sh_degree.
+image_width, tanfovx, tanfovy, scale_modifier, sh_degree, optional gradient (exact|inria).
 
 Output: color [3,H,W], depth [1,H,W], radii (int32 [N]), final_T [H,W], n_contrib
 (int32 [H,W]), means2D [N,2], grad_means3D [N,3], grad_means2D [N,3] (NDC units: pixel
 gradient times W/2, H/2; third column 0), grad_shs or grad_colors_precomp, grad_opacities
 [N,1], grad_scales [N,3] and grad_rotations [N,4], or grad_cov3D_precomp [N,6].
-The differentiated loss is sum(color * grad_out_color) + sum(depth * grad_out_depth).
+The differentiated loss is sum(color * grad_out_color) + sum(depth * grad_out_depth)
+(`inria`: the depth has no backward upstream, grad_out_depth is ignored).
 
 Conventions of this reference (for culled Gaussians, radius 0): means2D is 0 and every
 gradient is 0. All arithmetic is in the case dtype (f32 or f64) in the order the
 specification gives, except ndc2Pix, which upstream evaluates in f64 and rounds to f32.
-The scale gradient includes the scale_modifier factor (exact derivative).
+The scale gradient includes the scale_modifier factor (exact derivative; `inria`:
+d/d(scale_modifier * scales), as upstream returns it).
 
 Speed is not a goal: small images (e.g. 32x32) and tens of Gaussians.
 """
@@ -103,8 +107,9 @@ def cov3d_from(scales, rotations, mod):
     return torch.stack([sig(0, 0), sig(0, 1), sig(0, 2), sig(1, 1), sig(1, 2), sig(2, 2)], dim=1)
 
 
-def sh_to_rgb(deg, sh, means, campos):
-    """computeColorFromSH: view-dependent colour, lower clamp at 0 (no upper clamp)."""
+def sh_to_rgb(deg, sh, means, campos, clamp=True):
+    """computeColorFromSH: view-dependent colour, lower clamp at 0 (no upper clamp);
+    `clamp=False` returns the value before the clamp."""
     d = means - campos
     length = torch.sqrt((d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) + d[:, 2] * d[:, 2])
     x = (d[:, 0] / length)[:, None]
@@ -129,6 +134,8 @@ def sh_to_rgb(deg, sh, means, campos):
                           + SH_C3[5] * z * (xx - yy) * sh[:, 14]
                           + SH_C3[6] * x * (xx - 3.0 * yy) * sh[:, 15])
     result = result + 0.5
+    if not clamp:
+        return result
     # torch.clamp passes the gradient at result == 0, like upstream (mask is result < 0).
     return torch.clamp(result, min=0.0)
 
@@ -197,34 +204,38 @@ def preprocess(st, view, proj, means, cov6):
                 rect=(rmin_x, rmin_y, rmax_x, rmax_y))
 
 
-def render(meta, t):
-    dtype = case_dtype(t, "means3D")
-    st = Settings(meta, dtype)
+class Camera:
+    """The camera and background of a case, in the case dtype."""
+
+    def __init__(self, t, dtype):
+        self.view = t["viewmatrix"].to(dtype)
+        self.proj = t["projmatrix"].to(dtype)
+        self.campos = t["campos"].to(dtype)
+        self.bg = t["bg"].to(dtype)
+
+
+def forward(st, cam, means, opac, shs=None, colors_precomp=None, scales=None, rotations=None,
+            cov3D_precomp=None):
+    """The rasterizer forward on (possibly autograd-connected) inputs.
+
+    means [N,3], opac [N,1] (activated), shs [N,M,3] or colors_precomp [N,3], scales [N,3]
+    + rotations [N,4] or cov3D_precomp [N,6]. Returns a dict: color [3,H,W], depth [1,H,W],
+    radii (int32 [N]), final_T [H,W], n_contrib (int32 [H,W]), means2D [N,2] (detached);
+    and what a backward needs: vis (indices of the Gaussians that survive culling), mx, my
+    (their pixel centres, with retain_grad), conic [V,3], opac_v [V], colour [V,3] (after the
+    clamp), cov6 [V,6], tiles ({tile index: visible positions in blending order})."""
+    N = means.shape[0]
     H, W = st.H, st.W
     c = st.c
-    N = t["means3D"].shape[0]
-    view, proj = t["viewmatrix"].to(dtype), t["projmatrix"].to(dtype)
-    campos, bg = t["campos"].to(dtype), t["bg"].to(dtype)
-
-    leaves = {}
-    def leaf(name):
-        v = t[name].to(dtype).clone().requires_grad_(True)
-        leaves[name] = v
-        return v
-    means = leaf("means3D")
-    opac = leaf("opacities")
-    use_sh = "shs" in t
-    colours_in = leaf("shs") if use_sh else leaf("colors_precomp")
-    use_cov = "cov3D_precomp" in t
-    if use_cov:
-        cov_in = leaf("cov3D_precomp")
-    else:
-        scales, rots = leaf("scales"), leaf("rotations")
+    dtype = st.dtype
+    view, proj, campos = cam.view, cam.proj, cam.campos
+    use_sh = shs is not None
+    use_cov = cov3D_precomp is not None
 
     def cov6_of(idx):
         if use_cov:
-            return cov_in[idx]
-        return cov3d_from(scales[idx], rots[idx], st.scale_modifier)
+            return cov3D_precomp[idx]
+        return cov3d_from(scales[idx], rotations[idx], st.scale_modifier)
 
     # Pass 1 (no gradient, all Gaussians): which survive culling.
     all_idx = torch.arange(N)
@@ -233,18 +244,20 @@ def render(meta, t):
     vis = torch.nonzero(pre_all["ok"]).flatten()
 
     # Pass 2 (differentiable, visible Gaussians only: no inf/NaN enters autograd).
-    pre = preprocess(st, view, proj, means[vis], cov6_of(vis))
+    cov6 = cov6_of(vis)
+    pre = preprocess(st, view, proj, means[vis], cov6)
     assert bool(pre["ok"].all())
     mx, my = pre["mx"], pre["my"]
-    mx.retain_grad()
-    my.retain_grad()
+    if mx.requires_grad:
+        mx.retain_grad()
+        my.retain_grad()
     conic = pre["conic"]
     depth_g = pre["depth"]
     opac_v = opac[vis, 0]
     if use_sh:
-        colour = sh_to_rgb(st.sh_degree, colours_in[vis], means[vis], campos)
+        colour = sh_to_rgb(st.sh_degree, shs[vis], means[vis], campos)
     else:
-        colour = colours_in[vis]
+        colour = colors_precomp[vis]
 
     radii = torch.zeros(N, dtype=torch.int32)
     radii[vis] = pre["radius"].to(torch.int32)
@@ -270,11 +283,7 @@ def render(meta, t):
     color_parts = {}
     for ty_ in range(gy):
         for tx_ in range(gx):
-            x0, y0 = tx_ * BLOCK, ty_ * BLOCK
-            xs = torch.arange(x0, min(x0 + BLOCK, W))
-            ys = torch.arange(y0, min(y0 + BLOCK, H))
-            pyg, pxg = torch.meshgrid(ys, xs, indexing="ij")
-            pxf, pyf = pxg.flatten().to(dtype), pyg.flatten().to(dtype)
+            pxf, pyf = tile_pixels(st, ty_, tx_)
             P = pxf.shape[0]
             T = torch.ones(P, dtype=dtype)
             C = [torch.zeros(P, dtype=dtype) for _ in range(3)]
@@ -305,7 +314,7 @@ def render(meta, t):
                 T = torch.where(blend, test_T, T)
                 last = torch.where(blend, contributor, last)
             key = (ty_, tx_)
-            color_parts[key] = [C[ch] + T * bg[ch] for ch in range(3)]
+            color_parts[key] = [C[ch] + T * cam.bg[ch] for ch in range(3)]
             depth_parts[key], final_parts[key], contrib_parts[key] = D, T, last
 
     def assemble(get, dt):
@@ -319,35 +328,94 @@ def render(meta, t):
             rows.append(torch.cat(row, dim=1))
         return torch.cat(rows, dim=0)
 
-    color = torch.stack([assemble(lambda k: color_parts[k][ch], dtype) for ch in range(3)])
-    depth = assemble(lambda k: depth_parts[k], dtype)[None]
-    final_T = assemble(lambda k: final_parts[k], dtype)
-    n_contrib = assemble(lambda k: contrib_parts[k], torch.int32)
-
-    loss = (color * t["grad_out_color"].to(dtype)).sum()
-    if "grad_out_depth" in t:
-        loss = loss + (depth * t["grad_out_depth"].to(dtype)).sum()
-    loss.backward()
-
     means2D = torch.zeros(N, 2, dtype=dtype)
     means2D[vis, 0] = mx.detach()
     means2D[vis, 1] = my.detach()
-    g2 = torch.zeros(N, 3, dtype=dtype)
-    if mx.grad is not None:
-        g2[vis, 0] = mx.grad * (0.5 * W)
-    if my.grad is not None:
-        g2[vis, 1] = my.grad * (0.5 * H)
+    return {
+        "color": torch.stack([assemble(lambda k: color_parts[k][ch], dtype) for ch in range(3)]),
+        "depth": assemble(lambda k: depth_parts[k], dtype)[None],
+        "final_T": assemble(lambda k: final_parts[k], dtype),
+        "n_contrib": assemble(lambda k: contrib_parts[k], torch.int32),
+        "radii": radii, "means2D": means2D,
+        "vis": vis, "mx": mx, "my": my, "conic": conic, "opac_v": opac_v, "colour": colour,
+        "cov6": cov6, "tiles": tiles,
+    }
+
+
+def tile_pixels(st, ty_, tx_):
+    """Pixel x and y coordinates (case dtype) of one tile, row-major within the tile."""
+    x0, y0 = tx_ * BLOCK, ty_ * BLOCK
+    xs = torch.arange(x0, min(x0 + BLOCK, st.W))
+    ys = torch.arange(y0, min(y0 + BLOCK, st.H))
+    pyg, pxg = torch.meshgrid(ys, xs, indexing="ij")
+    return pxg.flatten().to(st.dtype), pyg.flatten().to(st.dtype)
+
+
+def grad_means2d(fwd, N, st):
+    """The NDC-space gradient of the pixel centres [N,3] after a backward (third column 0)."""
+    g2 = torch.zeros(N, 3, dtype=st.dtype)
+    vis = fwd["vis"]
+    if fwd["mx"].grad is not None:
+        g2[vis, 0] = fwd["mx"].grad * (0.5 * st.W)
+    if fwd["my"].grad is not None:
+        g2[vis, 1] = fwd["my"].grad * (0.5 * st.H)
+    return g2
+
+
+def render(meta, t):
+    dtype = case_dtype(t, "means3D")
+    st = Settings(meta, dtype)
+    cam = Camera(t, dtype)
+    gradient = meta.get("gradient", "exact")
+    if gradient not in ("exact", "inria"):
+        raise SystemExit(f"gradient {gradient!r}: expected exact or inria")
+    inria = gradient == "inria"
+
+    leaves = {}
+    def leaf(name):
+        v = t[name].to(dtype).clone().requires_grad_(not inria)
+        leaves[name] = v
+        return v
+    inputs = {"means": leaf("means3D"), "opac": leaf("opacities")}
+    use_sh = "shs" in t
+    if use_sh:
+        inputs["shs"] = leaf("shs")
+    else:
+        inputs["colors_precomp"] = leaf("colors_precomp")
+    use_cov = "cov3D_precomp" in t
+    if use_cov:
+        inputs["cov3D_precomp"] = leaf("cov3D_precomp")
+    else:
+        inputs["scales"], inputs["rotations"] = leaf("scales"), leaf("rotations")
+    N = inputs["means"].shape[0]
+
+    fwd = forward(st, cam, **inputs)
+    out = {k: fwd[k].detach() for k in ("color", "depth", "radii", "final_T", "n_contrib",
+                                         "means2D")}
+    grad_color = t["grad_out_color"].to(dtype)
+    if inria:
+        # Upstream's backward formulas, written out (reference_raster_inria.py); the depth
+        # output has no backward there, so grad_out_depth is ignored.
+        import reference_raster_inria
+        grads = reference_raster_inria.backward(st, cam, inputs, fwd, grad_color)
+        out["grad_means2D"] = grads.pop("means2D")
+        names = {"means": "means3D", "opac": "opacities"}
+        for k, v in grads.items():
+            out["grad_" + names.get(k, k)] = v
+        return out
+
+    loss = (fwd["color"] * grad_color).sum()
+    if "grad_out_depth" in t:
+        loss = loss + (fwd["depth"] * t["grad_out_depth"].to(dtype)).sum()
+    loss.backward()
 
     def grad(name):
         g = leaves[name].grad
         return torch.zeros_like(leaves[name]) if g is None else g
 
-    out = {
-        "color": color.detach(), "depth": depth.detach(), "radii": radii,
-        "final_T": final_T.detach(), "n_contrib": n_contrib, "means2D": means2D,
-        "grad_means3D": grad("means3D"), "grad_means2D": g2,
-        "grad_opacities": grad("opacities"),
-    }
+    out["grad_means3D"] = grad("means3D")
+    out["grad_means2D"] = grad_means2d(fwd, N, st)
+    out["grad_opacities"] = grad("opacities")
     out["grad_shs" if use_sh else "grad_colors_precomp"] = grad("shs" if use_sh else "colors_precomp")
     if use_cov:
         out["grad_cov3D_precomp"] = grad("cov3D_precomp")

@@ -10,6 +10,12 @@ Run:  python test_references.py      (or: python -m pytest test_references.py)
   state_dict names, autograd against central differences.
 - loss: the upstream f32 window bits, SSIM against a plain-loop implementation, gradient
   against central differences.
+- inria mode: the port of the Inria backward equals autograd where its formulas are the exact
+  derivative (no alpha clamp, no tangent clamp, no depth cotangent, large footprints), and
+  ignores the depth cotangent.
+- step: the Adam update of every group (f_dc and f_rest with their own rates, the field's
+  flat state split in state_dict order) against the written-out torch 1.13 formula; a step
+  with the field off leaves the field and its state alone.
 """
 
 import math
@@ -22,6 +28,7 @@ import gen_cases
 import reference_deform as rd
 import reference_loss as rl
 import reference_raster as rr
+import reference_step as rs
 
 F64 = torch.float64
 
@@ -310,6 +317,100 @@ def test_ssim_matches_plain_loops_and_gradient_matches_differences():
         num = (float(rl.run(meta, tp)["loss"]) - float(rl.run(meta, tm)["loss"])) / (2 * h)
         ana = float(out["grad_image"][idx])
         assert abs(num - ana) <= 1e-6 * max(abs(num), abs(ana), 1e-3), (idx, num, ana)
+
+
+# ---------------------------------------------------------------- inria mode
+
+def inria_agreeing_case(seed):
+    """A rasterize case without the places where the Inria backward departs from the exact
+    derivative: opacities below 0.9 (no alpha clamp), no Gaussian beyond the tangent clamp,
+    no depth cotangent, footprints of several pixels (det^2 + 1e-7 ~ det^2)."""
+    t, meta = gen_cases.raster_case(seed, F64, n=14, H=32, W=32)
+    keep = slice(2, None)  # drop the one beyond the tangent clamp and the one behind the camera
+    for k in ["means3D", "shs", "opacities", "scales", "rotations"]:
+        t[k] = t[k][keep].clone()
+    t["opacities"] = torch.clamp(t["opacities"], max=0.9)
+    # Standard deviations of 0.4 to 0.6 world units: 2.6 to 8 pixels at depth 2.5 to 5.5,
+    # so det >= ~50 and the 1e-7 changes det^2 by under 1e-10.
+    t["scales"] = 0.4 + 0.2 * torch.rand(t["scales"].shape, generator=torch.Generator()
+                                         .manual_seed(seed), dtype=F64)
+    del t["grad_out_depth"]
+    return t, {k: str(v) for k, v in meta.items()}
+
+
+def test_inria_port_equals_autograd_where_the_formulas_agree():
+    t, meta = inria_agreeing_case(7)
+    exact = rr.render(meta, t)
+    inria = rr.render(dict(meta, gradient="inria"), t)
+    assert int((exact["radii"] > 0).sum()) >= 8
+    for k in ["grad_means3D", "grad_means2D", "grad_shs", "grad_opacities", "grad_scales",
+              "grad_rotations"]:
+        scale = float(exact[k].abs().max())
+        err = float((exact[k] - inria[k]).abs().max())
+        assert scale > 0 and err <= 1e-9 * scale, (k, err, scale)
+
+
+def test_inria_port_ignores_the_depth_cotangent():
+    t, meta = gen_cases.raster_case(8, F64, n=12, H=32, W=32)
+    meta = dict({k: str(v) for k, v in meta.items()}, gradient="inria")
+    with_depth = rr.render(meta, t)
+    t2 = dict(t)
+    del t2["grad_out_depth"]
+    without = rr.render(meta, t2)
+    exact = rr.render(dict(meta, gradient="exact"), t)
+    for k in ["grad_means3D", "grad_opacities", "grad_scales", "grad_rotations"]:
+        assert torch.equal(with_depth[k], without[k]), k
+    assert (exact["grad_means3D"] - with_depth["grad_means3D"]).abs().max() > 1e-3
+
+
+# ---------------------------------------------------------------- step
+
+def adam_formula(p, g, m, v, step, lr):
+    """torch 1.13 single-tensor Adam, betas 0.9/0.999, eps 1e-15, written out."""
+    t = step + 1
+    m = 0.9 * m + 0.1 * g
+    v = 0.999 * v + 0.001 * g * g
+    bc1, bc2 = 1 - 0.9 ** t, 1 - 0.999 ** t
+    return p - lr / bc1 * m / (v.sqrt() / math.sqrt(bc2) + 1e-15), m, v
+
+
+def test_step_adam_matches_the_formula_for_every_group():
+    t, meta = gen_cases.step_case(3, F64, "mlp", "real", is_6dof=True, warm=True)
+    out, out_meta = rs.run(meta, t)
+    lr = rs.LR_DEFAULTS
+    N, K = t["sh"].shape[:2]
+    rate = {"xyz": lr["xyz"], "opacity": lr["opacity"], "scaling": lr["scaling"],
+            "rotation": lr["rotation"]}
+    for group, r in rate.items():
+        want, m, v = adam_formula(t[group], out[f"grad.{group}"], t[f"adam.{group}.m"],
+                                  t[f"adam.{group}.v"], 7, r)
+        assert (out[f"new.{group}"] - want).abs().max() <= 1e-15 * want.abs().max(), group
+        assert (out[f"new.adam.{group}.m"] - m).abs().max() <= 1e-18, group
+        assert out_meta[f"new.adam.{group}.step"] == 8
+    sh_rate = torch.full((N, K, 3), lr["f_rest"], dtype=F64)
+    sh_rate[:, 0] = lr["f_dc"]
+    want, _, _ = adam_formula(t["sh"], out["grad.sh"], t["adam.sh.m"], t["adam.sh.v"], 7, sh_rate)
+    assert (out["new.sh"] - want).abs().max() <= 1e-15 * want.abs().max()
+    # The field's flat state, split in state_dict order.
+    net = rd.build(meta)
+    off = 0
+    for name, q in net.named_parameters():
+        n = q.numel()
+        m, v = t["adam.field.m"][off:off + n], t["adam.field.v"][off:off + n]
+        want, _, _ = adam_formula(t[name].flatten(), out[f"grad.{name}"].flatten(), m, v, 7,
+                                  lr["field"])
+        assert (out[f"new.{name}"].flatten() - want).abs().max() <= 1e-15 * want.abs().max()
+        off += n
+    assert off == t["adam.field.m"].numel()
+
+
+def test_step_with_the_field_off_leaves_the_field_alone():
+    t, meta = gen_cases.step_case(4, F64, "cfc", "real", warm=True, field_on=False)
+    out, out_meta = rs.run(meta, t)
+    assert not any(k.startswith("grad.cells") for k in out)
+    assert torch.equal(out["new.head.weight"], t["head.weight"])
+    assert torch.equal(out["new.adam.field.m"], t["adam.field.m"])
+    assert out_meta["new.adam.field.step"] == 7 and out_meta["new.adam.xyz.step"] == 8
 
 
 if __name__ == "__main__":

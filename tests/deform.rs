@@ -136,7 +136,8 @@ fn gradcheck_with(
         d_scaling: cotangent(seed + 3, 3 * n),
     };
     let (d0, cache) = field.forward(&xyz, &t).unwrap();
-    let (gp, gt) = field.backward(&cache, &v).unwrap();
+    let fg = field.backward(&cache, &v).unwrap();
+    let (gp, gt) = (&fg.params, &fg.t);
     let tol = 1e-6;
     // Round-off of the numeric reference itself: central6 divides loss
     // differences by 60·s with coefficients 2·(45 + 9 + 1), so an error of
@@ -184,11 +185,11 @@ fn gradcheck_with(
         })
         .collect();
     let t_noise = noise * h / T_STEP;
-    let r = compare("t", &gt, &num, (t_noise / tol).max(1e-10));
+    let r = compare("t", gt, &num, (t_noise / tol).max(1e-10));
     assert!(r.passes(tol), "{cfg:?}\n{r}");
     // The canonical means: zero for additive fields, (R − I)ᵀ·g through the
     // 6-DoF warp (the network's own input stays stop-gradient).
-    let gx = field.xyz_vjp(&cache, &v).unwrap();
+    let gx = &fg.xyz;
     // Only the explicit dependence on x: the warp with the head outputs frozen.
     let wv = warp_heads(&field, &xyz, &t);
     let num: Vec<f64> = (0..3 * n)
@@ -201,7 +202,7 @@ fn gradcheck_with(
         })
         .collect();
     if cfg.is_6dof {
-        let r = compare("xyz (warp)", &gx, &num, 1e-10);
+        let r = compare("xyz (warp)", gx, &num, 1e-10);
         assert!(r.passes(tol), "{cfg:?}\n{r}");
     } else {
         assert!(gx.iter().all(|&g| g == 0.0));
@@ -376,9 +377,9 @@ fn mlp_6dof_theta_zero_is_finite_and_defined() {
         d_rotation: cotangent(2, 4 * n),
         d_scaling: cotangent(3, 3 * n),
     };
-    let (gp, gt) = field.backward(&cache, &g).unwrap();
-    assert!(gp.iter().chain(&gt).all(|v| v.is_finite()));
-    assert!(field.xyz_vjp(&cache, &g).unwrap().iter().all(|&v| v == 0.0));
+    let fg = field.backward(&cache, &g).unwrap();
+    assert!(fg.params.iter().chain(&fg.t).all(|v| v.is_finite()));
+    assert!(fg.xyz.iter().all(|&v| v == 0.0));
     // The defined gradient at θ = 0 is what central differences see there.
     // The warp is not smooth at w = 0 (its 1e-5 offsets add terms in ‖w‖²
     // that depend on the direction of w at order 1e-5), so the difference
@@ -599,6 +600,7 @@ fn fields_are_bit_identical_across_thread_counts() {
     for cfg in [
         config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu),
         config(FieldKind::Mlp, Variant::Synthetic, 4, 16, Activation::Relu),
+        six_dof(Variant::Synthetic, 4),
     ] {
         let field = Field::<f32>::new(cfg, 9).unwrap();
         let mut r = Rng::new(1);
@@ -810,7 +812,7 @@ fn oracle_stage_matches_direct_calls() {
         case.insert_real("grad_d_scaling", vec![n, 3], &g.d_scaling);
         let out = liquid_splat::oracle::deform::run(&case).unwrap();
         let (d, c) = field.forward(&xyz, &t).unwrap();
-        let (gp, gt) = field.backward(&c, &g).unwrap();
+        let fg = field.backward(&c, &g).unwrap();
         assert_eq!(out.get_real::<f64>("d_xyz", &[n, 3]).unwrap(), d.d_xyz);
         assert_eq!(
             out.get_real::<f64>("d_rotation", &[n, 4]).unwrap(),
@@ -820,12 +822,9 @@ fn oracle_stage_matches_direct_calls() {
             out.get_real::<f64>("d_scaling", &[n, 3]).unwrap(),
             d.d_scaling
         );
-        assert_eq!(out.get_real::<f64>("grad_t", &[n, 1]).unwrap(), gt);
+        assert_eq!(out.get_real::<f64>("grad_t", &[n, 1]).unwrap(), fg.t);
         if cfg.is_6dof {
-            assert_eq!(
-                out.get_real::<f64>("grad_xyz", &[n, 3]).unwrap(),
-                field.xyz_vjp(&c, &g).unwrap()
-            );
+            assert_eq!(out.get_real::<f64>("grad_xyz", &[n, 3]).unwrap(), fg.xyz);
             // The transform moves x to x + d_xyz (to rounding).
             let m = out.get_real::<f64>("d_xyz_se3", &[n, 4, 4]).unwrap();
             for i in 0..n {
@@ -847,7 +846,7 @@ fn oracle_stage_matches_direct_calls() {
             assert_eq!(
                 out.get_real::<f64>(&format!("grad.{}", s.name), &s.shape)
                     .unwrap(),
-                gp[s.range()].to_vec()
+                fg.params[s.range()].to_vec()
             );
         }
         // A wrong stage and a misshaped input are errors naming the problem.
@@ -866,12 +865,13 @@ fn oracle_stage_matches_direct_calls() {
     }
 }
 
-type Bits = (Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>);
+type Bits = (Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>, Vec<u32>);
 
-/// The bits of a field's outputs and of its parameter and time gradients.
+/// The bits of a field's outputs and of every gradient of its backward.
 fn forward_backward_bits(field: &Field<f32>, xyz: &[f32], t: &[f32], g: &Deformation<f32>) -> Bits {
     let (d, c) = field.forward(xyz, t).unwrap();
-    let (gp, gt) = field.backward(&c, g).unwrap();
+    let fg = field.backward(&c, g).unwrap();
+    let (gp, gt, gx) = (fg.params, fg.t, fg.xyz);
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     (
         bits(&d.d_xyz),
@@ -879,5 +879,6 @@ fn forward_backward_bits(field: &Field<f32>, xyz: &[f32], t: &[f32], g: &Deforma
         bits(&d.d_scaling),
         bits(&gp),
         bits(&gt),
+        bits(&gx),
     )
 }

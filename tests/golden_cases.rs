@@ -175,8 +175,21 @@ fn case_new_cli_writes_runnable_cases_and_rejects_bad_options() {
             "step",
             vec!["--count", "3", "--width", "12", "--field", "mlp"],
         ),
+        (
+            "step_6dof",
+            vec![
+                "--count",
+                "3",
+                "--field",
+                "mlp",
+                "--6dof",
+                "--variant",
+                "synthetic",
+            ],
+        ),
     ] {
         let case = p(&format!("{stage}.safetensors"));
+        let stage = stage.trim_end_matches("_6dof");
         let mut args = vec!["case", "new", stage, &case, "--dtype", "f32", "--seed", "5"];
         args.extend(extra.iter().copied());
         let o = run(&args);
@@ -195,6 +208,11 @@ fn case_new_cli_writes_runnable_cases_and_rejects_bad_options() {
     assert_eq!(f.shape("gt").unwrap(), &[3, 16, 12]);
     assert_eq!(f.shape("xyz").unwrap(), &[3, 3]);
     assert_eq!(f.meta("field").unwrap(), "mlp");
+    assert_eq!(f.meta("variant").unwrap(), "real");
+    let f = TensorFile::load(&tmp.join("step_6dof.safetensors")).unwrap();
+    assert_eq!(f.meta("is_6dof").unwrap(), "true");
+    assert_eq!(f.meta("variant").unwrap(), "synthetic");
+    assert!(f.contains("branch_w.weight") && f.contains("timenet.0.weight"));
     for bad in [
         vec!["case", "new", "loss", "x", "--field", "mlp"],
         vec!["case", "new", "rasterize", "x", "--dtype", "f16"],
@@ -202,6 +220,10 @@ fn case_new_cli_writes_runnable_cases_and_rejects_bad_options() {
         vec!["case", "new", "step-that-does-not-exist", "x"],
         vec!["case", "new", "deform", "x", "--field", "lstm"],
         vec!["case", "new", "step", "x", "--gradient", "inria"],
+        vec!["case", "new", "rasterize", "x", "--6dof"],
+        vec!["case", "new", "loss", "x", "--variant", "real"],
+        vec!["case", "new", "deform", "x", "--variant", "blender"],
+        vec!["case", "new", "step", "x", "--field", "cfc", "--6dof"],
     ] {
         let o = run(&bad);
         assert_eq!(o.status.code(), Some(2), "{bad:?}");

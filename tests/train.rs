@@ -26,16 +26,35 @@ fn scene() -> Dataset {
     .unwrap()
 }
 
-/// A small CfC field and a schedule compressed so that a short run passes
-/// through warm-up, SH degree increases, densification (clone, split, prune)
-/// and opacity resets.
-fn config(iterations: u64) -> TrainConfig {
+/// The small CfC field of the short runs.
+fn cfc_field() -> FieldConfig {
     let mut field = FieldConfig::new(FieldKind::Cfc);
     field.depth = 2;
     field.width = 8;
     field.backbone_units = 8;
     field.backbone_layers = 1;
     field.activation = Activation::Gelu;
+    field
+}
+
+/// A small 6-DoF (SE(3)) MLP field: its warp sends a gradient of its own to
+/// the canonical means (`Rᵀ·g`), which the recorded state includes.
+fn mlp_6dof_field() -> FieldConfig {
+    let mut field = FieldConfig::new(FieldKind::Mlp);
+    field.depth = 4;
+    field.width = 16;
+    field.is_6dof = true;
+    field
+}
+
+/// The small CfC field and a schedule compressed so that a short run passes
+/// through warm-up, SH degree increases, densification (clone, split, prune)
+/// and opacity resets.
+fn config(iterations: u64) -> TrainConfig {
+    config_with(iterations, cfc_field())
+}
+
+fn config_with(iterations: u64, field: FieldConfig) -> TrainConfig {
     let mut c = TrainConfig::new(iterations, 7, field);
     c.schedule.warm_up = 20;
     c.schedule.sh_degree_interval = 15;
@@ -51,6 +70,7 @@ fn train_in_pool<T: liquid_splat::math::Real>(
     threads: usize,
     data: &Dataset,
     iterations: u64,
+    field: FieldConfig,
 ) -> Trainer<T> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
@@ -60,7 +80,7 @@ fn train_in_pool<T: liquid_splat::math::Real>(
         let views = train::run::views::<T>(&data.train);
         let g = liquid_splat::dataset::init::initial_gaussians::<T>(&data.init).unwrap();
         let mut t = Trainer::new(
-            config(iterations),
+            config_with(iterations, field),
             g,
             views.len(),
             data.scene_extent,
@@ -88,8 +108,9 @@ fn train_in_pool<T: liquid_splat::math::Real>(
     })
 }
 
-/// The record a training hash is compared with (fixtures/training/record.json).
-#[derive(serde::Deserialize, serde::Serialize, Debug, PartialEq)]
+/// The record the training hashes are compared with
+/// (fixtures/training/record.json): the CfC run and the 6-DoF MLP run.
+#[derive(serde::Deserialize, serde::Serialize, Debug, PartialEq, Clone)]
 struct Record {
     crate_version: String,
     math_library: String,
@@ -97,43 +118,81 @@ struct Record {
     iterations: u64,
     state_hash_f32: String,
     state_hash_f64: String,
+    #[serde(default)]
+    scene_6dof: String,
+    #[serde(default)]
+    state_hash_f32_6dof: String,
+    #[serde(default)]
+    state_hash_f64_6dof: String,
 }
 
 const ITERATIONS: u64 = 120;
 
-#[test]
-fn training_is_bit_identical_for_1_2_and_3_threads_and_matches_the_record() {
-    let data = scene();
-    let h32: Vec<u64> = [1, 2, 3]
-        .iter()
-        .map(|&n| train_in_pool::<f32>(n, &data, ITERATIONS).state_hash())
-        .collect();
-    assert!(
-        h32.iter().all(|&h| h == h32[0]),
-        "f32 hashes differ by thread count: {h32:x?}"
-    );
-    let h64 = train_in_pool::<f64>(2, &data, ITERATIONS).state_hash();
-    let h64_1 = train_in_pool::<f64>(1, &data, ITERATIONS).state_hash();
-    assert_eq!(h64, h64_1, "f64 hashes differ by thread count");
+/// Serialises the read-modify-write of the record between the tests below.
+static RECORD: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
+/// Compare the fields `set` fills (and the versions) with the record; with
+/// `LIQUID_SPLAT_RECORD=1`, write them first.
+fn check_record(set: impl Fn(&mut Record)) {
+    let _guard = RECORD.lock().unwrap_or_else(|e| e.into_inner());
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/training/record.json");
-    let got = Record {
-        crate_version: env!("CARGO_PKG_VERSION").into(),
-        math_library: "libm 0.2.11; matrix products: fused multiply-add; f32 field activations: liquid_splat::deform::fastmath".into(),
-        scene: "fixtures/scenes/swing, 300 random initial points (seed 0), CfC D2 W8 gelu backbone 8x1, seed 7, tests/train.rs config()".into(),
-        iterations: ITERATIONS,
-        state_hash_f32: format!("{:016x}", h32[0]),
-        state_hash_f64: format!("{h64:016x}"),
-    };
+    let load = || -> Record { serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap() };
+    let mut got = load();
+    got.crate_version = env!("CARGO_PKG_VERSION").into();
+    got.math_library = "libm 0.2.11; matrix products: fused multiply-add; f32 field activations: liquid_splat::deform::fastmath".into();
+    got.iterations = ITERATIONS;
+    set(&mut got);
     if std::env::var_os("LIQUID_SPLAT_RECORD").is_some() {
         std::fs::write(&path, serde_json::to_string_pretty(&got).unwrap() + "\n").unwrap();
     }
-    let want: Record = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
     assert_eq!(
-        got, want,
+        got,
+        load(),
         "the training run no longer reproduces the recorded state; if the change is intended, \
          rerun with LIQUID_SPLAT_RECORD=1 and commit fixtures/training/record.json"
     );
+}
+
+/// The f32 hash with 1, 2 and 3 threads and the f64 hash with `f64_threads`,
+/// each required equal across thread counts.
+fn hashes(data: &Dataset, field: FieldConfig, f64_threads: &[usize]) -> (u64, u64) {
+    let h32: Vec<u64> = [1, 2, 3]
+        .iter()
+        .map(|&n| train_in_pool::<f32>(n, data, ITERATIONS, field).state_hash())
+        .collect();
+    assert!(
+        h32.iter().all(|&h| h == h32[0]),
+        "{field:?}: f32 hashes differ by thread count: {h32:x?}"
+    );
+    let h64: Vec<u64> = f64_threads
+        .iter()
+        .map(|&n| train_in_pool::<f64>(n, data, ITERATIONS, field).state_hash())
+        .collect();
+    assert!(
+        h64.iter().all(|&h| h == h64[0]),
+        "{field:?}: f64 hashes differ by thread count: {h64:x?}"
+    );
+    (h32[0], h64[0])
+}
+
+#[test]
+fn training_is_bit_identical_for_1_2_and_3_threads_and_matches_the_record() {
+    let (h32, h64) = hashes(&scene(), cfc_field(), &[2, 1]);
+    check_record(|r| {
+        r.scene = "fixtures/scenes/swing, 300 random initial points (seed 0), CfC D2 W8 gelu backbone 8x1, seed 7, tests/train.rs config()".into();
+        r.state_hash_f32 = format!("{h32:016x}");
+        r.state_hash_f64 = format!("{h64:016x}");
+    });
+}
+
+#[test]
+fn training_6dof_is_bit_identical_for_1_2_and_3_threads_and_matches_the_record() {
+    let (h32, h64) = hashes(&scene(), mlp_6dof_field(), &[1, 2, 3]);
+    check_record(|r| {
+        r.scene_6dof = "fixtures/scenes/swing, 300 random initial points (seed 0), MLP D4 W16 6-DoF (SE(3)) synthetic, seed 7, tests/train.rs config_with(mlp_6dof_field())".into();
+        r.state_hash_f32_6dof = format!("{h32:016x}");
+        r.state_hash_f64_6dof = format!("{h64:016x}");
+    });
 }
 
 fn run(

@@ -1,7 +1,7 @@
 //! `liquid-splat case ...`: work with oracle case files.
 
 use clap::{Args, Subcommand};
-use liquid_splat::deform::FieldKind;
+use liquid_splat::deform::{FieldKind, Variant};
 use liquid_splat::io::TensorFile;
 use liquid_splat::math::Precision;
 use liquid_splat::oracle::new::{golden_files, new_case, CaseSpec};
@@ -68,6 +68,13 @@ pub struct NewArgs {
     /// Deform, step: width (MLP trunk or CfC hidden size); default small.
     #[arg(long)]
     pub hidden: Option<usize>,
+    /// Deform, step: the field's time input, synthetic (timenet) or real
+    /// (default: synthetic for deform, real for step).
+    #[arg(long)]
+    pub variant: Option<String>,
+    /// Deform, step: the MLP field's 6-DoF (SE(3)) variant.
+    #[arg(long = "6dof")]
+    pub six_dof: bool,
 }
 
 /// Arguments of `case compare`.
@@ -154,6 +161,8 @@ fn run_new(a: NewArgs) -> ExitCode {
         uses("--field", a.field.is_some(), &["deform", "step"])?;
         uses("--depth", a.depth.is_some(), &["deform", "step"])?;
         uses("--hidden", a.hidden.is_some(), &["deform", "step"])?;
+        uses("--variant", a.variant.is_some(), &["deform", "step"])?;
+        uses("--6dof", a.six_dof, &["deform", "step"])?;
         spec.width = a.width.unwrap_or(spec.width);
         spec.height = a.height.unwrap_or(spec.height);
         spec.count = a.count.unwrap_or(spec.count);
@@ -165,6 +174,10 @@ fn run_new(a: NewArgs) -> ExitCode {
         }
         spec.depth = a.depth;
         spec.hidden = a.hidden;
+        if let Some(v) = &a.variant {
+            spec.variant = Some(Variant::parse(v)?);
+        }
+        spec.is_6dof = a.six_dof;
         let mut case = new_case(&spec)?;
         case.path = a.output.clone();
         case.save(&a.output)

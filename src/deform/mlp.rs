@@ -157,25 +157,10 @@ impl MlpNet {
         Some(out)
     }
 
-    /// 6-DoF: the extra gradient of the canonical positions through the
-    /// warp, `(R − I)ᵀ·g` per Gaussian; `None` for the additive field.
-    pub fn xyz_vjp<T: Real>(&self, c: &MlpCache<T>, g: &Deformation<T>) -> Option<Vec<T>> {
-        let (_, wv) = c.warp.as_ref()?;
-        let mut out = vec![T::ZERO; g.d_xyz.len()];
-        for ((o, wv), gi) in out
-            .chunks_exact_mut(3)
-            .zip(wv.chunks_exact(6))
-            .zip(g.d_xyz.chunks_exact(3))
-        {
-            o.copy_from_slice(&se3::warp_xyz_vjp(
-                [wv[0], wv[1], wv[2]],
-                [wv[3], wv[4], wv[5]],
-                [gi[0], gi[1], gi[2]],
-            ));
-        }
-        Some(out)
-    }
-
+    /// Backward: adds the weights' gradient into `gp`; returns the gradient
+    /// of `t` `[n]` and, 6-DoF only, of the canonical positions through the
+    /// warp, `(R − I)ᵀ·g` per Gaussian `[n, 3]` (`None` for the additive
+    /// field, whose only use of the positions is the stop-gradient input).
     pub fn backward<T: Real>(
         &self,
         p: &[T],
@@ -183,13 +168,16 @@ impl MlpNet {
         c: &MlpCache<T>,
         g: &Deformation<T>,
         gp: &mut [T],
-    ) -> Vec<T> {
+    ) -> (Vec<T>, Option<Vec<T>>) {
         let n = t.len();
         let xd = encoded_dim(3, XYZ_LEVELS);
         let td = self.in_dim - xd;
-        let g_head = match &c.warp {
-            None => g.to_head(),
-            Some((xyz, wv)) => warp_backward(g, xyz, wv),
+        let (g_head, g_xyz) = match &c.warp {
+            None => (g.to_head(), None),
+            Some((xyz, wv)) => {
+                let (gh, gx) = warp_backward(g, xyz, wv);
+                (gh, Some(gx))
+            }
         };
         let mut dh = Stacked(&self.heads)
             .backward(p, &c.head_in, &g_head, n, InputGrad::From(0), gp)
@@ -225,7 +213,7 @@ impl MlpNet {
                     .expect("input gradient requested");
             }
         }
-        self.time.backward(p, t, &c.time, &g_tfeat, gp)
+        (self.time.backward(p, t, &c.time, &g_tfeat, gp), g_xyz)
     }
 }
 
@@ -247,10 +235,12 @@ fn warp_forward<T: Real>(head: &[T], xyz: &[T]) -> (Deformation<T>, Vec<T>) {
     (d, wv)
 }
 
-/// vjp of [`warp_forward`]: the gradient of the `[n, 13]` head outputs.
-fn warp_backward<T: Real>(g: &Deformation<T>, xyz: &[T], wv: &[T]) -> Vec<T> {
+/// vjp of [`warp_forward`]: the gradient of the `[n, 13]` head outputs and
+/// of the canonical positions `[n, 3]` through `R·x` (`(R − I)ᵀ·g`).
+fn warp_backward<T: Real>(g: &Deformation<T>, xyz: &[T], wv: &[T]) -> (Vec<T>, Vec<T>) {
     let n = xyz.len() / 3;
     let mut out = vec![T::ZERO; 13 * n];
+    let mut g_xyz = vec![T::ZERO; 3 * n];
     for i in 0..n {
         let (w, x, gx) = (&wv[6 * i..6 * i + 6], &xyz[3 * i..], &g.d_xyz[3 * i..]);
         let gr = se3::warp_vjp(
@@ -264,6 +254,7 @@ fn warp_backward<T: Real>(g: &Deformation<T>, xyz: &[T], wv: &[T]) -> Vec<T> {
         o[3..6].copy_from_slice(&gr.v);
         o[6..10].copy_from_slice(&g.d_rotation[4 * i..4 * i + 4]);
         o[10..13].copy_from_slice(&g.d_scaling[3 * i..3 * i + 3]);
+        g_xyz[3 * i..3 * i + 3].copy_from_slice(&gr.x);
     }
-    out
+    (out, g_xyz)
 }

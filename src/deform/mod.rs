@@ -6,8 +6,11 @@
 //!   (DECISIONS §2).
 //!
 //! Conventions, for both fields:
-//! - The position input is stop-gradient (`x.detach()` upstream): the
-//!   backward returns gradients for the parameters and for `t` only.
+//! - The position input is stop-gradient (`x.detach()` upstream). The
+//!   backward returns every gradient of the field in one
+//!   [`FieldGradients`]: the parameters, `t`, and the canonical positions
+//!   through the field's own use of them (zero for the additive fields,
+//!   the warp's `(R − I)ᵀ·g` for the 6-DoF MLP).
 //! - [`Variant::Synthetic`] (D-NeRF, `is_blender`): the time feature is
 //!   `timenet(γ₆(t))`, 30 wide, with `timenet = Linear(13,256) → ReLU →
 //!   Linear(256,30)`. [`Variant::Real`]: the time feature is `γ₁₀(t)`, 21 wide.
@@ -30,8 +33,9 @@
 //!
 //! The MLP's 6-DoF variant replaces the additive `d_xyz` head by an SE(3)
 //! warp ([`se3`]): `d_xyz = R·x + p − x`, with upstream's 1e-5 quirk kept and
-//! a finite limit at θ = 0; [`Field::xyz_vjp`] gives the gradient the
-//! canonical means receive through `R·x`.
+//! a finite limit at θ = 0; [`FieldGradients::xyz`] is the gradient the
+//! canonical means receive through `R·x` (upstream multiplies the
+//! non-detached mean by `R`), on top of the identity path of `xyz + d_xyz`.
 //!
 //! Deliberate limit: the MLP needs `depth ≥ 3`
 //! because upstream concatenates after layer `depth/2` and feeds the result
@@ -745,6 +749,25 @@ impl<T: Real> Deformation<T> {
     }
 }
 
+/// Every gradient of one field backward ([`Field::backward`]), given the
+/// gradient `g` of the outputs ([`Deformation`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FieldGradients<T> {
+    /// The parameters, flat in [`Field::layout`] order.
+    pub params: Vec<T>,
+    /// The per-Gaussian times `t` `[N]`.
+    pub t: Vec<T>,
+    /// The canonical positions `xyz` `[N, 3]` through the field itself,
+    /// beyond the identity path of `means = xyz + d_xyz` (which the caller
+    /// adds: [`crate::train::deformed::deform_gaussians_vjp`]). The network
+    /// reads `xyz` stop-gradient, so this is all zeros for the additive
+    /// fields. The 6-DoF MLP moves the non-detached mean to `R·x + p`
+    /// (upstream's renderer), so `d_xyz = R·x + p − x` depends on `x`
+    /// explicitly: `(R − I)ᵀ·g.d_xyz` per Gaussian, and the total gradient of
+    /// the canonical mean is `Rᵀ·g.d_xyz`.
+    pub xyz: Vec<T>,
+}
+
 /// The network of a field.
 #[derive(Clone, Debug)]
 enum Net {
@@ -875,13 +898,13 @@ impl<T: Real> Field<T> {
         ))
     }
 
-    /// Backward: the gradient of the parameters (same layout as
-    /// [`params`](Self::params)) and of `t` `[N]`, given the output gradient.
+    /// Backward: every gradient of the field given the gradient `grad` of
+    /// its outputs ([`FieldGradients`]).
     pub fn backward(
         &self,
         cache: &FieldCache<T>,
         grad: &Deformation<T>,
-    ) -> Result<(Vec<T>, Vec<T>)> {
+    ) -> Result<FieldGradients<T>> {
         let n = cache.n;
         if grad.d_xyz.len() != 3 * n
             || grad.d_rotation.len() != 4 * n
@@ -892,14 +915,15 @@ impl<T: Real> Field<T> {
                 format!("expected [{n},3], [{n},4], [{n},3] values"),
             ));
         }
-        let mut gp = vec![T::ZERO; self.params.len()];
-        let gt = match (&self.net, &cache.inner) {
+        let mut params = vec![T::ZERO; self.params.len()];
+        let (t, xyz) = match (&self.net, &cache.inner) {
             (Net::Mlp(m), CacheInner::Mlp(c)) => {
-                m.backward(&self.params, &cache.t, c, grad, &mut gp)
+                m.backward(&self.params, &cache.t, c, grad, &mut params)
             }
-            (Net::Cfc(m), CacheInner::Cfc(c)) => {
-                m.backward(&self.params, &cache.t, c, grad, &mut gp)
-            }
+            (Net::Cfc(m), CacheInner::Cfc(c)) => (
+                m.backward(&self.params, &cache.t, c, grad, &mut params),
+                None,
+            ),
             _ => {
                 return Err(Error::invalid(
                     "field cache",
@@ -907,33 +931,11 @@ impl<T: Real> Field<T> {
                 ))
             }
         };
-        Ok((gp, gt))
-    }
-
-    /// The gradient the canonical means `xyz` receive through the field
-    /// itself, beyond the identity path of `xyz + d_xyz`: `(R − I)ᵀ·g` per
-    /// Gaussian for the 6-DoF MLP (upstream multiplies the non-detached mean
-    /// by `R`), all zeros otherwise (the network's input is stop-gradient).
-    /// `grad` is the same output gradient as for [`backward`](Self::backward).
-    pub fn xyz_vjp(&self, cache: &FieldCache<T>, grad: &Deformation<T>) -> Result<Vec<T>> {
-        let n = cache.n;
-        if grad.d_xyz.len() != 3 * n {
-            return Err(Error::invalid(
-                "field output gradient",
-                format!("expected [{n},3] values for d_xyz"),
-            ));
-        }
-        let extra = match (&self.net, &cache.inner) {
-            (Net::Mlp(m), CacheInner::Mlp(c)) => m.xyz_vjp(c, grad),
-            (Net::Cfc(_), CacheInner::Cfc(_)) => None,
-            _ => {
-                return Err(Error::invalid(
-                    "field cache",
-                    "the cache comes from a different kind of field",
-                ))
-            }
-        };
-        Ok(extra.unwrap_or_else(|| vec![T::ZERO; 3 * n]))
+        Ok(FieldGradients {
+            params,
+            t,
+            xyz: xyz.unwrap_or_else(|| vec![T::ZERO; 3 * n]),
+        })
     }
 
     /// 6-DoF MLP: upstream's per-Gaussian SE(3) transforms `[N, 4, 4]`

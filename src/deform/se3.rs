@@ -14,7 +14,9 @@
 //! caller's `xyz + d_xyz` is upstream's deformed mean (to rounding). Because
 //! upstream's `R·x` uses the canonical mean without stop-gradient, the
 //! canonical mean also receives `(R − I)ᵀ·g` through the warp
-//! ([`Field::xyz_vjp`](super::Field::xyz_vjp)), on top of the identity path.
+//! ([`WarpGrad::x`], returned by [`Field::backward`](super::Field::backward)
+//! as [`FieldGradients::xyz`](super::FieldGradients::xyz)), on top of the
+//! identity path of `xyz + d_xyz`.
 //!
 //! **θ = 0.** Upstream divides 0 by 0 and returns NaN. Here, when `w` is
 //! exactly zero, the warp takes its limit as θ → 0: `R = I` and `p = v` (the
@@ -146,15 +148,19 @@ pub fn warp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3]) -> [T; 3] {
     }
 }
 
-/// Gradients of one Gaussian's warp.
+/// Every gradient of one Gaussian's warp.
 pub struct WarpGrad<T> {
     /// With respect to the `branch_w` output.
     pub w: [T; 3],
     /// With respect to the `branch_v` output.
     pub v: [T; 3],
+    /// With respect to the canonical mean `x` through `R·x` (the explicit
+    /// dependence of `d_xyz = R·x + p − x` on `x`, heads held fixed):
+    /// `(R − I)ᵀ·g`, zero at θ = 0 where `R = I`.
+    pub x: [T; 3],
 }
 
-/// vjp of [`warp`] with respect to `w` and `v`, given `g = ∂L/∂d_xyz`.
+/// vjp of [`warp`] with respect to `w`, `v` and `x`, given `g = ∂L/∂d_xyz`.
 pub fn warp_vjp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3], g: [T; 3]) -> WarpGrad<T> {
     let Some(q) = parts(w, v) else {
         let half = T::from_f64(0.5);
@@ -162,8 +168,11 @@ pub fn warp_vjp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3], g: [T; 3]) -> WarpGrad
         return WarpGrad {
             w: cross(a, g),
             v: g,
+            x: [T::ZERO; 3],
         };
     };
+    // (R − I)ᵀ·g.
+    let gx = [0, 1, 2].map(|j| (q.r[0][j] * g[0] + q.r[1][j] * g[1] + q.r[2][j] * g[2]) - g[j]);
     // d_xyz = R x + A v' − x.
     let mut g_r = [[T::ZERO; 3]; 3];
     let mut g_a = [[T::ZERO; 3]; 3];
@@ -227,17 +236,10 @@ pub fn warp_vjp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3], g: [T; 3]) -> WarpGrad
         gw[j] += g_theta * (w[j] / q.theta);
     }
     let _ = q.w1;
-    WarpGrad { w: gw, v: gv }
-}
-
-/// The extra gradient of the canonical mean through the warp, `(R − I)ᵀ·g`
-/// (zero at θ = 0, where `R = I`).
-pub fn warp_xyz_vjp<T: Real>(w: [T; 3], v: [T; 3], g: [T; 3]) -> [T; 3] {
-    match parts(w, v) {
-        None => [T::ZERO; 3],
-        Some(q) => {
-            [0, 1, 2].map(|j| (q.r[0][j] * g[0] + q.r[1][j] * g[1] + q.r[2][j] * g[2]) - g[j])
-        }
+    WarpGrad {
+        w: gw,
+        v: gv,
+        x: gx,
     }
 }
 
@@ -281,7 +283,7 @@ mod tests {
                 let nw = num(&|w| loss(w, v, x, g), w, k, 1e-4);
                 let nv = num(&|v| loss(w, v, x, g), v, k, 1e-4);
                 let nx = num(&|x| loss(w, v, x, g), x, k, 1e-4);
-                let ax = warp_xyz_vjp(w, v, g)[k];
+                let ax = an.x[k];
                 assert!(
                     rel(an.w[k], nw) < 1e-8,
                     "seed {seed} w{k}: {} vs {nw}",
@@ -323,7 +325,7 @@ mod tests {
             assert!((an.v[k] - nv).abs() < 1e-8, "v{k}: {} vs {nv}", an.v[k]);
             assert!(an.w[k].is_finite() && an.v[k].is_finite());
         }
-        assert_eq!(warp_xyz_vjp([0.0; 3], v, g), [0.0; 3]);
+        assert_eq!(an.x, [0.0; 3]);
     }
 
     #[test]

@@ -75,22 +75,26 @@ fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
         d_scaling: case.get_real::<T>("grad_d_scaling", &[n, 3])?,
     };
     let (d, cache) = field.forward(&xyz, &t)?;
-    let (gp, gt) = field.backward(&cache, &grad)?;
+    let fg = field.backward(&cache, &grad)?;
     let mut out = TensorFile::new(&case.path);
     out.set_meta("stage", "deform");
     config.to_meta(&mut out);
     out.insert_real("d_xyz", vec![n, 3], &d.d_xyz);
     out.insert_real("d_rotation", vec![n, 4], &d.d_rotation);
     out.insert_real("d_scaling", vec![n, 3], &d.d_scaling);
-    out.insert_real("grad_t", vec![n, 1], &gt);
+    out.insert_real("grad_t", vec![n, 1], &fg.t);
     if config.is_6dof {
-        out.insert_real("grad_xyz", vec![n, 3], &field.xyz_vjp(&cache, &grad)?);
+        out.insert_real("grad_xyz", vec![n, 3], &fg.xyz);
         if let Some(m) = field.se3_transforms(&cache) {
             out.insert_real("d_xyz_se3", vec![n, 4, 4], &m);
         }
     }
     for s in field.layout() {
-        out.insert_real(&format!("grad.{}", s.name), s.shape.clone(), &gp[s.range()]);
+        out.insert_real(
+            &format!("grad.{}", s.name),
+            s.shape.clone(),
+            &fg.params[s.range()],
+        );
     }
     Ok(out)
 }

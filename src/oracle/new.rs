@@ -37,6 +37,11 @@ pub struct CaseSpec {
     pub depth: Option<usize>,
     /// Deform, step: width W (MLP trunk or CfC hidden size); `None` = small default.
     pub hidden: Option<usize>,
+    /// Deform, step: the field's time input; `None` = `synthetic` for
+    /// deform, `real` for step.
+    pub variant: Option<Variant>,
+    /// Deform, step: the MLP's 6-DoF (SE(3)) variant.
+    pub is_6dof: bool,
 }
 
 /// Defaults for generated deform cases, small so files stay small: the MLP
@@ -48,8 +53,8 @@ pub const SMALL_CFC: (usize, usize) = (2, 16);
 
 impl CaseSpec {
     /// Defaults: f64, seed 0, 32×24 pixels, 8 Gaussians, gradient `exact`,
-    /// field `mlp`, small field size; for `step`: 16×16 pixels, 16
-    /// Gaussians, field `cfc`.
+    /// field `mlp` (additive), small field size, `synthetic` variant; for
+    /// `step`: 16×16 pixels, 16 Gaussians, field `cfc`, `real` variant.
     pub fn new(stage: &str) -> Self {
         if stage == step::STAGE {
             return CaseSpec {
@@ -72,6 +77,8 @@ impl CaseSpec {
             field: FieldKind::Mlp,
             depth: None,
             hidden: None,
+            variant: None,
+            is_6dof: false,
         }
     }
 }
@@ -195,6 +202,8 @@ fn small_field(spec: &CaseSpec) -> FieldConfig {
     };
     config.depth = spec.depth.unwrap_or(d);
     config.width = spec.hidden.unwrap_or(wd);
+    config.variant = spec.variant.unwrap_or(config.variant);
+    config.is_6dof = spec.is_6dof;
     config
 }
 
@@ -253,10 +262,10 @@ pub const STEP_ACTIVE_SH_DEGREE: usize = 2;
 pub const STEP_ADAM_STEP: u64 = 7;
 
 fn new_step<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
-    // The field: small, `real` variant (time feature γ₁₀(t), no timenet) so
-    // the files stay small; the deform cases cover the timenet.
+    // The field: small, by default the `real` variant (time feature γ₁₀(t),
+    // no timenet) so the files stay small; the deform cases cover the timenet.
     let mut config = small_field(spec);
-    config.variant = Variant::Real;
+    config.variant = spec.variant.unwrap_or(Variant::Real);
     let mut f = field_case::<T>(spec, config)?;
     let field_params = Field::<f64>::new(config, spec.seed)?.param_count();
 
@@ -356,6 +365,11 @@ fn mlp(s: &mut CaseSpec) {
 fn cfc(s: &mut CaseSpec) {
     s.field = FieldKind::Cfc;
 }
+fn step_6dof(s: &mut CaseSpec) {
+    s.field = FieldKind::Mlp;
+    s.is_6dof = true;
+    s.hidden = Some(16);
+}
 
 /// The golden fixtures, in order. Adding a stage is one entry here.
 pub const GOLDEN: &[GoldenEntry] = &[
@@ -388,6 +402,11 @@ pub const GOLDEN: &[GoldenEntry] = &[
         stage: step::STAGE,
         variant: None,
         configure: keep,
+    },
+    GoldenEntry {
+        stage: step::STAGE,
+        variant: Some("6dof"),
+        configure: step_6dof,
     },
 ];
 

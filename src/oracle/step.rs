@@ -6,7 +6,10 @@
 //! 1. field forward at `time` on the detached canonical centres (skipped
 //!    with `field_on=false`, upstream's warm-up);
 //! 2. deformed, activated Gaussians → rasterizer forward (exact gradient
-//!    mode, `scale_modifier = 1`, SH up to `active_sh_degree`);
+//!    mode, `scale_modifier = 1`, SH up to `active_sh_degree`); with the
+//!    6-DoF MLP the mean is upstream's `R·x + p` on the non-detached
+//!    canonical mean `x`, so `grad.xyz` is `Rᵀ·g` (`g` = dL/dmeans3D), not
+//!    `g` as for the additive fields;
 //! 3. `loss = (1 − λ)·L1 + λ·(1 − SSIM)` against `gt`;
 //! 4. backward of the loss, the rasterizer, the activations and the field;
 //! 5. densification statistics: `max_radii`, `accum`, `denom` of the

@@ -8,9 +8,18 @@
 //!
 //! During warm-up (no deformation) the offsets are absent and the same
 //! formulas hold with zero offsets.
+//!
+//! The backward ([`deform_gaussians_vjp`]) runs the field's backward too, so
+//! that the canonical means' gradient is assembled in one place: the
+//! identity path of `xyz + d_xyz` plus the field's own
+//! [`FieldGradients::xyz`] (the 6-DoF warp's `(R − I)ᵀ·g`; zero for the
+//! additive fields).
 
+use crate::deform::{Field, FieldCache, FieldGradients};
+use crate::error::Result;
 use crate::gaussians::{normalize_vjp, Gaussians};
 use crate::math::Real;
+use crate::render::RasterGrads;
 
 /// Per-Gaussian offsets from a deformation field: `[N,3]`, `[N,4]`, `[N,3]`.
 pub use crate::deform::Deformation as Offsets;
@@ -48,19 +57,41 @@ pub fn deform_gaussians<T: Real>(g: &Gaussians<T>, offsets: Option<&Offsets<T>>)
     }
 }
 
-/// Backward of [`deform_gaussians`]: from the gradients with respect to the
-/// rasterizer's means, scales, rotations, opacities and SH, returns the
-/// gradients of the raw parameters (in a [`Gaussians`] used as a gradient
-/// container, same layout) and of the offsets. The offsets receive
-/// the rasterizer gradients unchanged (each is added once).
+/// Backward of [`deform_gaussians`] and of the field whose forward (`cache`)
+/// gave the offsets (`None`: no deformation), from the rasterizer's
+/// gradients `rg` (of an input with SH colours and scales/rotations, as
+/// [`deform_gaussians`] feeds it). Returns the gradients of the
+/// raw parameters (in a [`Gaussians`] used as a gradient container, same
+/// layout) and every gradient of the field. The offsets receive the
+/// rasterizer's gradients unchanged (each is added once); the canonical
+/// means receive the identity path plus the field's
+/// [`FieldGradients::xyz`].
 pub fn deform_gaussians_vjp<T: Real>(
     g: &Gaussians<T>,
-    grad_means: &[T],
-    grad_sh: &[T],
-    grad_scales: &[T],
-    grad_rotations: &[T],
-    grad_opacities: &[T],
-) -> (Gaussians<T>, Offsets<T>) {
+    field: Option<(&Field<T>, &FieldCache<T>)>,
+    rg: &RasterGrads<T>,
+) -> Result<(Gaussians<T>, Option<FieldGradients<T>>)> {
+    let (mut gaussians, offsets) = activations_vjp(g, rg);
+    let Some((field, cache)) = field else {
+        return Ok((gaussians, None));
+    };
+    let fg = field.backward(cache, &offsets)?;
+    for (a, &b) in gaussians.xyz.iter_mut().zip(&fg.xyz) {
+        // Adding an exact zero (every entry of an additive field's) would
+        // change nothing but the sign of a −0.
+        if b != T::ZERO {
+            *a += b;
+        }
+    }
+    Ok((gaussians, Some(fg)))
+}
+
+/// The chain rule of [`deform_gaussians`] alone: the gradients of the raw
+/// parameters (the means' identity path only) and of the offsets.
+fn activations_vjp<T: Real>(g: &Gaussians<T>, rg: &RasterGrads<T>) -> (Gaussians<T>, Offsets<T>) {
+    let (grad_means, grad_sh) = (&rg.means3d, &rg.colors);
+    let (grad_scales, grad_rotations) = (&rg.scales_or_cov, &rg.rotations);
+    let grad_opacities = &rg.opacities;
     let n = g.len();
     let scaling: Vec<T> = g
         .scaling
@@ -140,7 +171,15 @@ mod tests {
                 + dot(&d.rotations, &cr)
                 + dot(&d.opacities, &co)
         };
-        let (gg, go) = deform_gaussians_vjp(&g, &cm, &[0.0; 6], &cs, &cr, &co);
+        let rg = RasterGrads {
+            means3d: cm.clone(),
+            means2d: vec![],
+            colors: vec![0.0; 6],
+            opacities: co.clone(),
+            scales_or_cov: cs.clone(),
+            rotations: cr.clone(),
+        };
+        let (gg, go) = activations_vjp(&g, &rg);
         type Field = for<'a> fn(&'a mut Gaussians<f64>, &'a mut Offsets<f64>) -> &'a mut Vec<f64>;
         let check = |name: &str, analytic: &[f64], field: Field| {
             let (mut g2, mut o2) = scene();

@@ -80,6 +80,7 @@ pub struct StageTimes {
     pub raster_forward: f64,
     pub loss: f64,
     pub raster_backward: f64,
+    /// The field's backward and the activations' chain rule.
     pub field_backward: f64,
     pub densify: f64,
     pub optimizer: f64,
@@ -169,7 +170,11 @@ pub struct Gradients<T> {
     pub radii: Vec<i32>,
     /// `[N, 3]` NDC means2D gradient (densification statistic).
     pub grad_means2d: Vec<T>,
-    /// Gradients of the canonical raw parameters (same layout).
+    /// Gradients of the canonical raw parameters (same layout). The means'
+    /// is upstream's: the field reads them stop-gradient, so it is the
+    /// rasterizer's means gradient `g` for the additive fields and `Rᵀ·g`
+    /// for the 6-DoF MLP (whose warp moves the non-detached mean to
+    /// `R·x + p`); with the field on it is not the total derivative of the loss.
     pub gaussians: Gaussians<T>,
     /// Gradient of the field weights; `None` with the field off.
     pub field: Option<Vec<T>>,
@@ -314,21 +319,14 @@ impl<T: Real> Trainer<T> {
         )?;
         times.loss = clock.lap();
 
-        // Backward, stage by stage in reverse.
+        // Backward, stage by stage in reverse. The field's backward runs
+        // inside the activations' ([`deform_gaussians_vjp`]), which adds its
+        // gradient of the canonical means to the identity path.
         let rg = rasterize_backward(&input, &state, &grad_image, None, GradientMode::Exact)?;
-        let (gaussians, grad_offsets) = deform_gaussians_vjp(
-            &self.gaussians,
-            &rg.means3d,
-            &rg.colors,
-            &rg.scales_or_cov,
-            &rg.rotations,
-            &rg.opacities,
-        );
         times.raster_backward = clock.lap();
-        let field = match &fwd.offsets {
-            Some((_, cache)) => Some(self.field.backward(cache, &grad_offsets)?.0),
-            None => None,
-        };
+        let field = fwd.offsets.as_ref().map(|(_, cache)| (&self.field, cache));
+        let (gaussians, field) = deform_gaussians_vjp(&self.gaussians, field, &rg)?;
+        let field = field.map(|f| f.params);
         times.field_backward = clock.lap();
         Ok((
             Gradients {
