@@ -29,6 +29,8 @@
 //! - [`optim`], [`densify`]: Adam and schedules; clone, split, prune, reset.
 //! - [`train`]: [`train::Trainer::step`], checkpoints, whole runs.
 //! - [`oracle`]: case files for every stage and the comparison report.
+//! - [`cli`]: the command-line tool as a library function (the binary and
+//!   the Python package run it).
 //! - [`report`]: per-run records and the experiment report (Markdown, CSV,
 //!   PNG plots, temporal smoothness of a learned deformation).
 //!
@@ -41,6 +43,7 @@
 //! randomness comes from explicit seeds.
 
 pub mod camera;
+pub mod cli;
 pub mod dataset;
 pub mod deform;
 pub mod densify;

@@ -1,11 +1,11 @@
 //! `liquid-splat bench ...`: throughput measurements (never asserted in tests).
 
+use crate::deform::count::{macs_per_gaussian, MacConvention};
+use crate::deform::{Deformation, Field, FieldConfig, FieldKind};
+use crate::lpips;
+use crate::math::{gradcheck::cotangent, Real, Rng};
+use crate::render::{self, scene};
 use clap::Subcommand;
-use liquid_splat::deform::count::{macs_per_gaussian, MacConvention};
-use liquid_splat::deform::{Deformation, Field, FieldConfig, FieldKind};
-use liquid_splat::lpips;
-use liquid_splat::math::{gradcheck::cotangent, Real, Rng};
-use liquid_splat::render::{self, scene};
 use std::process::ExitCode;
 use std::time::Instant;
 
@@ -56,7 +56,7 @@ pub enum BenchWhat {
 }
 
 /// Run a `bench` subcommand.
-pub fn run(what: BenchWhat) -> liquid_splat::Result<ExitCode> {
+pub fn run(what: BenchWhat) -> crate::Result<ExitCode> {
     match what {
         BenchWhat::Raster { reps } => bench_raster(reps),
         BenchWhat::Train { spec } => match spec.precision {
@@ -96,7 +96,7 @@ pub fn run(what: BenchWhat) -> liquid_splat::Result<ExitCode> {
 }
 
 /// LPIPS weights of the right shapes with uniform random values (for timing only).
-fn random_lpips_weights(seed: u64) -> liquid_splat::Result<lpips::LpipsWeights> {
+fn random_lpips_weights(seed: u64) -> crate::Result<lpips::LpipsWeights> {
     let mut r = Rng::new(seed);
     let mut u =
         |n: usize, s: f64| -> Vec<f32> { (0..n).map(|_| r.uniform_range(-s, s) as f32).collect() };
@@ -122,7 +122,7 @@ fn bench_lpips<T: Real>(
     w: &lpips::LpipsWeights,
     size: usize,
     reps: usize,
-) -> liquid_splat::Result<ExitCode> {
+) -> crate::Result<ExitCode> {
     let net = lpips::Lpips::<T>::new(w);
     let mut r = Rng::new(1);
     let n = 3 * size * size;
@@ -172,7 +172,7 @@ pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
-fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
+fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
     let reps = reps.max(1);
     println!(
         "machine threads: {}",
@@ -185,7 +185,7 @@ fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
     for (w, h, n) in [(800usize, 800usize, 50_000usize), (400, 400, 20_000)] {
         let s = scene::random_scene(&scene::SceneSpec::bench(w, h, n, 1))?.cast::<f32>();
         let input = s.input(scene::ColorSource::Sh, scene::CovSource::ScaleRotation);
-        let grad: Vec<f32> = liquid_splat::math::gradcheck::cotangent(5, 3 * w * h)
+        let grad: Vec<f32> = crate::math::gradcheck::cotangent(5, 3 * w * h)
             .into_iter()
             .map(|v| v as f32)
             .collect();
@@ -193,8 +193,8 @@ fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
                 .build()
-                .map_err(|e| liquid_splat::Error::invalid("thread pool", e.to_string()))?;
-            let (fwd, bwd, pairs) = pool.install(|| -> liquid_splat::Result<_> {
+                .map_err(|e| crate::Error::invalid("thread pool", e.to_string()))?;
+            let (fwd, bwd, pairs) = pool.install(|| -> crate::Result<_> {
                 let mut f = Vec::new();
                 let mut b = Vec::new();
                 let mut pairs = 0;
@@ -232,10 +232,8 @@ fn bench_raster(reps: usize) -> liquid_splat::Result<ExitCode> {
 
 /// Train in memory (no files) and print the mean time of each stage, over
 /// all iterations and over those with the field on.
-fn bench_train<T: liquid_splat::math::Real>(
-    spec: &super::train::RunSpec,
-) -> liquid_splat::Result<ExitCode> {
-    use liquid_splat::train::{run, StageTimes};
+fn bench_train<T: crate::math::Real>(spec: &super::train::RunSpec) -> crate::Result<ExitCode> {
+    use crate::train::{run, StageTimes};
     let data = spec.load_dataset()?;
     let config = spec.train_config(&data)?;
     let views = run::views::<T>(&data.train);
@@ -257,11 +255,11 @@ fn bench_train<T: liquid_splat::math::Real>(
     let (w, h) = (data.train[0].width, data.train[0].height);
     println!(
         "{} on {} ({w}x{h}, {} views), {} iterations, {}, {} threads, mean {:.0} Gaussians",
-        liquid_splat::report::field_label(&config.field),
+        crate::report::field_label(&config.field),
         spec.data_name(),
         views.len(),
         n,
-        if T::PRECISION == liquid_splat::math::Precision::F32 {
+        if T::PRECISION == crate::math::Precision::F32 {
             "f32"
         } else {
             "f64"
@@ -336,10 +334,10 @@ fn bench_deform<T: Real>(
     n: usize,
     reps: usize,
     only: Option<FieldKind>,
-) -> liquid_splat::Result<ExitCode> {
+) -> crate::Result<ExitCode> {
     let reps = reps.max(1);
     if n == 0 {
-        return Err(liquid_splat::Error::invalid("n", "must be at least 1"));
+        return Err(crate::Error::invalid("n", "must be at least 1"));
     }
     println!(
         "threads: {} (rayon pool; machine reports {} available); precision {}; N = {n}; median of {reps}",
@@ -349,7 +347,7 @@ fn bench_deform<T: Real>(
     );
     println!(
         "matrix kernel path: {:?}",
-        liquid_splat::deform::matmul::kernel_path()
+        crate::deform::matmul::kernel_path()
     );
     println!(
         "{:<16} {:>11} {:>10} {:>16} {:>11} {:>12} {:>18} {:>22}",
@@ -365,7 +363,7 @@ fn bench_deform<T: Real>(
     let (xyz, t, g) = deform_inputs::<T>(n);
     {
         // One trunk-layer-sized product alone: the matrix kernel's rate.
-        use liquid_splat::deform::matmul::{matmul, MatRef};
+        use crate::deform::matmul::{matmul, MatRef};
         let (k, w) = (256, 256);
         let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
         let (a, b) = (cast(cotangent(15, n * k)), cast(cotangent(16, k * w)));

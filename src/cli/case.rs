@@ -1,13 +1,13 @@
 //! `liquid-splat case ...`: work with oracle case files.
 
+use crate::deform::{FieldKind, Variant};
+use crate::io::TensorFile;
+use crate::math::Precision;
+use crate::oracle::new::{golden_files, new_case, CaseSpec};
+use crate::oracle::{compare, Tolerances};
+use crate::render::GradientMode;
+use crate::Error;
 use clap::{Args, Subcommand};
-use liquid_splat::deform::{FieldKind, Variant};
-use liquid_splat::io::TensorFile;
-use liquid_splat::math::Precision;
-use liquid_splat::oracle::new::{golden_files, new_case, CaseSpec};
-use liquid_splat::oracle::{compare, Tolerances};
-use liquid_splat::render::GradientMode;
-use liquid_splat::Error;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
@@ -114,7 +114,7 @@ pub fn run(cmd: CaseCommand) -> ExitCode {
     }
 }
 
-fn exit_code(outcome: liquid_splat::Result<()>) -> ExitCode {
+fn exit_code(outcome: crate::Result<()>) -> ExitCode {
     match outcome {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
@@ -125,7 +125,7 @@ fn exit_code(outcome: liquid_splat::Result<()>) -> ExitCode {
 }
 
 fn run_new(a: NewArgs) -> ExitCode {
-    exit_code((|| -> liquid_splat::Result<()> {
+    exit_code((|| -> crate::Result<()> {
         let mut spec = CaseSpec::new(&a.stage);
         spec.precision = match a.dtype.as_str() {
             "f32" => Precision::F32,
@@ -133,7 +133,7 @@ fn run_new(a: NewArgs) -> ExitCode {
             other => return Err(Error::invalid("--dtype", format!("`{other}` (f32 or f64)"))),
         };
         spec.seed = a.seed;
-        let uses = |flag: &str, given: bool, stages: &[&str]| -> liquid_splat::Result<()> {
+        let uses = |flag: &str, given: bool, stages: &[&str]| -> crate::Result<()> {
             if given && !stages.contains(&a.stage.as_str()) {
                 return Err(Error::invalid(
                     flag,
@@ -185,11 +185,11 @@ fn run_new(a: NewArgs) -> ExitCode {
 }
 
 fn regen_golden(dir: &Path) -> ExitCode {
-    exit_code((|| -> liquid_splat::Result<()> {
+    exit_code((|| -> crate::Result<()> {
         std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
         for (name, bytes) in golden_files()? {
             let path = dir.join(&name);
-            liquid_splat::io::write_atomic(&path, &bytes)?;
+            crate::io::write_atomic(&path, &bytes)?;
             println!("{} ({} bytes)", path.display(), bytes.len());
         }
         Ok(())
@@ -197,9 +197,9 @@ fn regen_golden(dir: &Path) -> ExitCode {
 }
 
 fn run_case(input: &std::path::Path, output: &std::path::Path) -> ExitCode {
-    let outcome = (|| -> liquid_splat::Result<()> {
+    let outcome = (|| -> crate::Result<()> {
         let case = TensorFile::load(input)?;
-        let mut out = liquid_splat::oracle::run_case(&case)?;
+        let mut out = crate::oracle::run_case(&case)?;
         out.path = output.to_path_buf();
         out.save(output)
     })();
@@ -213,7 +213,7 @@ fn run_case(input: &std::path::Path, output: &std::path::Path) -> ExitCode {
 }
 
 fn run_compare(args: CompareArgs) -> ExitCode {
-    let outcome = (|| -> liquid_splat::Result<bool> {
+    let outcome = (|| -> crate::Result<bool> {
         let mut tol = match &args.tolerances {
             Some(p) => Tolerances::load(p)?,
             None => Tolerances::default(),
@@ -235,7 +235,7 @@ fn run_compare(args: CompareArgs) -> ExitCode {
         let report = compare(&expected, &actual, &tol)?;
         println!("{report}");
         if let Some(p) = &args.report {
-            liquid_splat::io::write_atomic(p, report.to_json().as_bytes())?;
+            crate::io::write_atomic(p, report.to_json().as_bytes())?;
         }
         Ok(report.passed)
     })();

@@ -1,12 +1,12 @@
 //! `liquid-splat count`: parameters and multiply-accumulates (MACs) of a
 //! deformation field, per Gaussian and for N Gaussians, under the ptflops
-//! counting conventions of UPSTREAM §8.3 (see `liquid_splat::deform::count`).
+//! counting conventions of UPSTREAM §8.3 (see `crate::deform::count`).
 
+use crate::deform::count::{macs_per_gaussian, param_count, MacConvention};
+use crate::deform::{FieldConfig, FieldKind, Variant};
+use crate::report::tables::thousands;
+use crate::Error;
 use clap::Args;
-use liquid_splat::deform::count::{macs_per_gaussian, param_count, MacConvention};
-use liquid_splat::deform::{FieldConfig, FieldKind, Variant};
-use liquid_splat::report::tables::thousands;
-use liquid_splat::Error;
 use std::process::ExitCode;
 
 /// Arguments of `count`.
@@ -22,7 +22,7 @@ pub struct CountArgs {
     pub json: bool,
 }
 
-fn config(a: &CountArgs) -> liquid_splat::Result<FieldConfig> {
+fn config(a: &CountArgs) -> crate::Result<FieldConfig> {
     a.field.config(Variant::Synthetic)
 }
 
@@ -35,7 +35,7 @@ fn convention_key(c: MacConvention) -> &'static str {
 }
 
 /// Run `count`.
-pub fn run(a: CountArgs) -> liquid_splat::Result<ExitCode> {
+pub fn run(a: CountArgs) -> crate::Result<ExitCode> {
     let c = config(&a)?;
     let params = param_count(&c)? as u64;
     let n = a.gaussians;

@@ -1,7 +1,7 @@
 //! `liquid-splat inspect` and `liquid-splat synth`: datasets on disk.
 
+use crate::dataset::{self, synth, Background, LoadOptions};
 use clap::{Args, ValueEnum};
-use liquid_splat::dataset::{self, synth, Background, LoadOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -72,7 +72,7 @@ pub fn background(white: bool) -> Background {
 }
 
 /// `inspect DIR`: print the dataset's JSON summary.
-pub fn inspect(a: InspectArgs) -> liquid_splat::Result<ExitCode> {
+pub fn inspect(a: InspectArgs) -> crate::Result<ExitCode> {
     let opts = LoadOptions {
         background: background(a.white_background),
         downscale: a.downscale,
@@ -84,7 +84,7 @@ pub fn inspect(a: InspectArgs) -> liquid_splat::Result<ExitCode> {
 }
 
 /// `synth NAME OUT_DIR`: write a built-in scene to disk.
-pub fn synth(a: SynthArgs) -> liquid_splat::Result<ExitCode> {
+pub fn synth(a: SynthArgs) -> crate::Result<ExitCode> {
     let opts = synth::SynthOptions {
         resolution: a.resolution,
         frames: a.frames,

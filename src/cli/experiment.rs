@@ -8,11 +8,11 @@
 //! interrupted at any point. The report is rewritten after every run.
 
 use super::train::{FieldArg, FieldArgs, PrecisionArg, RunSpec};
+use crate::deform::count::{macs_per_gaussian, param_count, MacConvention};
+use crate::error::{Error, Result};
+use crate::report::{self, MachineInfo, ReportMeta, RunRecord};
+use crate::train::{self, checkpoint, Event, RunOptions, StageTimes};
 use clap::Args;
-use liquid_splat::deform::count::{macs_per_gaussian, param_count, MacConvention};
-use liquid_splat::error::{Error, Result};
-use liquid_splat::report::{self, MachineInfo, ReportMeta, RunRecord};
-use liquid_splat::train::{self, checkpoint, Event, RunOptions, StageTimes};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::process::ExitCode;

@@ -1,7 +1,7 @@
 //! `liquid-splat gradcheck ...`: central-difference gradient checks in f64.
 
+use crate::render::check;
 use clap::Subcommand;
-use liquid_splat::render::check;
 use std::process::ExitCode;
 
 #[derive(Subcommand)]
@@ -15,13 +15,13 @@ pub enum GradcheckWhat {
 }
 
 /// Run a `gradcheck` subcommand.
-pub fn run(what: GradcheckWhat) -> liquid_splat::Result<ExitCode> {
+pub fn run(what: GradcheckWhat) -> crate::Result<ExitCode> {
     match what {
         GradcheckWhat::Raster { seed } => gradcheck_raster(seed),
     }
 }
 
-fn gradcheck_raster(seed: u64) -> liquid_splat::Result<ExitCode> {
+fn gradcheck_raster(seed: u64) -> crate::Result<ExitCode> {
     let mut ok = true;
     println!(
         "{:<22} {:<16} {:>6} {:>11} {:>11}",

@@ -1,5 +1,10 @@
-//! Subcommand groups of the `liquid-splat` binary: argument parsing and
-//! messages only; the work is done by the library.
+//! The `liquid-splat` command-line tool as a library function, [`run`], so
+//! that the binary and the Python package (`python -m liquid_splat`) run the
+//! same tool. Argument parsing and messages only; the work is done by the
+//! library. This is the only place errors become messages and exit codes.
+//!
+//! Exit codes: 0 success; 1 a check or comparison failed; 2 unusable input
+//! (bad arguments, missing or malformed files).
 
 pub mod bench;
 pub mod case;
@@ -8,3 +13,128 @@ pub mod data;
 pub mod experiment;
 pub mod gradcheck;
 pub mod train;
+
+use clap::{Parser, Subcommand};
+use std::ffi::OsString;
+use std::process::ExitCode;
+
+#[derive(Parser)]
+#[command(
+    name = "liquid-splat",
+    version,
+    about = "Deterministic CPU reference for deformable 3D Gaussian splatting with a liquid (CfC) deformation field"
+)]
+struct Cli {
+    /// Worker threads (default: all cores). Results are bit-identical for any value.
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Oracle case files: run a stage, compare outputs.
+    Case {
+        #[command(subcommand)]
+        command: case::CaseCommand,
+    },
+    /// Central-difference gradient checks in f64.
+    Gradcheck {
+        #[command(subcommand)]
+        what: gradcheck::GradcheckWhat,
+    },
+    /// Load a dataset (D-NeRF or nerfies layout) and print a JSON summary.
+    Inspect(data::InspectArgs),
+    /// Generate a built-in synthetic dynamic scene (bouncing, swing, blob) on disk.
+    Synth(data::SynthArgs),
+    /// Train a deformable Gaussian model (liquid CfC or MLP field) on a dataset or built-in scene.
+    Train(train::TrainArgs),
+    /// Render a trained run's test views, a time sweep and any times (PNG and EXR).
+    Render(train::RenderArgs),
+    /// PSNR, SSIM (and LPIPS with weights) of a run's saved renders (results.json, per_view.json).
+    Eval(train::EvalArgs),
+    /// The deformed Gaussians of a trained run at given times, as Inria PLY files.
+    Export(train::ExportArgs),
+    /// Train and compare the MLP and liquid fields on several scenes; write a report folder.
+    Experiment(experiment::ExperimentArgs),
+    /// Parameters and MACs of a deformation field (ptflops conventions).
+    Count(count::CountArgs),
+    /// Throughput measurements.
+    Bench {
+        #[command(subcommand)]
+        what: bench::BenchWhat,
+    },
+}
+
+/// Print a library error as one line and map it to exit code 2.
+fn report(result: crate::Result<ExitCode>) -> ExitCode {
+    match result {
+        Ok(code) => code,
+        Err(e) => {
+            eprintln!("error: {e}");
+            ExitCode::from(2)
+        }
+    }
+}
+
+/// Run the command-line tool on `args` (the first item is the program
+/// name) and return its exit code. `--threads N` runs the command on a pool
+/// of its own with `N` workers (results are bit-identical for any `N`);
+/// without it, on rayon's global pool. Help and usage errors are printed as
+/// clap prints them (usage errors exit with 2).
+pub fn run<I, T>(args: I) -> u8
+where
+    I: IntoIterator<Item = T>,
+    T: Into<OsString> + Clone,
+{
+    let cli = match Cli::try_parse_from(args) {
+        Ok(cli) => cli,
+        Err(e) => {
+            let code = e.exit_code();
+            let _ = e.print();
+            return if code == 0 { 0 } else { 2 };
+        }
+    };
+    let code = match cli.threads {
+        None => dispatch(cli.command),
+        Some(n) => match rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build()
+        {
+            Ok(pool) => pool.install(|| dispatch(cli.command)),
+            Err(e) => {
+                eprintln!("error: cannot start {n} threads: {e}");
+                ExitCode::from(2)
+            }
+        },
+    };
+    exit_code_number(code)
+}
+
+fn dispatch(command: Command) -> ExitCode {
+    match command {
+        Command::Case { command } => case::run(command),
+        Command::Gradcheck { what } => report(gradcheck::run(what)),
+        Command::Train(a) => report(train::train(a)),
+        Command::Render(a) => report(train::render(a)),
+        Command::Eval(a) => report(train::eval(a)),
+        Command::Export(a) => report(train::export(a)),
+        Command::Experiment(a) => report(experiment::experiment(a)),
+        Command::Bench { what } => report(bench::run(what)),
+        Command::Count(a) => report(count::run(a)),
+        Command::Inspect(a) => report(data::inspect(a)),
+        Command::Synth(a) => report(data::synth(a)),
+    }
+}
+
+/// The number behind an [`ExitCode`] (the tool only ever uses 0, 1 and 2).
+fn exit_code_number(code: ExitCode) -> u8 {
+    if code == ExitCode::SUCCESS {
+        0
+    } else if code == ExitCode::from(1) {
+        1
+    } else {
+        2
+    }
+}

@@ -3,15 +3,15 @@
 //! `train` records its arguments in `OUT/run.json`; `render OUT` and
 //! `eval OUT` read them back, so they need only the output folder.
 
-use clap::{Args, ValueEnum};
-use liquid_splat::dataset::{self, synth, Dataset, DatasetKind, LoadOptions};
-use liquid_splat::deform::{Activation, FieldConfig, FieldKind, Variant};
-use liquid_splat::error::{Error, Result};
-use liquid_splat::lpips;
-use liquid_splat::math::Real;
-use liquid_splat::train::{
+use crate::dataset::{self, synth, Dataset, DatasetKind, LoadOptions};
+use crate::deform::{Activation, FieldConfig, FieldKind, Variant};
+use crate::error::{Error, Result};
+use crate::lpips;
+use crate::math::Real;
+use crate::train::{
     self, checkpoint, run::file_stem, Event, RunOptions, TrainConfig, View, ViewMetrics,
 };
+use clap::{Args, ValueEnum};
 use serde::{Deserialize, Serialize};
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
@@ -296,8 +296,8 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
     if !a.quiet {
         eprintln!(
             "training {} field ({} parameters) on {}: {} train / {} test views, {} initial Gaussians, {} iterations, {} threads",
-            liquid_splat::report::field_label(&config.field),
-            liquid_splat::deform::count::param_count(&config.field)?,
+            crate::report::field_label(&config.field),
+            crate::deform::count::param_count(&config.field)?,
             a.spec.data_name(),
             data.train.len(),
             train::run::eval_frames(&data).len(),
@@ -438,7 +438,7 @@ impl Progress {
 
 fn read_spec(out: &Path) -> Result<RunSpec> {
     let path = out.join("run.json");
-    let bytes = liquid_splat::io::read(&path)?;
+    let bytes = crate::io::read(&path)?;
     serde_json::from_slice(&bytes).map_err(|e| Error::format(&path, e.to_string()))
 }
 
