@@ -97,6 +97,10 @@ def cli(*args: str) -> int:
     return _native.cli([os.fspath(a) for a in args])
 
 
+def _shape(shape: Tuple[int, ...]) -> str:
+    return "[" + ",".join(str(d) for d in shape) + "]"
+
+
 # ---------------------------------------------------------------------------
 # Argument checks: name the argument, what was expected and what was found.
 # ---------------------------------------------------------------------------
@@ -121,15 +125,15 @@ class _Args:
         if x.dtype not in _FLOATS:
             raise TypeError(f"{where}: expected dtype float32 or float64, found dtype {x.dtype}")
         if self.dtype is None:
-            self.dtype, self.dtype_from = x.dtype, name
+            self.dtype, self.dtype_from = x.dtype, f"`{name}`"
         elif x.dtype != self.dtype:
             raise TypeError(
-                f"{where}: expected dtype {self.dtype} (the dtype of `{self.dtype_from}`), "
+                f"{where}: expected dtype {self.dtype} (the dtype of {self.dtype_from}), "
                 f"found dtype {x.dtype}"
             )
         want = "[" + ",".join(str(d) for d in shape) + "]"
         if x.ndim != len(shape):
-            raise ValueError(f"{where}: expected shape {want}, found shape {list(x.shape)}")
+            raise ValueError(f"{where}: expected shape {want}, found shape {_shape(x.shape)}")
         for d, n in zip(shape, x.shape):
             if isinstance(d, int):
                 ok, note = (n == d), ""
@@ -141,12 +145,12 @@ class _Args:
                 ok, note = True, ""
             if not ok:
                 raise ValueError(
-                    f"{where}: expected shape {want}{note}, found shape {list(x.shape)}"
+                    f"{where}: expected shape {want}{note}, found shape {_shape(x.shape)}"
                 )
         if not x.flags.c_contiguous:
             raise ValueError(
                 f"{where}: expected a C-contiguous array (numpy.ascontiguousarray), "
-                f"found a non-contiguous array of shape {list(x.shape)}"
+                f"found a non-contiguous array of shape {_shape(x.shape)}"
             )
         if not np.isfinite(x).all():
             bad = int(np.flatnonzero(~np.isfinite(x.ravel()))[0])
@@ -239,7 +243,7 @@ def _raster_case(
         if (deg + 1) ** 2 > shs.shape[1]:
             raise ValueError(
                 f"{func}(): argument `shs`: expected at least (sh_degree+1)^2 = {(deg + 1) ** 2} "
-                f"coefficients for sh_degree={deg}, found shape {list(shs.shape)}"
+                f"coefficients for sh_degree={deg}, found shape {_shape(shs.shape)}"
             )
         meta["sh_degree"] = deg
     else:

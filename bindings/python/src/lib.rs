@@ -169,7 +169,7 @@ fn meta_value(key: &str, v: &Bound<'_, PyAny>) -> PyResult<String> {
         return Ok(format!("{x:?}"));
     }
     Err(PyTypeError::new_err(format!(
-        "metadata[{key:?}]: expected str, bool, int or float, found {}",
+        "metadata['{key}']: expected str, bool, int or float, found {}",
         type_name(v)
     )))
 }
@@ -189,7 +189,7 @@ fn tensor_file(
                 type_name(&k)
             ))
         })?;
-        let t = tensor_from_array(&format!("{label}[{name:?}]"), &v, finite)?;
+        let t = tensor_from_array(&format!("{label}['{name}']"), &v, finite)?;
         file.tensors.insert(name, t);
     }
     if let Some(meta) = metadata {
