@@ -56,3 +56,30 @@ def test_save_and_load_round_trip(tmp_path):
     back, meta = ls.load(tmp_path / "x.safetensors")
     bits_equal(back, t)
     assert meta == {"stage": "loss", "k": "0.1", "flag": "true"}
+
+
+def test_the_gil_is_released_during_the_computation():
+    import threading
+    import time
+
+    rng = np.random.default_rng(0)
+    gt = rng.random((3, 512, 512))
+    case = {"image": gt + 0.1 * rng.standard_normal(gt.shape), "gt": gt}
+    window = []
+
+    def work():
+        t0 = time.perf_counter()
+        ls.run_case(case, {"stage": "loss"}, threads=1)
+        window.extend([t0, time.perf_counter()])
+
+    ticks = []
+    worker = threading.Thread(target=work)
+    worker.start()
+    while worker.is_alive():          # pure Python: runs only while the GIL is free
+        ticks.append(time.perf_counter())
+    worker.join()
+    t0, t1 = window
+    inside = [t0] + [t for t in ticks if t0 < t < t1] + [t1]
+    longest_stall = max(b - a for a, b in zip(inside, inside[1:]))
+    # Held during the computation, the GIL would stop this loop for most of [t0, t1].
+    assert t1 - t0 > 0.05 and longest_stall < 0.5 * (t1 - t0), (t1 - t0, longest_stall)
