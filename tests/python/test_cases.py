@@ -83,3 +83,16 @@ def test_the_gil_is_released_during_the_computation():
     longest_stall = max(b - a for a, b in zip(inside, inside[1:]))
     # Held during the computation, the GIL would stop this loop for most of [t0, t1].
     assert t1 - t0 > 0.05 and longest_stall < 0.5 * (t1 - t0), (t1 - t0, longest_stall)
+
+
+def test_the_console_script_runs_the_tool(tmp_path):
+    import os
+    import shutil
+
+    exe = shutil.which("liquid-splat", path=os.path.dirname(sys.executable))
+    assert exe is not None, "the package installs a `liquid-splat` console script"
+    r = subprocess.run([exe, "case", "new", "loss", str(tmp_path / "c.safetensors"), "--seed", "3"],
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    t, m = ls.load(tmp_path / "c.safetensors")
+    assert m["stage"] == "loss" and t["image"].shape == (3, 24, 32)

@@ -529,6 +529,15 @@ class DeformNetwork(_Field):
         }
         super().__init__(sd, config)
 
+    @classmethod
+    def new(cls, D: int = 8, W: int = 256, is_blender: bool = False, is_6dof: bool = False, *,
+            seed: int = 0, dtype: Any = np.float32) -> "DeformNetwork":
+        """A freshly initialised network with upstream's constructor arguments
+        (``nn.Linear``'s default initialisation scheme, drawn from ``seed``)."""
+        meta = {"field": "mlp", "depth": D, "width": W, "is_6dof": is_6dof,
+                "variant": "synthetic" if is_blender else "real"}
+        return cls(_native.field_init(meta, seed, np.dtype(dtype).name))
+
 
 class CfCField(_Field):
     """The liquid field (stacked ``ncps.torch.CfCCell``s) from its state_dict (numpy
@@ -556,6 +565,17 @@ class CfCField(_Field):
             ),
         }
         super().__init__(sd, config)
+
+    @classmethod
+    def new(cls, D: int = 6, W: int = 128, variant: str = "synthetic", activation: str = "gelu",
+            backbone_units: int = 64, backbone_layers: int = 2, *, seed: int = 0,
+            dtype: Any = np.float32) -> "CfCField":
+        """A freshly initialised field (``nn.Linear``'s default initialisation scheme,
+        drawn from ``seed``)."""
+        meta = {"field": "cfc", "depth": D, "width": W, "variant": variant,
+                "activation": activation, "backbone_units": backbone_units,
+                "backbone_layers": backbone_layers}
+        return cls(_native.field_init(meta, seed, np.dtype(dtype).name), activation)
 
 
 def load_field(state_dict: Mapping[str, np.ndarray], activation: str = "gelu") -> _Field:
