@@ -1,0 +1,623 @@
+"""liquid-splat in-process: the deterministic CPU oracle of deformable 3D Gaussian splatting.
+
+numpy arrays in, numpy arrays out; float32 or float64 inputs select the precision, as in
+case files. Every function runs the same Rust code as ``liquid-splat case run`` and gives the
+same bits, whatever ``threads`` is.
+
+- :func:`rasterize` / :func:`rasterize_vjp`: the Inria rasterizer (``GaussianRasterizer``
+  inputs and settings) and every gradient.
+- :class:`DeformNetwork` (D-3DGS MLP, incl. 6-DoF) and :class:`CfCField` (the liquid field),
+  built from a state_dict, with ``forward`` / ``vjp`` and parameter and MAC counts.
+- :func:`loss`, :func:`step`: the training loss and one whole training iteration.
+- :func:`run_case`: any stage from case-file tensors and metadata.
+- :func:`load` / :func:`save`: case files (safetensors) without other packages.
+- :mod:`liquid_splat.testing`: ``compare`` and ``assert_close`` (the ``case compare`` report).
+- :mod:`liquid_splat.torch`: autograd wrappers and drop-in modules (needs torch).
+- ``python -m liquid_splat ...``: the command-line tool.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from typing import Any, Dict, Mapping, NamedTuple, Optional, Tuple, Union
+
+import numpy as np
+
+from . import _native
+
+__version__: str = _native.__version__
+
+__all__ = [
+    "__version__",
+    "STAGES",
+    "run_case",
+    "load",
+    "save",
+    "rasterize",
+    "rasterize_vjp",
+    "RasterizeResult",
+    "DeformNetwork",
+    "CfCField",
+    "DeformResult",
+    "load_field",
+    "loss",
+    "step",
+    "cli",
+]
+
+STAGES: Tuple[str, ...] = tuple(_native.STAGES)
+
+Tensors = Dict[str, np.ndarray]
+MetaValue = Union[str, bool, int, float]
+PathLike = Union[str, "os.PathLike[str]"]
+
+_FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+# ---------------------------------------------------------------------------
+# Case level
+# ---------------------------------------------------------------------------
+
+
+def run_case(
+    tensors: Mapping[str, np.ndarray],
+    metadata: Mapping[str, MetaValue],
+    *,
+    threads: Optional[int] = None,
+) -> Tuple[Tensors, Dict[str, str]]:
+    """Run the stage ``metadata["stage"]`` names on case-file tensors.
+
+    Returns ``(outputs, output_metadata)``: bit for bit what ``liquid-splat case run``
+    writes for a case file holding ``tensors`` and ``metadata`` (docs/ORACLE.md lists every
+    stage's tensor names and metadata keys). Metadata values may be ``str``, ``bool``,
+    ``int`` or ``float`` (floats are written in the shortest form that round-trips).
+    ``threads``: worker threads for this call (default: all cores); results do not depend
+    on it.
+    """
+    return _native.run_case(dict(tensors), dict(metadata), threads)
+
+
+def load(path: PathLike) -> Tuple[Tensors, Dict[str, str]]:
+    """Read a safetensors file (F32, F64, I32 tensors): ``(tensors, metadata)``."""
+    return _native.load(os.fspath(path))
+
+
+def save(
+    path: PathLike,
+    tensors: Mapping[str, np.ndarray],
+    metadata: Optional[Mapping[str, MetaValue]] = None,
+) -> None:
+    """Write tensors (float32, float64, int32; C order) and metadata as a safetensors file."""
+    _native.save(os.fspath(path), dict(tensors), None if metadata is None else dict(metadata))
+
+
+def cli(*args: str) -> int:
+    """Run the ``liquid-splat`` command-line tool in-process; returns its exit code."""
+    return _native.cli([os.fspath(a) for a in args])
+
+
+def _shape(shape: Tuple[int, ...]) -> str:
+    return "[" + ",".join(str(d) for d in shape) + "]"
+
+
+# ---------------------------------------------------------------------------
+# Argument checks: name the argument, what was expected and what was found.
+# ---------------------------------------------------------------------------
+
+
+class _Args:
+    """Checks the arrays of one call: type, dtype (one float dtype for all), C order,
+    shape (with named dimensions bound by the first array that uses them), finiteness."""
+
+    def __init__(self, func: str):
+        self.func = func
+        self.dtype: Optional[np.dtype] = None
+        self.dtype_from = ""
+        self.dims: Dict[str, Tuple[int, str]] = {}
+
+    def array(self, name: str, x: Any, shape: Tuple[Union[int, str], ...]) -> np.ndarray:
+        where = f"{self.func}(): argument `{name}`"
+        if not isinstance(x, np.ndarray):
+            raise TypeError(
+                f"{where}: expected a numpy.ndarray of float32 or float64, found {type(x).__name__}"
+            )
+        if x.dtype not in _FLOATS:
+            raise TypeError(f"{where}: expected dtype float32 or float64, found dtype {x.dtype}")
+        if self.dtype is None:
+            self.dtype, self.dtype_from = x.dtype, f"`{name}`"
+        elif x.dtype != self.dtype:
+            raise TypeError(
+                f"{where}: expected dtype {self.dtype} (the dtype of {self.dtype_from}), "
+                f"found dtype {x.dtype}"
+            )
+        want = "[" + ",".join(str(d) for d in shape) + "]"
+        if x.ndim != len(shape):
+            raise ValueError(f"{where}: expected shape {want}, found shape {_shape(x.shape)}")
+        for d, n in zip(shape, x.shape):
+            if isinstance(d, int):
+                ok, note = (n == d), ""
+            elif d in self.dims:
+                size, src = self.dims[d]
+                ok, note = (n == size), f" with {d}={size} from `{src}`"
+            else:
+                self.dims[d] = (n, name)
+                ok, note = True, ""
+            if not ok:
+                raise ValueError(
+                    f"{where}: expected shape {want}{note}, found shape {_shape(x.shape)}"
+                )
+        if not x.flags.c_contiguous:
+            raise ValueError(
+                f"{where}: expected a C-contiguous array (numpy.ascontiguousarray), "
+                f"found a non-contiguous array of shape {_shape(x.shape)}"
+            )
+        if not np.isfinite(x).all():
+            bad = int(np.flatnonzero(~np.isfinite(x.ravel()))[0])
+            raise ValueError(
+                f"{where}: expected finite values, found {x.ravel()[bad]} at flat index {bad}"
+            )
+        return x
+
+    def scalar(self, name: str, x: Any, *, positive: bool = False) -> float:
+        where = f"{self.func}(): argument `{name}`"
+        if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+            raise TypeError(f"{where}: expected a float, found {type(x).__name__}")
+        v = float(x)
+        if not math.isfinite(v) or (positive and not v > 0):
+            raise ValueError(
+                f"{where}: expected a finite{' positive' if positive else ''} number, found {v!r}"
+            )
+        return v
+
+    def integer(self, name: str, x: Any, lo: int, hi: Optional[int] = None) -> int:
+        where = f"{self.func}(): argument `{name}`"
+        if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
+            raise TypeError(f"{where}: expected an int, found {type(x).__name__}")
+        v = int(x)
+        if v < lo or (hi is not None and v > hi):
+            rng = f">= {lo}" if hi is None else f"in {lo}..={hi}"
+            raise ValueError(f"{where}: expected an integer {rng}, found {v}")
+        return v
+
+    def choice(self, name: str, x: Any, options: Tuple[str, ...]) -> str:
+        if x not in options:
+            raise ValueError(
+                f"{self.func}(): argument `{name}`: expected one of "
+                f"{', '.join(repr(o) for o in options)}, found {x!r}"
+            )
+        return x
+
+
+# ---------------------------------------------------------------------------
+# Rasterizer
+# ---------------------------------------------------------------------------
+
+
+class RasterizeResult(NamedTuple):
+    """Forward outputs of the rasterizer (docs/ORACLE.md, stage ``rasterize``)."""
+
+    color: np.ndarray  #: [3,H,W], background composited
+    depth: np.ndarray  #: [1,H,W], sum of view-space z·α·T
+    radii: np.ndarray  #: [N] int32, 0 for culled Gaussians
+    final_T: np.ndarray  #: [H,W] transmittance after the last blended Gaussian
+    n_contrib: np.ndarray  #: [H,W] int32, 1-based position of the last blended Gaussian
+    means2D: np.ndarray  #: [N,2] pixel-space centres
+
+
+def _raster_case(
+    func: str,
+    means3D: np.ndarray,
+    opacities: np.ndarray,
+    shs: Optional[np.ndarray],
+    colors_precomp: Optional[np.ndarray],
+    scales: Optional[np.ndarray],
+    rotations: Optional[np.ndarray],
+    cov3D_precomp: Optional[np.ndarray],
+    viewmatrix: np.ndarray,
+    projmatrix: np.ndarray,
+    campos: np.ndarray,
+    bg: np.ndarray,
+    image_height: int,
+    image_width: int,
+    tanfovx: float,
+    tanfovy: float,
+    scale_modifier: float,
+    sh_degree: Optional[int],
+    gradient: str,
+) -> Tuple[_Args, Tensors, Dict[str, MetaValue]]:
+    a = _Args(func)
+    t: Tensors = {"means3D": a.array("means3D", means3D, ("N", 3))}
+    t["opacities"] = a.array("opacities", opacities, ("N", 1))
+    if (shs is None) == (colors_precomp is None):
+        raise ValueError(
+            f"{func}(): expected exactly one of `shs` and `colors_precomp`, found "
+            f"{'both' if shs is not None else 'neither'}"
+        )
+    meta: Dict[str, MetaValue] = {"stage": "rasterize"}
+    if shs is not None:
+        t["shs"] = a.array("shs", shs, ("N", "M", 3))
+        if sh_degree is None:
+            raise ValueError(f"{func}(): argument `sh_degree`: required with `shs`, found None")
+        deg = a.integer("sh_degree", sh_degree, 0, 3)
+        if (deg + 1) ** 2 > shs.shape[1]:
+            raise ValueError(
+                f"{func}(): argument `shs`: expected at least (sh_degree+1)^2 = {(deg + 1) ** 2} "
+                f"coefficients for sh_degree={deg}, found shape {_shape(shs.shape)}"
+            )
+        meta["sh_degree"] = deg
+    else:
+        t["colors_precomp"] = a.array("colors_precomp", colors_precomp, ("N", 3))
+        if sh_degree is not None:
+            meta["sh_degree"] = a.integer("sh_degree", sh_degree, 0, 3)
+    if cov3D_precomp is not None:
+        if scales is not None or rotations is not None:
+            raise ValueError(
+                f"{func}(): expected `cov3D_precomp` or `scales` and `rotations`, found both"
+            )
+        t["cov3D_precomp"] = a.array("cov3D_precomp", cov3D_precomp, ("N", 6))
+    else:
+        if scales is None or rotations is None:
+            raise ValueError(
+                f"{func}(): expected `scales` and `rotations` (or `cov3D_precomp`), found "
+                f"{'no `scales`' if scales is None else 'no `rotations`'}"
+            )
+        t["scales"] = a.array("scales", scales, ("N", 3))
+        t["rotations"] = a.array("rotations", rotations, ("N", 4))
+    t["viewmatrix"] = a.array("viewmatrix", viewmatrix, (4, 4))
+    t["projmatrix"] = a.array("projmatrix", projmatrix, (4, 4))
+    t["campos"] = a.array("campos", campos, (3,))
+    t["bg"] = a.array("bg", bg, (3,))
+    meta["image_height"] = a.integer("image_height", image_height, 1)
+    meta["image_width"] = a.integer("image_width", image_width, 1)
+    meta["tanfovx"] = a.scalar("tanfovx", tanfovx, positive=True)
+    meta["tanfovy"] = a.scalar("tanfovy", tanfovy, positive=True)
+    meta["scale_modifier"] = a.scalar("scale_modifier", scale_modifier)
+    meta["gradient"] = a.choice("gradient", gradient, ("exact", "inria"))
+    return a, t, meta
+
+
+def rasterize(
+    means3D: np.ndarray,
+    opacities: np.ndarray,
+    shs: Optional[np.ndarray] = None,
+    colors_precomp: Optional[np.ndarray] = None,
+    scales: Optional[np.ndarray] = None,
+    rotations: Optional[np.ndarray] = None,
+    cov3D_precomp: Optional[np.ndarray] = None,
+    *,
+    viewmatrix: np.ndarray,
+    projmatrix: np.ndarray,
+    campos: np.ndarray,
+    bg: np.ndarray,
+    image_height: int,
+    image_width: int,
+    tanfovx: float,
+    tanfovy: float,
+    scale_modifier: float = 1.0,
+    sh_degree: Optional[int] = None,
+    threads: Optional[int] = None,
+) -> RasterizeResult:
+    """The Inria rasterizer's forward (with the depth output of the D-3DGS fork).
+
+    Arguments are ``GaussianRasterizer.forward``'s (``means2D`` aside, which only carries a
+    gradient in torch) in its order, then the ``GaussianRasterizationSettings`` fields as
+    keywords. ``opacities`` and ``scales`` are activated; ``rotations`` are ``(w,x,y,z)``
+    used as given; ``viewmatrix``/``projmatrix`` are Inria's ``world_view_transform`` and
+    ``full_proj_transform`` (transposed). Conventions: docs/ORACLE.md, stage ``rasterize``.
+    """
+    _, t, meta = _raster_case(
+        "rasterize", means3D, opacities, shs, colors_precomp, scales, rotations,
+        cov3D_precomp, viewmatrix, projmatrix, campos, bg, image_height, image_width,
+        tanfovx, tanfovy, scale_modifier, sh_degree, "exact",
+    )
+    t["grad_out_color"] = np.zeros((3, meta["image_height"], meta["image_width"]), means3D.dtype)
+    out, _ = _native.run_case(t, meta, threads)
+    return RasterizeResult(
+        out["color"], out["depth"], out["radii"], out["final_T"], out["n_contrib"], out["means2D"]
+    )
+
+
+def rasterize_vjp(
+    means3D: np.ndarray,
+    opacities: np.ndarray,
+    shs: Optional[np.ndarray] = None,
+    colors_precomp: Optional[np.ndarray] = None,
+    scales: Optional[np.ndarray] = None,
+    rotations: Optional[np.ndarray] = None,
+    cov3D_precomp: Optional[np.ndarray] = None,
+    *,
+    viewmatrix: np.ndarray,
+    projmatrix: np.ndarray,
+    campos: np.ndarray,
+    bg: np.ndarray,
+    image_height: int,
+    image_width: int,
+    tanfovx: float,
+    tanfovy: float,
+    grad_color: np.ndarray,
+    grad_depth: Optional[np.ndarray] = None,
+    scale_modifier: float = 1.0,
+    sh_degree: Optional[int] = None,
+    gradient: str = "exact",
+    threads: Optional[int] = None,
+) -> Tensors:
+    """Gradients of ``L = Σ color·grad_color + Σ depth·grad_depth`` w.r.t. every input.
+
+    Same arguments as :func:`rasterize`, plus ``grad_color [3,H,W]``, optional
+    ``grad_depth [1,H,W]`` and ``gradient`` (``"exact"``: the true derivative; ``"inria"``:
+    upstream ``backward.cu``'s formulas, which ignore ``grad_depth``). Returns the case
+    file's names: ``grad_means3D``, ``grad_means2D`` ([N,3], Inria's
+    ``viewspace_points.grad``), ``grad_opacities``, ``grad_shs`` or
+    ``grad_colors_precomp``, ``grad_scales`` and ``grad_rotations`` or
+    ``grad_cov3D_precomp``.
+    """
+    a, t, meta = _raster_case(
+        "rasterize_vjp", means3D, opacities, shs, colors_precomp, scales, rotations,
+        cov3D_precomp, viewmatrix, projmatrix, campos, bg, image_height, image_width,
+        tanfovx, tanfovy, scale_modifier, sh_degree, gradient,
+    )
+    h, w = meta["image_height"], meta["image_width"]
+    t["grad_out_color"] = a.array("grad_color", grad_color, (3, h, w))
+    if grad_depth is not None:
+        t["grad_out_depth"] = a.array("grad_depth", grad_depth, (1, h, w))
+    out, _ = _native.run_case(t, meta, threads)
+    return {k: v for k, v in out.items() if k.startswith("grad_")}
+
+
+# ---------------------------------------------------------------------------
+# Deformation fields
+# ---------------------------------------------------------------------------
+
+
+class DeformResult(NamedTuple):
+    """A field's outputs: offsets added to the mean, the normalised quaternion and the
+    activated scale. ``d_xyz_se3`` ([N,4,4], the 6-DoF MLP only) is the transform upstream's
+    network returns; ``d_xyz`` is then the offset ``R·x + p − x`` its renderer applies."""
+
+    d_xyz: np.ndarray
+    d_rotation: np.ndarray
+    d_scaling: np.ndarray
+    d_xyz_se3: Optional[np.ndarray] = None
+
+
+def _count(sd: Mapping[str, Any], fmt: str) -> int:
+    n = 0
+    while fmt.format(n) in sd:
+        n += 1
+    return n
+
+
+class _Field:
+    kind = ""
+
+    def __init__(self, state_dict: Mapping[str, np.ndarray], config: Dict[str, MetaValue]):
+        sd = dict(state_dict)
+        if not sd:
+            raise ValueError(f"{type(self).__name__}: the state_dict is empty")
+        dtype = None
+        for k, v in sd.items():
+            if not isinstance(v, np.ndarray):
+                raise TypeError(
+                    f"{type(self).__name__}: state_dict[{k!r}]: expected a numpy.ndarray "
+                    f"(from torch: {{k: v.numpy()}}), found {type(v).__name__}"
+                )
+            if v.dtype not in _FLOATS:
+                raise TypeError(
+                    f"{type(self).__name__}: state_dict[{k!r}]: expected dtype float32 or "
+                    f"float64, found dtype {v.dtype}"
+                )
+            if dtype is None:
+                dtype = v.dtype
+            elif v.dtype != dtype:
+                raise TypeError(
+                    f"{type(self).__name__}: state_dict[{k!r}]: expected dtype {dtype} like "
+                    f"the other weights, found dtype {v.dtype}"
+                )
+        self.state_dict: Tensors = {k: np.ascontiguousarray(v) for k, v in sd.items()}
+        self.dtype: np.dtype = np.dtype(dtype)
+        self.config: Dict[str, MetaValue] = dict(config)
+        self.config["field"] = self.kind
+        # Validate names and shapes now (the library names any wrong tensor).
+        n = 1
+        z = np.zeros((n, 3), self.dtype)
+        self.forward(z, np.zeros((n, 1), self.dtype))
+
+    def _inputs(self, func: str, xyz: Any, t: Any) -> Tuple[_Args, Tensors]:
+        a = _Args(f"{type(self).__name__}.{func}")
+        a.dtype, a.dtype_from = self.dtype, "the state_dict"
+        x = a.array("xyz", xyz, ("N", 3))
+        if isinstance(t, (int, float, np.floating)) and not isinstance(t, bool):
+            tt = np.full((x.shape[0], 1), a.scalar("t", t), self.dtype)
+        else:
+            tt = a.array("t", t, ("N", 1))
+        return a, {"xyz": x, "t": tt}
+
+    def _run(self, tensors: Tensors, threads: Optional[int]) -> Tensors:
+        tensors.update(self.state_dict)
+        meta: Dict[str, MetaValue] = {"stage": "deform", **self.config}
+        out, _ = _native.run_case(tensors, meta, threads)
+        return out
+
+    def forward(
+        self, xyz: np.ndarray, t: Union[np.ndarray, float], *, threads: Optional[int] = None
+    ) -> DeformResult:
+        """``(d_xyz, d_rotation, d_scaling[, d_xyz_se3])`` at canonical centres ``xyz``
+        [N,3] and normalised time ``t`` ([N,1] or a float for every point)."""
+        a, ins = self._inputs("forward", xyz, t)
+        n = ins["xyz"].shape[0]
+        for name, c in (("grad_d_xyz", 3), ("grad_d_rotation", 4), ("grad_d_scaling", 3)):
+            ins[name] = np.zeros((n, c), self.dtype)
+        out = self._run(ins, threads)
+        return DeformResult(out["d_xyz"], out["d_rotation"], out["d_scaling"], out.get("d_xyz_se3"))
+
+    __call__ = forward
+
+    def vjp(
+        self,
+        xyz: np.ndarray,
+        t: Union[np.ndarray, float],
+        grad_d_xyz: np.ndarray,
+        grad_d_rotation: np.ndarray,
+        grad_d_scaling: np.ndarray,
+        *,
+        threads: Optional[int] = None,
+    ) -> Tensors:
+        """Gradients of ``Σ d_xyz·grad_d_xyz + Σ d_rotation·grad_d_rotation +
+        Σ d_scaling·grad_d_scaling``: ``grad_t`` [N,1], ``grad.<name>`` for every weight,
+        and (6-DoF only) ``grad_xyz``, the canonical centres' gradient through the warp
+        (the network itself reads ``xyz`` stop-gradient, as upstream)."""
+        a, ins = self._inputs("vjp", xyz, t)
+        ins["grad_d_xyz"] = a.array("grad_d_xyz", grad_d_xyz, ("N", 3))
+        ins["grad_d_rotation"] = a.array("grad_d_rotation", grad_d_rotation, ("N", 4))
+        ins["grad_d_scaling"] = a.array("grad_d_scaling", grad_d_scaling, ("N", 3))
+        out = self._run(ins, threads)
+        return {k: v for k, v in out.items() if k.startswith("grad")}
+
+    def astype(self, dtype: Any) -> "_Field":
+        """The same field with its weights converted to ``dtype`` (float32 or float64)."""
+        new = object.__new__(type(self))
+        new.state_dict = {k: v.astype(dtype) for k, v in self.state_dict.items()}
+        new.dtype = np.dtype(dtype)
+        new.config = dict(self.config)
+        return new
+
+    @property
+    def param_count(self) -> int:
+        """Number of learned parameters."""
+        return int(_native.field_counts(self.config)["params"])
+
+    def macs(self, convention: str = "pytorch") -> int:
+        """MACs per Gaussian as ptflops counts them: ``"aten"`` (linear layers only),
+        ``"pytorch"`` (pytorch backend, count_functional=True) or
+        ``"pytorch_no_functional"``."""
+        counts = _native.field_counts(self.config)
+        key = f"macs_{convention}"
+        if key not in counts:
+            raise ValueError(
+                "macs(): argument `convention`: expected 'aten', 'pytorch' or "
+                f"'pytorch_no_functional', found {convention!r}"
+            )
+        return int(counts[key])
+
+    def __repr__(self) -> str:
+        cfg = ", ".join(f"{k}={v}" for k, v in self.config.items() if k != "field")
+        return f"{type(self).__name__}({cfg}, dtype={self.dtype})"
+
+
+class DeformNetwork(_Field):
+    """The D-3DGS MLP field (``DeformNetwork``, incl. the 6-DoF variant) from its
+    ``deform.pth`` state_dict (numpy arrays under the PyTorch names). Depth, width, the
+    variant (``timenet.*`` present: synthetic, ``is_blender=True``) and 6-DoF
+    (``branch_w.*`` present) are read from the keys and shapes."""
+
+    kind = "mlp"
+
+    def __init__(self, state_dict: Mapping[str, np.ndarray]):
+        sd = dict(state_dict)
+        depth = _count(sd, "linear.{}.weight")
+        if depth == 0:
+            raise ValueError(
+                "DeformNetwork: state_dict: expected `linear.0.weight` ... (a D-3DGS "
+                f"DeformNetwork), found keys {sorted(sd)[:6]}"
+            )
+        config: Dict[str, MetaValue] = {
+            "variant": "synthetic" if "timenet.0.weight" in sd else "real",
+            "depth": depth,
+            "width": int(np.shape(sd["linear.0.weight"])[0]),
+            "is_6dof": "branch_w.weight" in sd,
+        }
+        super().__init__(sd, config)
+
+    @classmethod
+    def new(cls, D: int = 8, W: int = 256, is_blender: bool = False, is_6dof: bool = False, *,
+            seed: int = 0, dtype: Any = np.float32) -> "DeformNetwork":
+        """A freshly initialised network with upstream's constructor arguments
+        (``nn.Linear``'s default initialisation scheme, drawn from ``seed``)."""
+        meta = {"field": "mlp", "depth": D, "width": W, "is_6dof": is_6dof,
+                "variant": "synthetic" if is_blender else "real"}
+        return cls(_native.field_init(meta, seed, np.dtype(dtype).name))
+
+
+class CfCField(_Field):
+    """The liquid field (stacked ``ncps.torch.CfCCell``s) from its state_dict (numpy
+    arrays under the PyTorch names). Depth, width, backbone size and variant are read from
+    the keys and shapes; the activation is not stored in a state_dict, so give it."""
+
+    kind = "cfc"
+
+    def __init__(self, state_dict: Mapping[str, np.ndarray], activation: str = "gelu"):
+        sd = dict(state_dict)
+        depth = _count(sd, "cells.{}.ff1.weight")
+        if depth == 0:
+            raise ValueError(
+                "CfCField: state_dict: expected `cells.0.ff1.weight` ... (a CfC field), "
+                f"found keys {sorted(sd)[:6]}"
+            )
+        config: Dict[str, MetaValue] = {
+            "variant": "synthetic" if "timenet.0.weight" in sd else "real",
+            "depth": depth,
+            "width": int(np.shape(sd["cells.0.ff1.weight"])[0]),
+            "activation": activation,
+            "backbone_units": int(np.shape(sd.get("cells.0.backbone.0.weight", np.zeros((0,))))[0]),
+            "backbone_layers": sum(
+                1 for k in sd if k.startswith("cells.0.backbone.") and k.endswith(".weight")
+            ),
+        }
+        super().__init__(sd, config)
+
+    @classmethod
+    def new(cls, D: int = 6, W: int = 128, variant: str = "synthetic", activation: str = "gelu",
+            backbone_units: int = 64, backbone_layers: int = 2, *, seed: int = 0,
+            dtype: Any = np.float32) -> "CfCField":
+        """A freshly initialised field (``nn.Linear``'s default initialisation scheme,
+        drawn from ``seed``)."""
+        meta = {"field": "cfc", "depth": D, "width": W, "variant": variant,
+                "activation": activation, "backbone_units": backbone_units,
+                "backbone_layers": backbone_layers}
+        return cls(_native.field_init(meta, seed, np.dtype(dtype).name), activation)
+
+
+def load_field(state_dict: Mapping[str, np.ndarray], activation: str = "gelu") -> _Field:
+    """A :class:`DeformNetwork` or :class:`CfCField`, whichever the state_dict's keys are."""
+    if "cells.0.ff1.weight" in state_dict:
+        return CfCField(state_dict, activation)
+    return DeformNetwork(state_dict)
+
+
+# ---------------------------------------------------------------------------
+# Loss and step
+# ---------------------------------------------------------------------------
+
+
+def loss(
+    image: np.ndarray,
+    gt: np.ndarray,
+    lambda_dssim: float = 0.2,
+    *,
+    threads: Optional[int] = None,
+) -> Tensors:
+    """D-3DGS's training loss ``(1 − λ)·L1 + λ·(1 − SSIM)`` of ``image`` [3,H,W] against
+    ``gt``: ``{"loss", "l1", "ssim"}`` (rank-0 arrays) and ``grad_image`` = dloss/dimage."""
+    a = _Args("loss")
+    t = {"image": a.array("image", image, (3, "H", "W")), "gt": a.array("gt", gt, (3, "H", "W"))}
+    lam = a.scalar("lambda_dssim", lambda_dssim)
+    if not 0.0 <= lam <= 1.0:
+        raise ValueError(f"loss(): argument `lambda_dssim`: expected a number in [0, 1], found {lam!r}")
+    out, _ = _native.run_case(t, {"stage": "loss", "lambda_dssim": lam}, threads)
+    return out
+
+
+def step(
+    tensors: Mapping[str, np.ndarray],
+    metadata: Mapping[str, MetaValue],
+    *,
+    threads: Optional[int] = None,
+) -> Tuple[Tensors, Dict[str, str]]:
+    """One whole D-3DGS training iteration (field, rasterizer, loss, backward,
+    densification statistics, Adam) from case-file tensors and metadata (docs/ORACLE.md,
+    stage ``step``; ``stage`` may be left out). Returns ``(outputs, output_metadata)``."""
+    meta = dict(metadata)
+    if meta.setdefault("stage", "step") != "step":
+        raise ValueError(f"step(): argument `metadata`: expected stage 'step', found {meta['stage']!r}")
+    return _native.run_case(dict(tensors), meta, threads)

@@ -1,0 +1,156 @@
+"""Comparison of a backend's outputs with the oracle's, for test suites.
+
+:func:`compare` returns the report of ``liquid-splat case compare`` (computed by the same Rust
+code: the same pass/fail rule, statistics, worst element and table); :func:`assert_close`
+raises ``AssertionError`` with the report's table as its message. Tolerances: the dtype
+defaults (F32 ``atol 1e-5, rtol 1.3e-6``; F64 ``atol 1e-7, rtol 1e-7``; I32 exact), or a
+tolerance file as the CLI reads it (a path, or the same structure as a dict; format in
+docs/ORACLE.md), or :func:`recommended_tolerances`; ``atol``/``rtol``/
+``max_mismatch_fraction``/``equal_nan`` replace the fields of its ``default``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
+
+import numpy as np
+
+from . import _native
+
+__all__ = ["CompareReport", "compare", "assert_close", "recommended_tolerances"]
+
+Tolerances = Union[str, "os.PathLike[str]", Mapping[str, Any]]
+Outputs = Union[str, "os.PathLike[str]", Mapping[str, Any], Tuple[Mapping[str, Any], Mapping[str, str]]]
+
+
+class CompareReport:
+    """The comparison report: ``passed``, one entry per compared tensor in ``tensors``
+    (name, status, dtypes, shapes, tolerance, problems, stats with the worst element),
+    ``missing`` (expected tensors absent from actual: failures) and ``extra`` (only in
+    actual: listed, not failed). ``str(report)`` is the table ``case compare`` prints;
+    ``report.json`` is the JSON ``case compare --report`` writes."""
+
+    def __init__(self, passed: bool, table: str, text: str):
+        self.passed: bool = passed
+        self.table: str = table
+        self.json: str = text
+        d = json.loads(text)
+        self.tensors: List[Dict[str, Any]] = d["tensors"]
+        self.missing: List[str] = d["missing"]
+        self.extra: List[str] = d["extra"]
+
+    def to_dict(self) -> Dict[str, Any]:
+        """The report as the JSON object ``case compare --report`` writes."""
+        return json.loads(self.json)
+
+    def failures(self) -> List[str]:
+        """Names of the tensors that failed or are missing."""
+        return [t["name"] for t in self.tensors if t["status"] != "pass"] + list(self.missing)
+
+    def __str__(self) -> str:
+        return self.table
+
+    def __repr__(self) -> str:
+        return f"<CompareReport passed={self.passed} tensors={len(self.tensors)} failures={self.failures()}>"
+
+
+def _array(name: str, v: Any) -> np.ndarray:
+    if hasattr(v, "detach") and hasattr(v, "cpu"):  # a torch tensor
+        v = v.detach().cpu().numpy()
+    return np.ascontiguousarray(np.asarray(v))
+
+
+def _outputs(which: str, x: Outputs) -> Union[str, Dict[str, np.ndarray]]:
+    if isinstance(x, (str, os.PathLike)):
+        return os.fspath(x)
+    if isinstance(x, tuple) and len(x) == 2 and isinstance(x[0], Mapping):
+        x = x[0]  # (tensors, metadata) from run_case / load
+    if not isinstance(x, Mapping):
+        raise TypeError(
+            f"{which}: expected a dict of arrays, a (tensors, metadata) pair or a path to a "
+            f"safetensors file, found {type(x).__name__}"
+        )
+    return {str(k): _array(f"{which}[{k!r}]", v) for k, v in x.items()}
+
+
+def recommended_tolerances(dtype: Any = "float32") -> Dict[str, Any]:
+    """The recommended tolerance file for a backend in ``dtype`` (float32 or float64;
+    ``fixtures/cases/tolerances_f32.json`` / ``tolerances_f64.json``), as a dict."""
+    key = np.dtype(dtype).name
+    if key not in _native.RECOMMENDED_TOLERANCES:
+        raise ValueError(f"recommended_tolerances(): expected float32 or float64, found {key}")
+    return json.loads(_native.RECOMMENDED_TOLERANCES[key])
+
+
+def compare(
+    expected: Outputs,
+    actual: Outputs,
+    *,
+    tolerances: Optional[Tolerances] = None,
+    atol: Optional[float] = None,
+    rtol: Optional[float] = None,
+    max_mismatch_fraction: Optional[float] = None,
+    equal_nan: bool = False,
+) -> CompareReport:
+    """Compare every tensor of ``expected`` (the oracle's outputs) with ``actual``.
+
+    Each is a dict of arrays (numpy, or torch tensors, copied to C order), a
+    ``(tensors, metadata)`` pair, or a path to a safetensors file. Element ``(a, e)``
+    matches when ``|a − e| ≤ atol + rtol·|e|``; a tensor passes when its mismatches are at
+    most ``floor(max_mismatch_fraction · numel)``. Unusable input (bad tolerances, an
+    unreadable file, an empty ``expected``, an unsupported dtype) raises ``ValueError`` or
+    ``TypeError``; mismatches never raise, they are in the report.
+    """
+    tol_json: Optional[str] = None
+    tol_path: Optional[str] = None
+    if isinstance(tolerances, (str, os.PathLike)):
+        tol_path = os.fspath(tolerances)
+    elif isinstance(tolerances, Mapping):
+        tol_json = json.dumps(tolerances)
+    elif tolerances is not None:
+        raise TypeError(
+            "compare(): argument `tolerances`: expected a path to a tolerance file or a dict, "
+            f"found {type(tolerances).__name__}"
+        )
+    passed, table, text = _native.compare(
+        _outputs("expected", expected),
+        _outputs("actual", actual),
+        tol_json,
+        tol_path,
+        atol,
+        rtol,
+        max_mismatch_fraction,
+        equal_nan,
+    )
+    return CompareReport(passed, table, text)
+
+
+def assert_close(
+    actual: Outputs,
+    expected: Outputs,
+    *,
+    tolerances: Optional[Tolerances] = None,
+    atol: Optional[float] = None,
+    rtol: Optional[float] = None,
+    max_mismatch_fraction: Optional[float] = None,
+    equal_nan: bool = False,
+) -> CompareReport:
+    """Raise ``AssertionError`` (message: the report's table) unless :func:`compare`
+    passes; return the report otherwise. Argument order as ``torch.testing.assert_close``:
+    ``actual`` (the backend's outputs) first, then ``expected`` (the oracle's)."""
+    report = compare(
+        expected,
+        actual,
+        tolerances=tolerances,
+        atol=atol,
+        rtol=rtol,
+        max_mismatch_fraction=max_mismatch_fraction,
+        equal_nan=equal_nan,
+    )
+    if not report.passed:
+        raise AssertionError(
+            f"outputs differ from the oracle's ({', '.join(report.failures())}):\n{report.table}"
+        )
+    return report

@@ -1,0 +1,368 @@
+"""PyTorch wrappers of the oracle (needs ``torch``; CPU tensors, float32 or float64).
+
+- :func:`rasterize_gaussians`, :class:`GaussianRasterizationSettings`,
+  :class:`GaussianRasterizer`: drop-in replacements of the Inria rasterizer's Python API
+  (the D-3DGS fork: ``forward`` returns ``(color, radii, depth)``), differentiable in the
+  ``exact`` gradient mode, depth included. ``means2D`` receives Inria's
+  ``viewspace_points.grad`` (the NDC-scaled screen-space gradient).
+- :class:`DeformNetwork` (D-3DGS MLP, incl. 6-DoF) and :class:`CfCField` (the liquid
+  field) as ``torch.nn.Module``s whose ``state_dict`` keys are upstream's, so a D-3DGS
+  ``deform.pth`` loads as is.
+- :func:`loss`: ``(1 − λ)·L1 + λ·(1 − SSIM)``, differentiable w.r.t. the image.
+
+Every forward and backward is the oracle's (the same bits as ``liquid-splat case run``),
+so ``torch.autograd.grad`` and ``torch.autograd.gradcheck`` (float64) work. Inputs are
+read stop-gradient where upstream reads them so: a field's network reads ``xyz``
+detached (only the 6-DoF warp passes a gradient to ``xyz``), the loss treats ``gt`` as a
+constant, the rasterizer's settings (matrices, camera, background) get no gradient.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
+
+import numpy as np
+import torch
+from torch import nn
+from torch.autograd.function import once_differentiable
+
+from . import _native
+from . import CfCField as _NpCfCField
+from . import DeformNetwork as _NpDeformNetwork
+from . import loss as _np_loss
+from . import rasterize as _np_rasterize
+from . import rasterize_vjp as _np_rasterize_vjp
+
+__all__ = [
+    "GaussianRasterizationSettings",
+    "GaussianRasterizer",
+    "rasterize_gaussians",
+    "DeformNetwork",
+    "CfCField",
+    "loss",
+]
+
+
+def _np(name: str, t: Any) -> Any:
+    """A CPU tensor as a C-order numpy array (a copy only if not contiguous)."""
+    if t is None:
+        return None
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"argument `{name}`: expected a torch.Tensor, found {type(t).__name__}")
+    if t.device.type != "cpu":
+        raise ValueError(
+            f"argument `{name}`: expected a CPU tensor (the oracle runs on the CPU), "
+            f"found device {t.device}"
+        )
+    return t.detach().contiguous().numpy()
+
+
+def _t(a: Optional[np.ndarray]) -> Optional[torch.Tensor]:
+    return None if a is None else torch.from_numpy(a)
+
+
+# ---------------------------------------------------------------------------
+# Rasterizer
+# ---------------------------------------------------------------------------
+
+
+class GaussianRasterizationSettings(NamedTuple):
+    """Inria's ``GaussianRasterizationSettings`` (same fields, same order). ``prefiltered``
+    and ``debug`` are accepted and have no effect on the results."""
+
+    image_height: int
+    image_width: int
+    tanfovx: float
+    tanfovy: float
+    bg: torch.Tensor
+    scale_modifier: float
+    viewmatrix: torch.Tensor
+    projmatrix: torch.Tensor
+    sh_degree: int
+    campos: torch.Tensor
+    prefiltered: bool = False
+    debug: bool = False
+
+
+def _settings_kwargs(s: Any) -> Dict[str, Any]:
+    return dict(
+        viewmatrix=_np("raster_settings.viewmatrix", s.viewmatrix),
+        projmatrix=_np("raster_settings.projmatrix", s.projmatrix),
+        campos=_np("raster_settings.campos", s.campos),
+        bg=_np("raster_settings.bg", s.bg),
+        image_height=int(s.image_height),
+        image_width=int(s.image_width),
+        tanfovx=float(s.tanfovx),
+        tanfovy=float(s.tanfovy),
+        scale_modifier=float(s.scale_modifier),
+    )
+
+
+_RASTER_INPUTS = (
+    "means3D", "means2D", "shs", "colors_precomp", "opacities", "scales", "rotations",
+    "cov3D_precomp",
+)
+
+
+class _RasterizeGaussians(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means3D, means2D, shs, colors_precomp, opacities, scales, rotations,
+                cov3D_precomp, raster_settings):
+        arrays = dict(
+            means3D=_np("means3D", means3D),
+            opacities=_np("opacities", opacities),
+            shs=_np("shs", shs),
+            colors_precomp=_np("colors_precomp", colors_precomp),
+            scales=_np("scales", scales),
+            rotations=_np("rotations", rotations),
+            cov3D_precomp=_np("cov3D_precomp", cov3D_precomp),
+        )
+        kw = _settings_kwargs(raster_settings)
+        sh_degree = int(raster_settings.sh_degree) if shs is not None else None
+        r = _np_rasterize(**arrays, **kw, sh_degree=sh_degree)
+        ctx.arrays, ctx.kw, ctx.sh_degree = arrays, kw, sh_degree
+        ctx.present = [x is not None for x in
+                       (means3D, means2D, shs, colors_precomp, opacities, scales, rotations,
+                        cov3D_precomp)]
+        radii = torch.from_numpy(r.radii)
+        ctx.mark_non_differentiable(radii)
+        return torch.from_numpy(r.color), radii, torch.from_numpy(r.depth)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_color, grad_radii, grad_depth):
+        g = _np_rasterize_vjp(
+            **ctx.arrays, **ctx.kw, sh_degree=ctx.sh_degree,
+            grad_color=_np("grad_color", grad_color),
+            grad_depth=_np("grad_depth", grad_depth),
+            gradient="exact",
+        )
+        out: List[Optional[torch.Tensor]] = []
+        for name, present in zip(_RASTER_INPUTS, ctx.present):
+            key = "grad_means2D" if name == "means2D" else f"grad_{name}"
+            out.append(_t(g.get(key)) if present else None)
+        return (*out, None)
+
+
+def rasterize_gaussians(means3D, means2D, sh, colors_precomp, opacities, scales, rotations,
+                        cov3Ds_precomp, raster_settings):
+    """Inria's ``rasterize_gaussians`` (same arguments, same order): ``(color, radii,
+    depth)``. Pass ``None`` (or an empty tensor, as Inria's wrapper does) for unused
+    inputs."""
+
+    def opt(x):
+        return None if x is None or (isinstance(x, torch.Tensor) and x.numel() == 0) else x
+
+    return _RasterizeGaussians.apply(
+        means3D, means2D, opt(sh), opt(colors_precomp), opacities, opt(scales),
+        opt(rotations), opt(cov3Ds_precomp), raster_settings,
+    )
+
+
+class GaussianRasterizer(nn.Module):
+    """Inria's ``GaussianRasterizer``: ``forward(means3D, means2D, opacities, shs=None,
+    colors_precomp=None, scales=None, rotations=None, cov3D_precomp=None)`` →
+    ``(color [3,H,W], radii [N], depth [1,H,W])``."""
+
+    def __init__(self, raster_settings: GaussianRasterizationSettings):
+        super().__init__()
+        self.raster_settings = raster_settings
+
+    def markVisible(self, positions: torch.Tensor) -> torch.Tensor:
+        """Inria's frustum test: view-space z > 0.2 (``in_frustum``)."""
+        with torch.no_grad():
+            v = self.raster_settings.viewmatrix.to(positions.dtype)
+            z = positions @ v[:3, 2] + v[3, 2]
+            return z > 0.2
+
+    def forward(self, means3D, means2D, opacities, shs=None, colors_precomp=None, scales=None,
+                rotations=None, cov3D_precomp=None):
+        if (shs is None and colors_precomp is None) or (shs is not None and colors_precomp is not None):
+            raise ValueError("Please provide exactly one of either SHs or precomputed colors!")
+        if ((scales is None or rotations is None) and cov3D_precomp is None) or (
+            (scales is not None or rotations is not None) and cov3D_precomp is not None
+        ):
+            raise ValueError(
+                "Please provide exactly one of either scale/rotation pair or precomputed 3D covariance!"
+            )
+        return rasterize_gaussians(means3D, means2D, shs, colors_precomp, opacities, scales,
+                                   rotations, cov3D_precomp, self.raster_settings)
+
+
+# ---------------------------------------------------------------------------
+# Deformation fields
+# ---------------------------------------------------------------------------
+
+
+class _Deform(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, config, names, xyz, t, *params):
+        x = _np("xyz", xyz)
+        tt = _np("t", t)
+        case: Dict[str, np.ndarray] = {"xyz": x, "t": tt}
+        case.update({n: _np(n, p) for n, p in zip(names, params)})
+        n = x.shape[0]
+        zeros = {k: np.zeros((n, c), x.dtype) for k, c in
+                 (("grad_d_xyz", 3), ("grad_d_rotation", 4), ("grad_d_scaling", 3))}
+        meta = {"stage": "deform", **config}
+        out, _ = _native.run_case({**case, **zeros}, meta)
+        ctx.case, ctx.meta, ctx.names = case, meta, names
+        return (torch.from_numpy(out["d_xyz"]), torch.from_numpy(out["d_rotation"]),
+                torch.from_numpy(out["d_scaling"]))
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g_xyz, g_rot, g_scale):
+        case = dict(ctx.case)
+        case["grad_d_xyz"] = _np("grad_d_xyz", g_xyz)
+        case["grad_d_rotation"] = _np("grad_d_rotation", g_rot)
+        case["grad_d_scaling"] = _np("grad_d_scaling", g_scale)
+        out, _ = _native.run_case(case, ctx.meta)
+        grad_xyz = _t(out.get("grad_xyz"))
+        grad_t = torch.from_numpy(out["grad_t"])
+        return (None, None, grad_xyz, grad_t,
+                *(torch.from_numpy(out[f"grad.{n}"]) for n in ctx.names))
+
+
+class _FieldModule(nn.Module):
+    """A field whose parameters are registered under upstream's state_dict names."""
+
+    _config: Dict[str, Any]
+
+    def _build(self, config: Dict[str, Any], seed: int, dtype: torch.dtype) -> None:
+        self._config = dict(config)
+        name = {torch.float32: "float32", torch.float64: "float64"}.get(dtype)
+        if name is None:
+            raise TypeError(f"argument `dtype`: expected torch.float32 or torch.float64, found {dtype}")
+        weights = _native.field_init(self._config, seed, name)
+        for key in sorted(weights):
+            *path, leaf = key.split(".")
+            module: nn.Module = self
+            for part in path:
+                child = module._modules.get(part)
+                if child is None:
+                    child = nn.Module()
+                    module.add_module(part, child)
+                module = child
+            module.register_parameter(leaf, nn.Parameter(torch.from_numpy(weights[key])))
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(d_xyz, d_rotation, d_scaling)`` at canonical centres ``x`` [N,3] and time
+        ``t`` [N,1]. With the 6-DoF MLP, ``d_xyz`` is the offset ``R·x + p − x`` that
+        upstream's renderer applies (its network returns the transform; see
+        :meth:`transform`)."""
+        names, params = zip(*self.named_parameters())
+        return _Deform.apply(self._config, list(names), x, t, *params)
+
+    def transform(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """6-DoF MLP only: the [N,4,4] SE(3) transform upstream's network returns
+        (not differentiable here; differentiate through :meth:`forward`)."""
+        if not self._config.get("is_6dof"):
+            raise ValueError("transform(): only the 6-DoF DeformNetwork returns a transform")
+        sd = {k: _np(k, v) for k, v in self.state_dict().items()}
+        field = _NpDeformNetwork(sd)
+        tt = _np("t", t)
+        return torch.from_numpy(field.forward(_np("x", x), tt).d_xyz_se3)
+
+    @property
+    def param_count(self) -> int:
+        return int(_native.field_counts(self._config)["params"])
+
+    def macs(self, convention: str = "pytorch") -> int:
+        """MACs per Gaussian as ptflops counts them (``aten``, ``pytorch``,
+        ``pytorch_no_functional``)."""
+        key = f"macs_{convention}"
+        counts = _native.field_counts(self._config)
+        if key not in counts:
+            raise ValueError(
+                "macs(): argument `convention`: expected 'aten', 'pytorch' or "
+                f"'pytorch_no_functional', found {convention!r}"
+            )
+        return int(counts[key])
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={v}" for k, v in self._config.items() if k != "field")
+
+
+class DeformNetwork(_FieldModule):
+    """D-3DGS's ``DeformNetwork`` with upstream's constructor: ``is_blender=True`` is the
+    synthetic variant (timenet), ``is_6dof`` the SE(3) variant. Its ``state_dict`` keys
+    are ``deform.pth``'s: ``m.load_state_dict(torch.load("deform.pth"))`` works as is.
+    Weights start from the oracle's seeded ``nn.Linear``-default initialisation."""
+
+    def __init__(self, D: int = 8, W: int = 256, input_ch: int = 3, output_ch: int = 59,
+                 multires: int = 10, is_blender: bool = False, is_6dof: bool = False, *,
+                 seed: int = 0, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        if (input_ch, output_ch, multires) != (3, 59, 10):
+            raise ValueError(
+                "DeformNetwork: expected input_ch=3, output_ch=59, multires=10 (the values "
+                f"D-3DGS uses), found {input_ch}, {output_ch}, {multires}"
+            )
+        self._build({"field": "mlp", "depth": D, "width": W,
+                     "variant": "synthetic" if is_blender else "real",
+                     "is_6dof": bool(is_6dof)}, seed, dtype)
+
+    @classmethod
+    def from_state_dict(cls, state_dict: Mapping[str, torch.Tensor]) -> "DeformNetwork":
+        """The network a ``deform.pth`` state_dict describes (sizes read from its keys and
+        shapes), with those weights."""
+        sd = {k: _np(k, v) for k, v in state_dict.items()}
+        c = _NpDeformNetwork(sd).config
+        dtype = torch.float64 if next(iter(sd.values())).dtype == np.float64 else torch.float32
+        m = cls(D=int(c["depth"]), W=int(c["width"]), is_blender=c["variant"] == "synthetic",
+                is_6dof=bool(c["is_6dof"]), dtype=dtype)
+        m.load_state_dict(state_dict)
+        return m
+
+
+class CfCField(_FieldModule):
+    """The liquid field (``D`` stacked ``ncps.torch.CfCCell``s of width ``W``), with the
+    constructor of ``python/reference_deform.py``; ``state_dict`` keys as there
+    (``cells.L.backbone.0.weight``, ..., ``skip.*``, ``head.*``, ``timenet.*``)."""
+
+    def __init__(self, D: int = 6, W: int = 128, variant: str = "synthetic",
+                 activation: str = "gelu", backbone_units: int = 64, backbone_layers: int = 2,
+                 *, seed: int = 0, dtype: torch.dtype = torch.float32):
+        super().__init__()
+        self._build({"field": "cfc", "depth": D, "width": W, "variant": variant,
+                     "activation": activation, "backbone_units": backbone_units,
+                     "backbone_layers": backbone_layers}, seed, dtype)
+
+    @classmethod
+    def from_state_dict(cls, state_dict: Mapping[str, torch.Tensor],
+                        activation: str = "gelu") -> "CfCField":
+        """The field a state_dict describes (sizes from its keys and shapes; the
+        activation is not stored, so give it), with those weights."""
+        sd = {k: _np(k, v) for k, v in state_dict.items()}
+        c = _NpCfCField(sd, activation).config
+        dtype = torch.float64 if next(iter(sd.values())).dtype == np.float64 else torch.float32
+        m = cls(D=int(c["depth"]), W=int(c["width"]), variant=str(c["variant"]),
+                activation=activation, backbone_units=int(c["backbone_units"]),
+                backbone_layers=int(c["backbone_layers"]), dtype=dtype)
+        m.load_state_dict(state_dict)
+        return m
+
+
+# ---------------------------------------------------------------------------
+# Loss
+# ---------------------------------------------------------------------------
+
+
+class _Loss(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, image, gt, lambda_dssim):
+        out = _np_loss(_np("image", image), _np("gt", gt), lambda_dssim)
+        ctx.grad_image = torch.from_numpy(out["grad_image"])
+        return torch.from_numpy(out["loss"])
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, g):
+        return g * ctx.grad_image, None, None
+
+
+def loss(image: torch.Tensor, gt: torch.Tensor, lambda_dssim: float = 0.2) -> torch.Tensor:
+    """D-3DGS's ``(1 − λ)·l1_loss(image, gt) + λ·(1 − ssim(image, gt))`` of [3,H,W]
+    images, differentiable w.r.t. ``image``."""
+    return _Loss.apply(image, gt, float(lambda_dssim))

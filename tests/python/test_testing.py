@@ -1,0 +1,70 @@
+"""liquid_splat.testing: the report of `case compare`, computed by the same code."""
+
+import json
+
+import numpy as np
+import pytest
+
+import liquid_splat as ls
+from liquid_splat.testing import assert_close, compare, recommended_tolerances
+from conftest import CASES
+
+
+def test_report_equals_the_cli_report(tmp_path):
+    e, _ = ls.load(CASES / "rasterize_f32_exact.expected.safetensors")
+    a = dict(e)
+    a["color"] = e["color"] + np.float32(3e-5)
+    a["n_contrib"] = e["n_contrib"].copy()
+    a["n_contrib"][0, 0] += 1
+    del a["depth"]
+    a["extra"] = np.zeros(2, np.float32)
+    ls.save(tmp_path / "a.safetensors", a)
+    tol = CASES / "tolerances_f32.json"
+    report = compare(CASES / "rasterize_f32_exact.expected.safetensors",
+                     tmp_path / "a.safetensors", tolerances=tol)
+    code = ls.cli("case", "compare", str(CASES / "rasterize_f32_exact.expected.safetensors"),
+                  str(tmp_path / "a.safetensors"), "--tolerances", str(tol),
+                  "--report", str(tmp_path / "r.json"))
+    cli = json.loads((tmp_path / "r.json").read_text())
+    assert code == (0 if report.passed else 1)
+    assert report.to_dict() == cli
+    assert report.missing == ["depth"] and report.extra == ["extra"] and not report.passed
+    # In-memory dicts give the same tensors' verdicts and statistics (only the labels differ).
+    mem = compare(e, a, tolerances=json.loads(tol.read_text()))
+    assert mem.tensors == report.tensors
+
+
+def test_tolerances_and_overrides():
+    e = {"x": np.array([1.0, 2.0, 3.0])}
+    a = {"x": np.array([1.0, 2.0, 3.0 + 1e-6])}
+    assert not compare(e, a).passed                       # F64 default atol 1e-7, rtol 1e-7
+    assert compare(e, a, atol=1e-5).passed
+    assert compare(e, a, max_mismatch_fraction=0.34).passed
+    assert compare(e, a, tolerances={"tensors": {"x": {"rtol": 1e-6}}}).passed
+    nan = {"x": np.array([np.nan])}
+    assert not compare(nan, nan).passed and compare(nan, nan, equal_nan=True).passed
+    with pytest.raises(ValueError, match="unknown|bogus"):
+        compare(e, a, tolerances={"default": {"bogus": 1}})
+    with pytest.raises(ValueError, match="atol"):
+        compare(e, a, atol=-1.0)
+
+
+def test_assert_close_raises_with_the_table():
+    e = {"x": np.zeros((2, 2)), "y": np.ones(3, np.float32)}
+    a = {"x": np.array([[0.0, 0.5], [0.0, 0.0]]), "y": np.ones(3, np.float32)}
+    with pytest.raises(AssertionError) as err:
+        assert_close(a, e)
+    msg = str(err.value)
+    assert "(x)" in msg and "worst at [0,1]" in msg.replace(", ", ",")
+    assert assert_close(e, e).passed
+
+
+def test_recommended_tolerances_are_the_files():
+    for dt, f in (("float32", "tolerances_f32.json"), ("float64", "tolerances_f64.json")):
+        assert recommended_tolerances(dt) == json.loads((CASES / f).read_text())
+
+
+def test_torch_tensors_are_accepted():
+    torch = pytest.importorskip("torch")
+    e = {"x": np.arange(4.0)}
+    assert compare(e, {"x": torch.arange(4.0, dtype=torch.float64)}).passed

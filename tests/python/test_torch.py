@@ -1,0 +1,194 @@
+"""liquid_splat.torch: autograd wrappers, drop-in rasterizer and field modules.
+Skipped when torch is not installed."""
+
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+import liquid_splat as ls  # noqa: E402
+from liquid_splat import torch as lt  # noqa: E402
+from conftest import CASES, ROOT, bits_equal, weights  # noqa: E402
+
+
+def tensors(name):
+    t, m = ls.load(CASES / f"{name}.input.safetensors")
+    e, _ = ls.load(CASES / f"{name}.expected.safetensors")
+    return {k: torch.from_numpy(v) for k, v in t.items()}, m, e
+
+
+def settings(T, m, sh_degree=None):
+    return lt.GaussianRasterizationSettings(
+        image_height=int(m["image_height"]), image_width=int(m["image_width"]),
+        tanfovx=float(m["tanfovx"]), tanfovy=float(m["tanfovy"]), bg=T["bg"],
+        scale_modifier=float(m["scale_modifier"]), viewmatrix=T["viewmatrix"],
+        projmatrix=T["projmatrix"], sh_degree=int(m["sh_degree"]) if sh_degree is None else sh_degree,
+        campos=T["campos"], prefiltered=False, debug=False)
+
+
+@pytest.mark.parametrize("dtype", ["f32", "f64"])
+def test_rasterizer_is_the_golden_case(dtype):
+    T, m, e = tensors(f"rasterize_{dtype}_exact")
+    raster = lt.GaussianRasterizer(settings(T, m))
+    leaves = {k: T[k].clone().requires_grad_() for k in ("means3D", "opacities", "shs", "scales", "rotations")}
+    means2D = torch.zeros_like(T["means3D"], requires_grad=True)
+    color, radii, depth = raster(leaves["means3D"], means2D, leaves["opacities"], shs=leaves["shs"],
+                                 scales=leaves["scales"], rotations=leaves["rotations"])
+    bits_equal({"color": color.detach().numpy(), "radii": radii.numpy(), "depth": depth.detach().numpy()},
+               {k: e[k] for k in ("color", "radii", "depth")})
+    ((color * T["grad_out_color"]).sum() + (depth * T["grad_out_depth"]).sum()).backward()
+    got = {f"grad_{k}": v.grad.numpy() for k, v in leaves.items()}
+    got["grad_means2D"] = means2D.grad.numpy()
+    bits_equal(got, {k: v for k, v in e.items() if k.startswith("grad_")})
+    vis = raster.markVisible(T["means3D"])
+    assert vis.dtype == torch.bool and bool(vis[radii > 0].all())
+
+
+def test_rasterizer_gradcheck_float64():
+    T, m, _ = tensors("rasterize_f64_exact")
+    st = settings(T, m, sh_degree=1)
+    shs = T["shs"][:, :4].contiguous()          # degree 1: fewer coefficients to perturb
+    raster = lt.GaussianRasterizer(st)
+    color, radii, depth = raster(T["means3D"], None, T["opacities"], shs=shs, scales=T["scales"],
+                                 rotations=T["rotations"])
+    # Non-empty: most Gaussians visible, the image is not just the background, depth > 0.
+    assert int((radii > 0).sum()) >= 5
+    assert float((color - T["bg"][:, None, None]).abs().max()) > 0.1 and float(depth.max()) > 0
+
+    def render(means3D, opacities, shs, scales, rotations):
+        c, _, d = raster(means3D, None, opacities, shs=shs, scales=scales, rotations=rotations)
+        return c, d
+
+    args = tuple(x.clone().requires_grad_() for x in
+                 (T["means3D"], T["opacities"], shs, T["scales"], T["rotations"]))
+    assert torch.autograd.gradcheck(render, args)
+
+    # Precomputed colours and covariances.
+    q = torch.nn.functional.normalize(T["rotations"], dim=1)
+    w, x, y, z = q.unbind(1)
+    R = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).view(-1, 3, 3)
+    M = R * T["scales"][:, None, :]
+    S = M @ M.transpose(1, 2)
+    cov = torch.stack([S[:, 0, 0], S[:, 0, 1], S[:, 0, 2], S[:, 1, 1], S[:, 1, 2], S[:, 2, 2]], 1)
+    colors = torch.rand(T["means3D"].shape[0], 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+
+    def render2(opacities, colors_precomp, cov3D_precomp):
+        c, _, d = raster(T["means3D"], None, opacities, colors_precomp=colors_precomp,
+                         cov3D_precomp=cov3D_precomp)
+        return c, d
+
+    args = tuple(v.clone().requires_grad_() for v in (T["opacities"], colors, cov))
+    assert torch.autograd.gradcheck(render2, args)
+
+
+def test_rasterizer_rejects_bad_arguments():
+    T, m, _ = tensors("rasterize_f64_exact")
+    raster = lt.GaussianRasterizer(settings(T, m))
+    with pytest.raises(ValueError, match="exactly one of either SHs or precomputed colors"):
+        raster(T["means3D"], None, T["opacities"], scales=T["scales"], rotations=T["rotations"])
+    with pytest.raises(TypeError, match=r"`opacities`: expected dtype float64 \(the dtype of `means3D`\)"):
+        raster(T["means3D"], None, T["opacities"].float(), shs=T["shs"], scales=T["scales"],
+               rotations=T["rotations"])
+    if torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CPU tensor"):
+            raster(T["means3D"].cuda(), None, T["opacities"], shs=T["shs"], scales=T["scales"],
+                   rotations=T["rotations"])
+
+
+@pytest.mark.parametrize("name", ["deform_f64_mlp", "deform_f32_cfc", "deform_f32_mlp", "deform_f64_cfc"])
+def test_field_modules_are_the_golden_case(name, tmp_path):
+    T, m, e = tensors(name)
+    sd = weights(T)
+    cls = lt.CfCField if m["field"] == "cfc" else lt.DeformNetwork
+    dtype = T["xyz"].dtype
+    if cls is lt.DeformNetwork:
+        net = lt.DeformNetwork(D=int(m["depth"]), W=int(m["width"]), is_blender=True, dtype=dtype)
+    else:
+        net = lt.CfCField(D=int(m["depth"]), W=int(m["width"]), activation=m["activation"],
+                          backbone_units=int(m["backbone_units"]), dtype=dtype)
+    torch.save(sd, tmp_path / "deform.pth")
+    net.load_state_dict(torch.load(tmp_path / "deform.pth"))   # strict: upstream's keys
+    assert sorted(net.state_dict()) == sorted(sd)
+    t = T["t"].clone().requires_grad_()
+    d_xyz, d_rot, d_scale = net(T["xyz"], t)
+    bits_equal({"d_xyz": d_xyz.detach().numpy(), "d_rotation": d_rot.detach().numpy(),
+                "d_scaling": d_scale.detach().numpy()}, {k: e[k] for k in ("d_xyz", "d_rotation", "d_scaling")})
+    L = (d_xyz * T["grad_d_xyz"]).sum() + (d_rot * T["grad_d_rotation"]).sum() + (d_scale * T["grad_d_scaling"]).sum()
+    names, params = zip(*net.named_parameters())
+    grads = torch.autograd.grad(L, (t, *params))
+    got = {"grad_t": grads[0].numpy(), **{f"grad.{n}": g.numpy() for n, g in zip(names, grads[1:])}}
+    bits_equal(got, {k: v for k, v in e.items() if k.startswith("grad")})
+    assert net.param_count == sum(v.numel() for v in sd.values())
+    again = cls.from_state_dict(sd, **({"activation": m["activation"]} if cls is lt.CfCField else {}))
+    assert torch.equal(again(T["xyz"], T["t"])[0], d_xyz)
+
+
+def _gradcheck_field(net, n=4, with_xyz=False):
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(n, 3, dtype=torch.float64, generator=g)
+    t = torch.rand(n, 1, dtype=torch.float64, generator=g).requires_grad_()
+    names, params = zip(*net.named_parameters())
+    some = [p for nme, p in zip(names, params) if nme.endswith("bias")][:3] + [params[0]]
+
+    def f(t, *ws):
+        return net(x, t)
+
+    assert torch.autograd.gradcheck(f, (t, *some))
+
+
+def test_field_gradcheck_float64():
+    _gradcheck_field(lt.DeformNetwork(D=4, W=16, is_blender=True, dtype=torch.float64))
+    _gradcheck_field(lt.DeformNetwork(D=4, W=16, is_6dof=True, dtype=torch.float64))
+    _gradcheck_field(lt.CfCField(D=2, W=8, backbone_units=8, dtype=torch.float64))
+    _gradcheck_field(lt.CfCField(D=2, W=8, variant="real", activation="tanh", backbone_units=8,
+                                 dtype=torch.float64))
+
+
+def test_6dof_gradient_reaches_xyz_through_the_warp():
+    net = lt.DeformNetwork(D=4, W=16, is_6dof=True, dtype=torch.float64, seed=5)
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(6, 3, dtype=torch.float64, generator=g).requires_grad_()
+    t = torch.rand(6, 1, dtype=torch.float64, generator=g)
+    d_xyz, _, _ = net(x, t)
+    T = net.transform(x, t)
+    R, p = T[:, :3, :3], T[:, :3, 3]
+    torch.testing.assert_close(d_xyz, (R @ x.detach()[:, :, None])[:, :, 0] + p - x.detach())
+    cot = torch.randn(6, 3, dtype=torch.float64, generator=g)
+    (gx,) = torch.autograd.grad((x + d_xyz).mul(cot).sum(), x)
+    torch.testing.assert_close(gx, (R.transpose(1, 2) @ cot[:, :, None])[:, :, 0])
+
+
+def test_mlp_matches_the_independent_reference():
+    sys.path.insert(0, str(ROOT / "python"))
+    try:
+        import reference_deform
+    finally:
+        sys.path.pop(0)
+    T, m, _ = tensors("deform_f64_mlp")
+    sd = weights(T)
+    ref = reference_deform.DeformNetwork(D=int(m["depth"]), W=int(m["width"]), variant="synthetic").double()
+    ref.load_state_dict(sd)
+    net = lt.DeformNetwork.from_state_dict(sd)
+    for a, b in zip(net(T["xyz"], T["t"]), ref(T["xyz"], T["t"])):
+        torch.testing.assert_close(a, b, atol=1e-12, rtol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", ["f32", "f64"])
+def test_loss_is_the_golden_case(dtype):
+    T, m, e = tensors(f"loss_{dtype}")
+    image = T["image"].clone().requires_grad_()
+    L = lt.loss(image, T["gt"], float(m["lambda_dssim"]))
+    (g,) = torch.autograd.grad(L, image)
+    bits_equal({"loss": L.detach().numpy(), "grad_image": g.numpy()},
+               {k: e[k] for k in ("loss", "grad_image")})
+
+
+def test_loss_gradcheck_float64():
+    g = torch.Generator().manual_seed(0)
+    gt = torch.rand(3, 10, 12, dtype=torch.float64, generator=g)
+    image = (gt + 0.2 * torch.randn(3, 10, 12, dtype=torch.float64, generator=g)).requires_grad_()
+    assert torch.autograd.gradcheck(lambda im: lt.loss(im, gt) * 3.0, (image,))
