@@ -46,6 +46,7 @@ pub mod deform;
 pub mod densify;
 pub mod error;
 pub mod gaussians;
+pub mod gsplat;
 pub mod io;
 pub mod loss;
 pub mod lpips;
