@@ -10,7 +10,7 @@
 //! 3. colours: post-activation `[N, D]` broadcast to each camera, or SH
 //!    `[N, K, 3]` evaluated at `dirs = mean − campos` (`campos = −Rᵀt`) for
 //!    visible rows and turned into `clamp_min(SH + 0.5, 0)` (`rendering.py`
-//!    v1.5.3 l.505–531; 1.6 `Rendering.cpp` l.631–643);
+//!    v1.5.3 l.491–525; 1.6 `Rendering.cpp` l.631–643);
 //! 4. `isect_tiles` (1.5.3 radius box; 1.6 AccuTile with the conics and the
 //!    row opacities, `Rendering.cpp` l.1303–1328) and `isect_offset_encode`;
 //! 5. `rasterize_to_pixels` with the backgrounds (`render_mode = "RGB"`).

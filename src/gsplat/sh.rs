@@ -5,7 +5,7 @@
 //! (`csrc/SphericalHarmonicsCUDA.cu`, v1.5.3 l.21–110), and the backward.
 //!
 //! No `+0.5` and no clamp here: `rasterization` adds them
-//! (`clamp_min(colors + 0.5, 0)`, `rendering.py` v1.5.3 l.531).
+//! (`clamp_min(colors + 0.5, 0)`, `rendering.py` v1.5.3 l.525).
 //!
 //! The backward is the exact derivative: `v_coeffs[k] = Y_k(n)·v_color`, and
 //! `v_dirs = (v_n − (v_n·n) n)/|d|` with `v_n = Σ_k coeffs_k v_color ∇Y_k(n)`.
