@@ -219,8 +219,8 @@ fn versions_agree_below_the_alpha_clamp_and_accutile_is_tighter() {
         image_ids: None,
         n: 1,
     };
-    let bx = isect_tiles(&input, 4, 16, 16, 1, TileRule::RadiusBox).unwrap();
-    let ac = isect_tiles(&input, 4, 16, 16, 1, TileRule::AccuTile).unwrap();
+    let bx = isect_tiles(&input, 4, 16, 16, 1, Version::V1_6, TileRule::RadiusBox).unwrap();
+    let ac = isect_tiles(&input, 4, 16, 16, 1, Version::V1_6, TileRule::AccuTile).unwrap();
     println!(
         "radius box {} tiles, AccuTile {} tiles",
         bx.isect_ids.len(),
@@ -229,7 +229,7 @@ fn versions_agree_below_the_alpha_clamp_and_accutile_is_tighter() {
     assert!(ac.isect_ids.len() < bx.isect_ids.len());
     assert!(ac.flatten_ids.iter().all(|&f| f == 0));
     // Offsets: per tile, the number of intersections in earlier tiles.
-    let off = isect_offset_encode(&ac.isect_ids, 1, 16, 16);
+    let off = isect_offset_encode(&ac.isect_ids, 1, 16, 16, Version::V1_6);
     assert_eq!(off.len(), 256);
     for (t, &o) in off.iter().enumerate() {
         let before = ac
@@ -238,6 +238,25 @@ fn versions_agree_below_the_alpha_clamp_and_accutile_is_tighter() {
             .filter(|&&k| ((k >> 32) as usize) < t)
             .count();
         assert_eq!(o as usize, before, "tile {t}");
+    }
+}
+
+/// Key field widths: 1.5.3 `floor(log2(n)) + 1`, 1.6 the bit width of `n − 1`
+/// (found by the cross-check against gsplat 1.6's torch `_isect_tiles`).
+#[test]
+fn key_bit_widths_per_version() {
+    use liquid_splat::gsplat::isect::key_bits;
+    for (n, old, new) in [
+        (1, 1, 0),
+        (2, 2, 1),
+        (4, 3, 2),
+        (6, 3, 3),
+        (8, 4, 3),
+        (9, 4, 4),
+        (300, 9, 9),
+    ] {
+        assert_eq!(key_bits(Version::V1_5_3, n), old, "{n}");
+        assert_eq!(key_bits(Version::V1_6, n), new, "{n}");
     }
 }
 

@@ -16,13 +16,16 @@
 //!   are given (always, in 1.6's `rasterization`).
 //!
 //! Keys: `isect_id = image_id << (32 + tile_n_bits) | tile_id << 32 |
-//! depth_bits`, with `tile_n_bits = floor(log2(n_tiles)) + 1` and
+//! depth_bits`, with [`key_bits`]: `tile_n_bits = floor(log2(n_tiles)) + 1`
+//! at 1.5.3 (`csrc/Intersect.cpp` l.48–51), the bit width of `n_tiles − 1`
+//! (0 for one tile) at 1.6 (`bits_for_count`, `csrc/MathUtils.h` l.23–33,
+//! commit a5316070 "correct intersect (image, tile) id bit-widths"); and
 //! `depth_bits` the IEEE bits of the depth narrowed to f32 (1.6 l.279–285;
 //! 1.5.3 reinterprets the low 32 bits of the depth tensor, the same thing for
 //! f32 depths). gsplat sorts the keys with a stable radix sort, so equal keys
 //! keep ascending entry order: the order here is (key, entry index).
 
-use super::check_len;
+use super::{check_len, Version};
 use crate::error::{Error, Result};
 use crate::math::Real;
 use rayon::prelude::*;
@@ -66,9 +69,19 @@ pub struct Isects {
     pub flatten_ids: Vec<i32>,
 }
 
-/// `floor(log2(v)) + 1` for `v ≥ 1` (the bit width).
-pub fn n_bits(v: usize) -> u32 {
-    usize::BITS - v.max(1).leading_zeros()
+/// `floor(log2(v)) + 1` for `v ≥ 1` (the bit width of `v`).
+fn bit_width(v: usize) -> u32 {
+    usize::BITS - v.leading_zeros()
+}
+
+/// Bits of the image or tile field of a key for `count` images or tiles:
+/// 1.5.3 `floor(log2(count)) + 1`; 1.6 `bits_for_count`, the bit width of
+/// `count − 1` (0 when `count ≤ 1`). They differ for powers of two and 1.
+pub fn key_bits(version: Version, count: usize) -> u32 {
+    match version {
+        Version::V1_5_3 => bit_width(count.max(1)),
+        Version::V1_6 => bit_width(count.saturating_sub(1)),
+    }
 }
 
 fn sat_u32<T: Real>(v: T) -> i64 {
@@ -219,6 +232,7 @@ pub fn isect_tiles<T: Real>(
     tile_width: usize,
     tile_height: usize,
     n_images: usize,
+    version: Version,
     rule: TileRule,
 ) -> Result<Isects> {
     let m = input.depths.len();
@@ -231,12 +245,12 @@ pub fn isect_tiles<T: Real>(
         ));
     }
     let n_tiles = tile_width * tile_height;
-    let tile_bits = n_bits(n_tiles);
-    let image_bits = n_bits(n_images);
+    let tile_bits = key_bits(version, n_tiles);
+    let image_bits = key_bits(version, n_images);
     if tile_bits + image_bits > 31 {
         return Err(Error::invalid(
             "tiles",
-            format!("{n_images} images of {n_tiles} tiles need more than 32 key bits"),
+            format!("{n_images} images of {n_tiles} tiles need more than 31 bits of image and tile key (gsplat allows 32; here the key is a signed int64)"),
         ));
     }
     if let Some(ids) = input.image_ids {
@@ -336,9 +350,10 @@ pub fn isect_offset_encode(
     n_images: usize,
     tile_width: usize,
     tile_height: usize,
+    version: Version,
 ) -> Vec<i32> {
     let n_tiles = tile_width * tile_height;
-    let tile_bits = n_bits(n_tiles);
+    let tile_bits = key_bits(version, n_tiles);
     let mut offsets = vec![0i32; n_images * n_tiles];
     let mut pos = 0usize;
     for (slot, off) in offsets.iter_mut().enumerate() {

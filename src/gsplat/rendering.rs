@@ -305,9 +305,11 @@ pub fn rasterization<T: Real>(
         tile_width,
         tile_height,
         c,
+        s.version,
         rule,
     )?;
-    let isect_offsets = isect_offset_encode(&isects.isect_ids, c, tile_width, tile_height);
+    let isect_offsets =
+        isect_offset_encode(&isects.isect_ids, c, tile_width, tile_height, s.version);
     let raster = rasterize_to_pixels(
         &RasterInput {
             means2d: &row_means2d,

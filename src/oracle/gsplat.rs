@@ -405,10 +405,11 @@ fn run_isect<T: Real>(case: &TensorFile, res: &mut TensorFile, version: Version)
         tw,
         th,
         n_images,
+        version,
         rule,
     )
     .map_err(|e| Error::field(&case.path, "isect_tiles", e.to_string()))?;
-    let off = isect_offset_encode(&is.isect_ids, n_images, tw, th);
+    let off = isect_offset_encode(&is.isect_ids, n_images, tw, th, version);
     let ni = is.flatten_ids.len();
     res.insert_i32("tiles_per_gauss", vec![m], is.tiles_per_gauss);
     res.insert_i32("isect_ids", vec![ni, 2], split_ids(&is.isect_ids));
@@ -917,9 +918,10 @@ pub fn new_case<T: Real>(
                     tw,
                     th,
                     c,
+                    o.version,
                     rule,
                 )?;
-                let off = isect_offset_encode(&is.isect_ids, c, tw, th);
+                let off = isect_offset_encode(&is.isect_ids, c, tw, th, o.version);
                 let d = 4;
                 let colors = cot(seed, 4, m * d)
                     .iter()
