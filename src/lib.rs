@@ -23,6 +23,9 @@
 //! - [`deform`]: the MLP and CfC deformation fields, forward and backward.
 //! - [`gaussians`]: raw per-Gaussian parameters, activations, Inria PLY.
 //! - [`render`]: the rasterizer, forward and backward (`exact` or `inria`).
+//! - [`gsplat`]: gsplat's projection, tile intersection, rasterize-to-pixels
+//!   and composite `rasterization`, at gsplat 1.5.3 and 1.6 (`exact` or
+//!   `gsplat` backward); docs/GSPLAT.md.
 //! - [`loss`]: L1, SSIM and their backward; PSNR/SSIM metrics.
 //! - [`lpips`]: LPIPS v0.1 (VGG16) as the `lpips` package computes it, with
 //!   weights read from PyTorch `.pth` files ([`io::pth`]).
@@ -49,6 +52,7 @@ pub mod deform;
 pub mod densify;
 pub mod error;
 pub mod gaussians;
+pub mod gsplat;
 pub mod io;
 pub mod loss;
 pub mod lpips;

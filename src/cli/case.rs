@@ -37,7 +37,10 @@ pub enum CaseCommand {
 /// Arguments of `case new`.
 #[derive(Args)]
 pub struct NewArgs {
-    /// Stage: rasterize, deform, loss or step.
+    /// Stage: rasterize, deform, loss, step, or a gsplat stage
+    /// (gsplat_quat_scale_to_covar_preci, gsplat_spherical_harmonics,
+    /// gsplat_fully_fused_projection, gsplat_isect_tiles,
+    /// gsplat_rasterize_to_pixels, gsplat_rasterization).
     pub stage: String,
     /// Where to write the case (safetensors).
     pub output: PathBuf,
@@ -56,7 +59,7 @@ pub struct NewArgs {
     /// Number of Gaussians (rasterize: in view, plus one beside it; step) or points (deform).
     #[arg(long)]
     pub count: Option<usize>,
-    /// Rasterize: gradient mode, exact or inria.
+    /// Rasterize: gradient mode, exact or inria; gsplat stages: exact or gsplat.
     #[arg(long)]
     pub gradient: Option<String>,
     /// Deform, step: field kind, mlp or cfc.
@@ -75,6 +78,15 @@ pub struct NewArgs {
     /// Deform, step: the MLP field's 6-DoF (SE(3)) variant.
     #[arg(long = "6dof")]
     pub six_dof: bool,
+    /// gsplat stages: the gsplat version whose conventions apply, 1.5.3 or 1.6.
+    #[arg(long = "gsplat-version")]
+    pub gsplat_version: Option<String>,
+    /// gsplat stages: antialiased rasterization (compensated opacities).
+    #[arg(long)]
+    pub antialiased: bool,
+    /// gsplat stages: the dense layout instead of gsplat's default packed one.
+    #[arg(long)]
+    pub dense: bool,
 }
 
 /// Arguments of `case compare`.
@@ -146,18 +158,29 @@ fn run_new(a: NewArgs) -> ExitCode {
             }
             Ok(())
         };
-        uses("--width", a.width.is_some(), &["rasterize", "loss", "step"])?;
+        let gs = liquid_splat::oracle::gsplat::STAGES;
+        let with_gs = |base: &[&'static str]| -> Vec<&'static str> {
+            base.iter().copied().chain(gs).collect()
+        };
+        uses(
+            "--width",
+            a.width.is_some(),
+            &with_gs(&["rasterize", "loss", "step"]),
+        )?;
         uses(
             "--height",
             a.height.is_some(),
-            &["rasterize", "loss", "step"],
+            &with_gs(&["rasterize", "loss", "step"]),
         )?;
         uses(
             "--count",
             a.count.is_some(),
-            &["rasterize", "deform", "step"],
+            &with_gs(&["rasterize", "deform", "step"]),
         )?;
-        uses("--gradient", a.gradient.is_some(), &["rasterize"])?;
+        uses("--gradient", a.gradient.is_some(), &with_gs(&["rasterize"]))?;
+        uses("--gsplat-version", a.gsplat_version.is_some(), &gs)?;
+        uses("--antialiased", a.antialiased, &gs)?;
+        uses("--dense", a.dense, &gs)?;
         uses("--field", a.field.is_some(), &["deform", "step"])?;
         uses("--depth", a.depth.is_some(), &["deform", "step"])?;
         uses("--hidden", a.hidden.is_some(), &["deform", "step"])?;
@@ -167,8 +190,17 @@ fn run_new(a: NewArgs) -> ExitCode {
         spec.height = a.height.unwrap_or(spec.height);
         spec.count = a.count.unwrap_or(spec.count);
         if let Some(g) = &a.gradient {
-            spec.gradient = GradientMode::from_name(g)?;
+            if gs.contains(&a.stage.as_str()) {
+                spec.gsplat.gradient = liquid_splat::gsplat::GradientMode::from_name(g)?;
+            } else {
+                spec.gradient = GradientMode::from_name(g)?;
+            }
         }
+        if let Some(v) = &a.gsplat_version {
+            spec.gsplat.version = liquid_splat::gsplat::Version::from_name(v)?;
+        }
+        spec.gsplat.antialiased = a.antialiased;
+        spec.gsplat.packed = !a.dense;
         if let Some(f) = &a.field {
             spec.field = FieldKind::parse(f)?;
         }

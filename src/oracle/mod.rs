@@ -11,6 +11,9 @@
 //! - [`loss`]: L1 + SSIM training loss and its gradient.
 //! - [`step`]: one whole training iteration (field, rasterizer, loss,
 //!   backward, densification statistics, Adam).
+//! - [`gsplat`](mod@gsplat): gsplat's functions (`quat_scale_to_covar_preci`,
+//!   `spherical_harmonics`, `fully_fused_projection`, `isect_tiles`,
+//!   `rasterize_to_pixels`, `rasterization`) at versions 1.5.3 and 1.6.
 //! - [`new`]: seeded random, well-formed case files for every stage, and
 //!   the golden fixtures (`fixtures/cases/`).
 //! - [`compare`](mod@compare): tensor-by-tensor comparison of an expected case output with
@@ -20,6 +23,7 @@
 
 pub mod compare;
 pub mod deform;
+pub mod gsplat;
 pub mod loss;
 pub mod new;
 pub mod rasterize;
@@ -34,7 +38,18 @@ use crate::error::{Error, Result};
 use crate::io::TensorFile;
 
 /// Stage names [`run_case`] understands.
-pub const STAGES: &[&str] = &[rasterize::STAGE, deform::STAGE, loss::STAGE, step::STAGE];
+pub const STAGES: &[&str] = &[
+    rasterize::STAGE,
+    deform::STAGE,
+    loss::STAGE,
+    step::STAGE,
+    gsplat::COVAR,
+    gsplat::SH,
+    gsplat::PROJECTION,
+    gsplat::ISECT,
+    gsplat::RASTERIZE,
+    gsplat::RASTERIZATION,
+];
 
 /// Run the stage named by the case's `stage` metadata.
 pub fn run_case(case: &TensorFile) -> Result<TensorFile> {
@@ -43,6 +58,7 @@ pub fn run_case(case: &TensorFile) -> Result<TensorFile> {
         s if s == deform::STAGE => deform::run(case),
         s if s == loss::STAGE => loss::run(case),
         s if s == step::STAGE => step::run(case),
+        s if gsplat::STAGES.contains(&s) => gsplat::run(case),
         other => Err(Error::field(
             &case.path,
             "__metadata__.stage",

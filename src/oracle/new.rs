@@ -7,6 +7,7 @@
 //! rounded once to the requested precision (the rasterizer's camera matrices
 //! are formed in that precision, as upstream forms them in f32).
 
+use super::gsplat::{self as gs, GsplatOptions};
 use super::{deform, loss, rasterize, run_case, step, STAGES};
 use crate::deform::{Field, FieldConfig, FieldKind, Variant};
 use crate::error::{Error, Result};
@@ -42,6 +43,8 @@ pub struct CaseSpec {
     pub variant: Option<Variant>,
     /// Deform, step: the MLP's 6-DoF (SE(3)) variant.
     pub is_6dof: bool,
+    /// gsplat stages: version, gradient mode, antialiased, packed.
+    pub gsplat: GsplatOptions,
 }
 
 /// Defaults for generated deform cases, small so files stay small: the MLP
@@ -79,6 +82,7 @@ impl CaseSpec {
             hidden: None,
             variant: None,
             is_6dof: false,
+            gsplat: GsplatOptions::default(),
         }
     }
 }
@@ -119,6 +123,14 @@ fn new_typed<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
         s if s == deform::STAGE => new_deform::<T>(spec)?,
         s if s == loss::STAGE => new_loss::<T>(spec)?,
         s if s == step::STAGE => new_step::<T>(spec)?,
+        s if gs::STAGES.contains(&s) => gs::new_case::<T>(
+            s,
+            spec.seed,
+            spec.width,
+            spec.height,
+            spec.count,
+            &spec.gsplat,
+        )?,
         other => {
             return Err(Error::invalid(
                 "stage",
@@ -365,6 +377,32 @@ fn mlp(s: &mut CaseSpec) {
 fn cfc(s: &mut CaseSpec) {
     s.field = FieldKind::Cfc;
 }
+/// gsplat goldens: 24×16 pixels (two cameras), to keep the fixtures small.
+fn gs_small(s: &mut CaseSpec) {
+    s.width = 24;
+    s.height = 16;
+}
+fn gs_v153(s: &mut CaseSpec) {
+    gs_small(s);
+    s.gsplat.version = crate::gsplat::Version::V1_5_3;
+}
+fn gs_v16(s: &mut CaseSpec) {
+    gs_small(s);
+    s.gsplat.version = crate::gsplat::Version::V1_6;
+}
+fn gs_v16_gsplat_aa(s: &mut CaseSpec) {
+    gs_small(s);
+    s.gsplat.version = crate::gsplat::Version::V1_6;
+    s.gsplat.gradient = crate::gsplat::GradientMode::Gsplat;
+    s.gsplat.antialiased = true;
+}
+fn gs_v153_gsplat_aa_dense(s: &mut CaseSpec) {
+    gs_small(s);
+    s.gsplat.version = crate::gsplat::Version::V1_5_3;
+    s.gsplat.gradient = crate::gsplat::GradientMode::Gsplat;
+    s.gsplat.antialiased = true;
+    s.gsplat.packed = false;
+}
 fn step_6dof(s: &mut CaseSpec) {
     s.field = FieldKind::Mlp;
     s.is_6dof = true;
@@ -407,6 +445,56 @@ pub const GOLDEN: &[GoldenEntry] = &[
         stage: step::STAGE,
         variant: Some("6dof"),
         configure: step_6dof,
+    },
+    GoldenEntry {
+        stage: gs::COVAR,
+        variant: None,
+        configure: keep,
+    },
+    GoldenEntry {
+        stage: gs::SH,
+        variant: None,
+        configure: keep,
+    },
+    GoldenEntry {
+        stage: gs::PROJECTION,
+        variant: Some("v16_aa_gsplat"),
+        configure: gs_v16_gsplat_aa,
+    },
+    GoldenEntry {
+        stage: gs::PROJECTION,
+        variant: Some("v153_aa_gsplat_dense"),
+        configure: gs_v153_gsplat_aa_dense,
+    },
+    GoldenEntry {
+        stage: gs::ISECT,
+        variant: Some("v153"),
+        configure: gs_v153,
+    },
+    GoldenEntry {
+        stage: gs::ISECT,
+        variant: Some("v16"),
+        configure: gs_v16,
+    },
+    GoldenEntry {
+        stage: gs::RASTERIZE,
+        variant: Some("v16_gsplat"),
+        configure: gs_v16_gsplat_aa,
+    },
+    GoldenEntry {
+        stage: gs::RASTERIZATION,
+        variant: Some("v153"),
+        configure: gs_v153,
+    },
+    GoldenEntry {
+        stage: gs::RASTERIZATION,
+        variant: Some("v16"),
+        configure: gs_v16,
+    },
+    GoldenEntry {
+        stage: gs::RASTERIZATION,
+        variant: Some("v16_aa_gsplat"),
+        configure: gs_v16_gsplat_aa,
     },
 ];
 

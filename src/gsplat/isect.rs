@@ -1,0 +1,372 @@
+//! `isect_tiles` and `isect_offset_encode`: which tiles each projected
+//! Gaussian is drawn in, sorted by (image, tile, depth).
+//!
+//! Tile assignment:
+//! - **Radius box** (1.5.3, `csrc/IntersectTile.cu` v1.5.3 l.55–113): with
+//!   `tile_radius = radius/tile_size` and `tile_xy = mean2d/tile_size`,
+//!   tiles `[floor(tile_x − tile_radius_x), ceil(tile_x + tile_radius_x))`
+//!   (likewise y), clamped to the grid (a negative bound saturates to 0).
+//! - **AccuTile** (1.6, `IntersectTile.cu` 1.6 l.83–207 and l.288–373, from
+//!   Speedy-Splat): the ellipse `q = A dx² + 2B dx dy + C dy² ≤ t` with
+//!   `t = min(3.33², 2·ln(o·255))` (`o` the opacity passed, compensated in
+//!   antialiased mode) has the snug box `x_ext = sqrt(−t/disc·C)`,
+//!   `y_ext = sqrt(−t/disc·A)`, `disc = B² − AC`; the box is cut into tile
+//!   columns (or rows, whichever are fewer) and each column keeps only the
+//!   tile range the ellipse spans inside it. Used when conics and opacities
+//!   are given (always, in 1.6's `rasterization`).
+//!
+//! Keys: `isect_id = image_id << (32 + tile_n_bits) | tile_id << 32 |
+//! depth_bits`, with [`key_bits`]: `tile_n_bits = floor(log2(n_tiles)) + 1`
+//! at 1.5.3 (`csrc/Intersect.cpp` l.48–51), the bit width of `n_tiles − 1`
+//! (0 for one tile) at 1.6 (`bits_for_count`, `csrc/MathUtils.h` l.23–33,
+//! commit a5316070 "correct intersect (image, tile) id bit-widths"); and
+//! `depth_bits` the IEEE bits of the depth narrowed to f32 (1.6 l.279–285;
+//! 1.5.3 reinterprets the low 32 bits of the depth tensor, the same thing for
+//! f32 depths). gsplat sorts the keys with a stable radix sort, so equal keys
+//! keep ascending entry order: the order here is (key, entry index).
+
+use super::{check_len, Version};
+use crate::error::{Error, Result};
+use crate::math::Real;
+use rayon::prelude::*;
+
+/// How tiles are assigned.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum TileRule {
+    /// The axis-aligned box `mean2d ± radii` (1.5.3; 1.6 without conics).
+    RadiusBox,
+    /// Speedy-Splat's AccuTile (1.6 with conics and opacities).
+    AccuTile,
+}
+
+/// The inputs of `isect_tiles`, one row per entry (dense `[C·N]` or packed `[nnz]`).
+#[derive(Clone, Copy, Debug)]
+pub struct IsectInput<'a, T> {
+    /// `[M, 2]`.
+    pub means2d: &'a [T],
+    /// `[M, 2]`.
+    pub radii: &'a [i32],
+    /// `[M]`.
+    pub depths: &'a [T],
+    /// `[M, 3]` and `[M]`: required for [`TileRule::AccuTile`].
+    pub conics: Option<&'a [T]>,
+    pub opacities: Option<&'a [T]>,
+    /// Image of each entry: `[M]` (packed `camera_ids`); `None` for dense,
+    /// where the image is `entry / n`.
+    pub image_ids: Option<&'a [i32]>,
+    /// Gaussians per image in the dense layout.
+    pub n: usize,
+}
+
+/// Outputs of `isect_tiles`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Isects {
+    /// `[M]` int32.
+    pub tiles_per_gauss: Vec<i32>,
+    /// `[n_isects]` int64, sorted.
+    pub isect_ids: Vec<i64>,
+    /// `[n_isects]` int32: the entry of each intersection.
+    pub flatten_ids: Vec<i32>,
+}
+
+/// `floor(log2(v)) + 1` for `v ≥ 1` (the bit width of `v`).
+fn bit_width(v: usize) -> u32 {
+    usize::BITS - v.leading_zeros()
+}
+
+/// Bits of the image or tile field of a key for `count` images or tiles:
+/// 1.5.3 `floor(log2(count)) + 1`; 1.6 `bits_for_count`, the bit width of
+/// `count − 1` (0 when `count ≤ 1`). They differ for powers of two and 1.
+pub fn key_bits(version: Version, count: usize) -> u32 {
+    match version {
+        Version::V1_5_3 => bit_width(count.max(1)),
+        Version::V1_6 => bit_width(count.saturating_sub(1)),
+    }
+}
+
+fn sat_u32<T: Real>(v: T) -> i64 {
+    // CUDA float→uint conversion saturates (negative → 0, NaN → 0).
+    let f = v.to_f64();
+    if f.is_nan() || f <= 0.0 {
+        0
+    } else {
+        f.min(u32::MAX as f64) as i64
+    }
+}
+
+/// Tiles of the radius box, row-major.
+fn radius_box<T: Real>(
+    mean: [T; 2],
+    radii: [i32; 2],
+    tile_size: usize,
+    tw: usize,
+    th: usize,
+    out: &mut Vec<u32>,
+) {
+    let ts = T::from_usize(tile_size);
+    let trx = T::from_f64(radii[0] as f64) / ts;
+    let try_ = T::from_f64(radii[1] as f64) / ts;
+    let tx = mean[0] / ts;
+    let ty = mean[1] / ts;
+    let x0 = sat_u32((tx - trx).floor()).min(tw as i64);
+    let y0 = sat_u32((ty - try_).floor()).min(th as i64);
+    let x1 = sat_u32((tx + trx).ceil()).min(tw as i64);
+    let y1 = sat_u32((ty + try_).ceil()).min(th as i64);
+    for y in y0..y1 {
+        for x in x0..x1 {
+            out.push((y as usize * tw + x as usize) as u32);
+        }
+    }
+}
+
+/// C `(int)` conversion: truncation toward zero, saturating, NaN → 0.
+fn to_int<T: Real>(v: T) -> i64 {
+    let f = v.to_f64();
+    if f.is_nan() {
+        0
+    } else {
+        f.clamp(i32::MIN as f64, i32::MAX as f64) as i64
+    }
+}
+
+/// AccuTile (`accutile_process_tiles` and the kernel's SnugBox set-up).
+#[allow(clippy::too_many_arguments)]
+fn accutile<T: Real>(
+    mean: [T; 2],
+    conic: [T; 3],
+    opacity: T,
+    alpha_threshold: T,
+    extend: T,
+    tile_size: usize,
+    tw: usize,
+    th: usize,
+    out: &mut Vec<u32>,
+) {
+    let [a, b, c] = conic;
+    let disc = b * b - a * c;
+    let t = (extend * extend).min(T::from_f64(2.0) * (opacity / alpha_threshold).ln());
+    let neg_t_over_disc = -t / disc;
+    let x_ext = (neg_t_over_disc * c).sqrt();
+    let y_ext = (neg_t_over_disc * a).sqrt();
+    let bbox_min = [mean[0] - x_ext, mean[1] - y_ext];
+    let bbox_max = [mean[0] + x_ext, mean[1] + y_ext];
+    let bx_over_c = b * x_ext / c;
+    let by_over_a = b * y_ext / a;
+    let bbox_argmin = [mean[1] + bx_over_c, mean[0] + by_over_a];
+    let bbox_argmax = [mean[1] - bx_over_c, mean[0] - by_over_a];
+    let ts = T::from_usize(tile_size);
+    let clampi = |v: i64, hi: usize| v.min(hi as i64).max(0);
+    let rect_min = [
+        clampi(to_int(bbox_min[0] / ts), tw),
+        clampi(to_int(bbox_min[1] / ts), th),
+    ];
+    let rect_max = [
+        clampi(to_int(bbox_max[0] / ts + T::ONE), tw),
+        clampi(to_int(bbox_max[1] / ts + T::ONE), th),
+    ];
+    let y_span = rect_max[1] - rect_min[1];
+    let x_span = rect_max[0] - rect_min[0];
+    if y_span * x_span == 0 {
+        return;
+    }
+    let is_y = y_span < x_span;
+    let sw = |p: [T; 2]| if is_y { [p[1], p[0]] } else { p };
+    let swi = |p: [i64; 2]| if is_y { [p[1], p[0]] } else { p };
+    let (rmin, rmax) = (swi(rect_min), swi(rect_max));
+    let (bmin, bmax) = (sw(bbox_min), sw(bbox_max));
+    let (amin, amax) = (sw(bbox_argmin), sw(bbox_argmax));
+    // accutile_ellipse_intersection: the ellipse's extent along v on the line u = coord.
+    let intersect = |coord: T| -> [T; 2] {
+        let (pu, pv, coeff) = if is_y {
+            (mean[1], mean[0], a)
+        } else {
+            (mean[0], mean[1], c)
+        };
+        let h = coord - pu;
+        let sq = (disc * h * h + t * coeff).sqrt();
+        [(-b * h - sq) / coeff + pv, (-b * h + sq) / coeff + pv]
+    };
+    let mut inter_max = [bmax[1], bmin[1]];
+    let mut min_line = T::from_f64(rmin[0] as f64) * ts;
+    let mut inter_min = if bmin[0] <= min_line {
+        intersect(min_line)
+    } else {
+        inter_max
+    };
+    for u in rmin[0]..rmax[0] {
+        let max_line = min_line + ts;
+        if max_line <= bmax[0] {
+            inter_max = intersect(max_line);
+        }
+        let e_min = if min_line <= amin[1] && amin[1] < max_line {
+            bmin[1]
+        } else {
+            inter_min[0].min(inter_max[0])
+        };
+        let e_max = if min_line <= amax[1] && amax[1] < max_line {
+            bmax[1]
+        } else {
+            inter_min[1].max(inter_max[1])
+        };
+        let v0 = rmin[1].max(rmax[1].min(to_int(e_min / ts)));
+        let v1 = rmax[1].min(rmin[1].max(to_int(e_max / ts + T::ONE)));
+        for v in v0..v1 {
+            let tile = if is_y {
+                u * tw as i64 + v
+            } else {
+                v * tw as i64 + u
+            };
+            out.push(tile as u32);
+        }
+        inter_min = inter_max;
+        min_line = max_line;
+    }
+}
+
+/// `gsplat.isect_tiles(means2d, radii, depths, tile_size, tile_width,
+/// tile_height, sort=True, packed, n_images, image_ids, gaussian_ids)`, with
+/// 1.6's optional `conics` and `opacities` (AccuTile).
+pub fn isect_tiles<T: Real>(
+    input: &IsectInput<T>,
+    tile_size: usize,
+    tile_width: usize,
+    tile_height: usize,
+    n_images: usize,
+    version: Version,
+    rule: TileRule,
+) -> Result<Isects> {
+    let m = input.depths.len();
+    check_len("means2d", input.means2d.len(), 2 * m)?;
+    check_len("radii", input.radii.len(), 2 * m)?;
+    if tile_size == 0 || tile_width == 0 || tile_height == 0 || n_images == 0 {
+        return Err(Error::invalid(
+            "tiles",
+            format!("tile_size {tile_size}, grid {tile_width}x{tile_height}, {n_images} images: each must be positive"),
+        ));
+    }
+    let n_tiles = tile_width * tile_height;
+    let tile_bits = key_bits(version, n_tiles);
+    let image_bits = key_bits(version, n_images);
+    if tile_bits + image_bits > 31 {
+        return Err(Error::invalid(
+            "tiles",
+            format!("{n_images} images of {n_tiles} tiles need more than 31 bits of image and tile key (gsplat allows 32; here the key is a signed int64)"),
+        ));
+    }
+    if let Some(ids) = input.image_ids {
+        check_len("image_ids", ids.len(), m)?;
+        if let Some(&bad) = ids.iter().find(|&&i| i < 0 || i as usize >= n_images) {
+            return Err(Error::invalid(
+                "image_ids",
+                format!("{bad} is not below {n_images}"),
+            ));
+        }
+    } else if input.n == 0 || m != input.n * n_images {
+        return Err(Error::invalid(
+            "isect_tiles",
+            format!(
+                "{m} dense entries for {n_images} images of {} Gaussians",
+                input.n
+            ),
+        ));
+    }
+    if rule == TileRule::AccuTile {
+        match (input.conics, input.opacities) {
+            (Some(c), Some(o)) => {
+                check_len("conics", c.len(), 3 * m)?;
+                check_len("opacities", o.len(), m)?;
+            }
+            _ => {
+                return Err(Error::invalid(
+                    "isect_tiles",
+                    "AccuTile needs conics and opacities",
+                ))
+            }
+        }
+    }
+    let alpha_threshold = T::ONE / T::from_f64(255.0);
+    let extend = T::from_f64(3.33);
+    let per: Vec<Vec<u32>> = (0..m)
+        .into_par_iter()
+        .map(|e| {
+            let mut tiles = Vec::new();
+            let r = [input.radii[2 * e], input.radii[2 * e + 1]];
+            if r[0] <= 0 || r[1] <= 0 {
+                return tiles;
+            }
+            let mean = [input.means2d[2 * e], input.means2d[2 * e + 1]];
+            match rule {
+                TileRule::RadiusBox => {
+                    radius_box(mean, r, tile_size, tile_width, tile_height, &mut tiles)
+                }
+                TileRule::AccuTile => {
+                    let c = input.conics.unwrap_or_default();
+                    let o = input.opacities.unwrap_or_default();
+                    accutile(
+                        mean,
+                        [c[3 * e], c[3 * e + 1], c[3 * e + 2]],
+                        o[e],
+                        alpha_threshold,
+                        extend,
+                        tile_size,
+                        tile_width,
+                        tile_height,
+                        &mut tiles,
+                    )
+                }
+            }
+            tiles
+        })
+        .collect();
+    let mut keys: Vec<(i64, u32)> = Vec::with_capacity(per.iter().map(Vec::len).sum());
+    for (e, tiles) in per.iter().enumerate() {
+        let image = match input.image_ids {
+            Some(ids) => ids[e] as i64,
+            None => (e / input.n) as i64,
+        };
+        let depth = (input.depths[e].to_f64() as f32).to_bits() as i64;
+        for &t in tiles {
+            keys.push((
+                (image << (32 + tile_bits)) | ((t as i64) << 32) | depth,
+                e as u32,
+            ));
+        }
+    }
+    // Unique (key, entry) pairs: an unstable parallel sort gives one order.
+    keys.par_sort_unstable();
+    Ok(Isects {
+        tiles_per_gauss: per.iter().map(|t| t.len() as i32).collect(),
+        isect_ids: keys.iter().map(|k| k.0).collect(),
+        flatten_ids: keys.iter().map(|k| k.1 as i32).collect(),
+    })
+}
+
+/// `gsplat.isect_offset_encode(isect_ids, n_images, tile_width,
+/// tile_height)`: `[n_images, tile_height, tile_width]` int32, the first
+/// intersection of each (image, tile) (for an empty tile, that of the next
+/// non-empty one; `n_isects` past the last).
+pub fn isect_offset_encode(
+    isect_ids: &[i64],
+    n_images: usize,
+    tile_width: usize,
+    tile_height: usize,
+    version: Version,
+) -> Vec<i32> {
+    let n_tiles = tile_width * tile_height;
+    let tile_bits = key_bits(version, n_tiles);
+    let mut offsets = vec![0i32; n_images * n_tiles];
+    let mut pos = 0usize;
+    for (slot, off) in offsets.iter_mut().enumerate() {
+        while pos < isect_ids.len() {
+            let id = isect_ids[pos] >> 32;
+            let image = (id >> tile_bits) as usize;
+            let tile = (id & ((1 << tile_bits) - 1)) as usize;
+            if image * n_tiles + tile >= slot {
+                break;
+            }
+            pos += 1;
+        }
+        *off = pos as i32;
+    }
+    offsets
+}

@@ -1,0 +1,580 @@
+//! `rasterize_to_pixels`: front-to-back alpha compositing of the sorted
+//! intersections of each tile, any number of channels, optional
+//! backgrounds, and the backward.
+//!
+//! Forward (`csrc/RasterizeToPixels3DGSFwd.cu` v1.5.3 l.62–187;
+//! 1.6 `RasterizeToPixels3DGSDevice.cuh` l.44–97): pixel `(i, j)` is sampled
+//! at `(j + 0.5, i + 0.5)`; with `d = mean2d − pixel`,
+//! `σ = 0.5·(a dx² + c dy²) + b dx dy`, `vis = exp(−σ)`,
+//! `α = min(MAX_ALPHA, o·vis)`; skip if `σ < 0 || α < 1/255`;
+//! `next_T = T·(1 − α)`; if `next_T ≤ 1e-4` the pixel is done, **without**
+//! this Gaussian; else `C += c·(α·T)`, `T = next_T`. Outputs
+//! `render_colors = C + T·background`, `render_alphas = 1 − T` and
+//! `last_ids`, the index of the last blended intersection (0 if none).
+//!
+//! Backward, [`GradientMode::Gsplat`] (v1.5.3 `RasterizeToPixels3DGSBwd.cu`
+//! l.106–242; 1.6 `RasterizeToPixels3DGSDevice.cuh` l.105–173): back to
+//! front from `T = 1 − render_alpha`, `ra = 1/(1 − α)` (1.6:
+//! `1/max(1e-6, 1 − α)`), `T ← T·ra`, `v_α = Σ_k (c_k T − buffer_k ra) v_C_k +
+//! T_final ra v_A − T_final ra Σ_k bg_k v_C_k`; `σ` and opacity gradients
+//! only if `o·vis ≤ MAX_ALPHA`; `v_backgrounds = Σ_pixels v_C·(1 − render_alpha)`
+//! (`cuda/_wrapper.py`). [`GradientMode::Exact`] uses the forward's
+//! transmittances and the recursion `R_{i−1} = α_i w_i + (1 − α_i) R_i`
+//! (no division), and the stored final transmittance for the background.
+
+#![allow(clippy::needless_range_loop)]
+
+use super::{check_len, Constants, GradientMode, Version};
+use crate::error::{Error, Result};
+use crate::math::Real;
+use rayon::prelude::*;
+
+/// The inputs of `rasterize_to_pixels` (entries dense `[C·N]` or packed `[nnz]`).
+#[derive(Clone, Copy, Debug)]
+pub struct RasterInput<'a, T> {
+    /// `[M, 2]`.
+    pub means2d: &'a [T],
+    /// `[M, 3]`.
+    pub conics: &'a [T],
+    /// `[M, D]`.
+    pub colors: &'a [T],
+    /// `[M]`.
+    pub opacities: &'a [T],
+    /// `[I, D]`, optional.
+    pub backgrounds: Option<&'a [T]>,
+    /// Channels `D`.
+    pub channels: usize,
+    pub width: usize,
+    pub height: usize,
+    pub tile_size: usize,
+    /// `[I, tile_height, tile_width]`.
+    pub isect_offsets: &'a [i32],
+    /// `[n_isects]`.
+    pub flatten_ids: &'a [i32],
+}
+
+/// Forward outputs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RasterOutput<T> {
+    /// `[I, H, W, D]`.
+    pub render_colors: Vec<T>,
+    /// `[I, H, W, 1]`.
+    pub render_alphas: Vec<T>,
+    /// `[I, H, W]` int32.
+    pub last_ids: Vec<i32>,
+    /// `[I, H, W]` final transmittance `T` (before `1 − T` rounds it).
+    pub final_t: Vec<T>,
+}
+
+/// Gradients of `rasterize_to_pixels`'s inputs.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RasterGrads<T> {
+    /// `[M, 2]` (pixels).
+    pub v_means2d: Vec<T>,
+    /// `[M, 2]`: Σ over pixels of `|v_means2d|` per pixel (gsplat's `absgrad`).
+    pub v_means2d_abs: Vec<T>,
+    /// `[M, 3]`.
+    pub v_conics: Vec<T>,
+    /// `[M, D]`.
+    pub v_colors: Vec<T>,
+    /// `[M]`.
+    pub v_opacities: Vec<T>,
+    /// `[I, D]` when backgrounds were given.
+    pub v_backgrounds: Option<Vec<T>>,
+}
+
+struct Grid {
+    images: usize,
+    tw: usize,
+    th: usize,
+    n_isects: usize,
+}
+
+impl<T: Real> RasterInput<'_, T> {
+    fn validate(&self) -> Result<Grid> {
+        let d = self.channels;
+        if d == 0 || self.width == 0 || self.height == 0 || self.tile_size == 0 {
+            return Err(Error::invalid(
+                "rasterize_to_pixels",
+                format!(
+                    "channels {d}, image {}x{}, tile_size {}: each must be positive",
+                    self.width, self.height, self.tile_size
+                ),
+            ));
+        }
+        let m = self.opacities.len();
+        check_len("means2d", self.means2d.len(), 2 * m)?;
+        check_len("conics", self.conics.len(), 3 * m)?;
+        check_len("colors", self.colors.len(), d * m)?;
+        let tw = self.width.div_ceil(self.tile_size);
+        let th = self.height.div_ceil(self.tile_size);
+        if self.isect_offsets.is_empty() || !self.isect_offsets.len().is_multiple_of(tw * th) {
+            return Err(Error::invalid(
+                "isect_offsets",
+                format!(
+                    "{} values, expected [I, {th}, {tw}]",
+                    self.isect_offsets.len()
+                ),
+            ));
+        }
+        let images = self.isect_offsets.len() / (tw * th);
+        if let Some(bg) = self.backgrounds {
+            check_len("backgrounds", bg.len(), images * d)?;
+        }
+        let n = self.flatten_ids.len();
+        let mut prev = 0i32;
+        for &o in self.isect_offsets {
+            if o < prev || o as usize > n {
+                return Err(Error::invalid(
+                    "isect_offsets",
+                    format!("not ascending within [0, {n}]"),
+                ));
+            }
+            prev = o;
+        }
+        if let Some(&bad) = self.flatten_ids.iter().find(|&&f| f < 0 || f as usize >= m) {
+            return Err(Error::invalid(
+                "flatten_ids",
+                format!("{bad} is not an entry index below {m}"),
+            ));
+        }
+        Ok(Grid {
+            images,
+            tw,
+            th,
+            n_isects: n,
+        })
+    }
+
+    /// `[start, end)` of tile `t` (over all images).
+    fn range(&self, g: &Grid, t: usize) -> (usize, usize) {
+        let s = self.isect_offsets[t] as usize;
+        let e = if t + 1 == g.images * g.tw * g.th {
+            g.n_isects
+        } else {
+            self.isect_offsets[t + 1] as usize
+        };
+        (s, e.max(s))
+    }
+
+    /// Pixel bounds `[x0, x1) × [y0, y1)` and image of tile `t`.
+    fn bounds(&self, g: &Grid, t: usize) -> (usize, [usize; 4]) {
+        let per = g.tw * g.th;
+        let (img, local) = (t / per, t % per);
+        let (tx, ty) = (local % g.tw, local / g.tw);
+        let ts = self.tile_size;
+        (
+            img,
+            [
+                tx * ts,
+                (tx * ts + ts).min(self.width),
+                ty * ts,
+                (ty * ts + ts).min(self.height),
+            ],
+        )
+    }
+}
+
+/// One intersection evaluated at one pixel.
+#[derive(Clone, Copy, Debug)]
+struct Hit<T> {
+    pos: usize,
+    dx: T,
+    dy: T,
+    vis: T,
+    alpha: T,
+    /// Transmittance in front of this Gaussian.
+    t: T,
+}
+
+/// What happened at each intersection of a pixel's walk.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Decision {
+    /// `σ < 0` or `α < 1/255`.
+    Skip = 0,
+    /// Blended, `o·vis ≤ MAX_ALPHA`.
+    Blend = 1,
+    /// Blended with the alpha clamp active.
+    BlendClamped = 2,
+    /// `T·(1 − α) ≤ 1e-4`: the walk ends here.
+    Stop = 3,
+}
+
+/// Walk one pixel front to back; returns the final transmittance and calls
+/// `on_hit` for each blended intersection, `on_decision` for every one.
+#[inline]
+#[allow(clippy::too_many_arguments)]
+fn walk<T: Real>(
+    inp: &RasterInput<T>,
+    k: &Constants<T>,
+    range: (usize, usize),
+    px: T,
+    py: T,
+    mut on_hit: impl FnMut(&Hit<T>, usize),
+    mut on_decision: impl FnMut(Decision),
+) -> T {
+    let half = T::from_f64(0.5);
+    let mut t = T::ONE;
+    for pos in range.0..range.1 {
+        let g = inp.flatten_ids[pos] as usize;
+        let dx = inp.means2d[2 * g] - px;
+        let dy = inp.means2d[2 * g + 1] - py;
+        let [a, b, c] = [
+            inp.conics[3 * g],
+            inp.conics[3 * g + 1],
+            inp.conics[3 * g + 2],
+        ];
+        let sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy;
+        let vis = (-sigma).exp();
+        let o = inp.opacities[g];
+        let alpha = k.max_alpha.min(o * vis);
+        if sigma < T::ZERO || alpha < k.alpha_threshold {
+            on_decision(Decision::Skip);
+            continue;
+        }
+        let next_t = t * (T::ONE - alpha);
+        if next_t <= k.transmittance_threshold {
+            on_decision(Decision::Stop);
+            break;
+        }
+        on_decision(if o * vis <= k.max_alpha {
+            Decision::Blend
+        } else {
+            Decision::BlendClamped
+        });
+        on_hit(
+            &Hit {
+                pos,
+                dx,
+                dy,
+                vis,
+                alpha,
+                t,
+            },
+            g,
+        );
+        t = next_t;
+    }
+    t
+}
+
+struct TileOut<T> {
+    colors: Vec<T>,
+    t: Vec<T>,
+    last: Vec<i32>,
+}
+
+/// `gsplat.rasterize_to_pixels(means2d, conics, colors, opacities, image_width,
+/// image_height, tile_size, isect_offsets, flatten_ids, backgrounds)`.
+pub fn rasterize_to_pixels<T: Real>(
+    inp: &RasterInput<T>,
+    version: Version,
+) -> Result<RasterOutput<T>> {
+    let g = inp.validate()?;
+    let k = Constants::<T>::new(version);
+    let d = inp.channels;
+    let (w, h) = (inp.width, inp.height);
+    let half = T::from_f64(0.5);
+    let n_tiles = g.images * g.tw * g.th;
+    let tiles: Vec<TileOut<T>> = (0..n_tiles)
+        .into_par_iter()
+        .map(|tile| {
+            let (img, [x0, x1, y0, y1]) = inp.bounds(&g, tile);
+            let range = inp.range(&g, tile);
+            let np = (x1 - x0) * (y1 - y0);
+            let mut out = TileOut {
+                colors: Vec::with_capacity(np * d),
+                t: Vec::with_capacity(np),
+                last: Vec::with_capacity(np),
+            };
+            let mut c = vec![T::ZERO; d];
+            for py in y0..y1 {
+                for px in x0..x1 {
+                    c.iter_mut().for_each(|v| *v = T::ZERO);
+                    let mut last = 0usize;
+                    let t = walk(
+                        inp,
+                        &k,
+                        range,
+                        T::from_usize(px) + half,
+                        T::from_usize(py) + half,
+                        |hit, gi| {
+                            let vis = hit.alpha * hit.t;
+                            for ch in 0..d {
+                                c[ch] += inp.colors[gi * d + ch] * vis;
+                            }
+                            last = hit.pos;
+                        },
+                        |_| {},
+                    );
+                    for ch in 0..d {
+                        out.colors.push(match inp.backgrounds {
+                            Some(bg) => c[ch] + t * bg[img * d + ch],
+                            None => c[ch],
+                        });
+                    }
+                    out.t.push(t);
+                    out.last.push(last as i32);
+                }
+            }
+            out
+        })
+        .collect();
+    let hw = w * h;
+    let mut out = RasterOutput {
+        render_colors: vec![T::ZERO; g.images * hw * d],
+        render_alphas: vec![T::ZERO; g.images * hw],
+        last_ids: vec![0; g.images * hw],
+        final_t: vec![T::ZERO; g.images * hw],
+    };
+    for (tile, to) in tiles.iter().enumerate() {
+        let (img, [x0, x1, y0, y1]) = inp.bounds(&g, tile);
+        let mut q = 0;
+        for py in y0..y1 {
+            for px in x0..x1 {
+                let pix = img * hw + py * w + px;
+                out.render_colors[pix * d..(pix + 1) * d]
+                    .copy_from_slice(&to.colors[q * d..(q + 1) * d]);
+                out.render_alphas[pix] = T::ONE - to.t[q];
+                out.final_t[pix] = to.t[q];
+                out.last_ids[pix] = to.last[q];
+                q += 1;
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Every decision of every pixel's walk, tile by tile (tests use it to keep
+/// finite differences away from discontinuities).
+pub fn decisions<T: Real>(inp: &RasterInput<T>, version: Version) -> Result<Vec<u8>> {
+    let g = inp.validate()?;
+    let k = Constants::<T>::new(version);
+    let half = T::from_f64(0.5);
+    let mut sig = Vec::new();
+    for tile in 0..g.images * g.tw * g.th {
+        let (_, [x0, x1, y0, y1]) = inp.bounds(&g, tile);
+        let range = inp.range(&g, tile);
+        for py in y0..y1 {
+            for px in x0..x1 {
+                walk(
+                    inp,
+                    &k,
+                    range,
+                    T::from_usize(px) + half,
+                    T::from_usize(py) + half,
+                    |_, _| {},
+                    |dcs| sig.push(dcs as u8),
+                );
+            }
+        }
+    }
+    Ok(sig)
+}
+
+/// Backward of [`rasterize_to_pixels`]: gradients of
+/// `<v_render_colors, render_colors> + <v_render_alphas, render_alphas>`.
+/// `fwd` must be the forward of the same input.
+pub fn rasterize_to_pixels_vjp<T: Real>(
+    inp: &RasterInput<T>,
+    version: Version,
+    fwd: &RasterOutput<T>,
+    v_render_colors: &[T],
+    v_render_alphas: &[T],
+    mode: GradientMode,
+) -> Result<RasterGrads<T>> {
+    let g = inp.validate()?;
+    let k = Constants::<T>::new(version);
+    let d = inp.channels;
+    let (w, h) = (inp.width, inp.height);
+    let hw = w * h;
+    check_len("v_render_colors", v_render_colors.len(), g.images * hw * d)?;
+    check_len("v_render_alphas", v_render_alphas.len(), g.images * hw)?;
+    check_len("render_alphas", fwd.render_alphas.len(), g.images * hw)?;
+    let half = T::from_f64(0.5);
+    let stride = d + 8;
+    let n_tiles = g.images * g.tw * g.th;
+
+    // 1. Per tile, per intersection: [v_colors (D), v_xy (2), v_conic (3), v_opacity, |v_xy| (2)].
+    let mut entry = vec![T::ZERO; g.n_isects * stride];
+    {
+        let mut rest: &mut [T] = &mut entry;
+        let mut chunks = Vec::new();
+        let mut pos = 0usize;
+        for tile in 0..n_tiles {
+            let (s, e) = inp.range(&g, tile);
+            if e == s {
+                continue;
+            }
+            let (_, tail) = rest.split_at_mut((s - pos) * stride);
+            let (head, tail) = tail.split_at_mut((e - s) * stride);
+            chunks.push((tile, head));
+            rest = tail;
+            pos = e;
+        }
+        chunks.into_par_iter().for_each(|(tile, buf)| {
+            let (img, [x0, x1, y0, y1]) = inp.bounds(&g, tile);
+            let range = inp.range(&g, tile);
+            let bg = inp.backgrounds.map(|b| &b[img * d..(img + 1) * d]);
+            let mut hits: Vec<(Hit<T>, usize)> = Vec::new();
+            let mut buffer = vec![T::ZERO; d];
+            for py in y0..y1 {
+                for px in x0..x1 {
+                    let pix = img * hw + py * w + px;
+                    let vc = &v_render_colors[pix * d..(pix + 1) * d];
+                    let va = v_render_alphas[pix];
+                    hits.clear();
+                    walk(
+                        inp,
+                        &k,
+                        range,
+                        T::from_usize(px) + half,
+                        T::from_usize(py) + half,
+                        |hit, gi| hits.push((*hit, gi)),
+                        |_| {},
+                    );
+                    let mut put = |hit: &Hit<T>, gi: usize, v_alpha: T, fac: T| {
+                        let e = &mut buf
+                            [(hit.pos - range.0) * stride..(hit.pos - range.0 + 1) * stride];
+                        for ch in 0..d {
+                            e[ch] += fac * vc[ch];
+                        }
+                        let o = inp.opacities[gi];
+                        if o * hit.vis <= k.max_alpha {
+                            let [a, b, c] = [
+                                inp.conics[3 * gi],
+                                inp.conics[3 * gi + 1],
+                                inp.conics[3 * gi + 2],
+                            ];
+                            let v_sigma = -o * hit.vis * v_alpha;
+                            let vx = v_sigma * (a * hit.dx + b * hit.dy);
+                            let vy = v_sigma * (b * hit.dx + c * hit.dy);
+                            e[d] += vx;
+                            e[d + 1] += vy;
+                            e[d + 2] += half * v_sigma * hit.dx * hit.dx;
+                            e[d + 3] += v_sigma * hit.dx * hit.dy;
+                            e[d + 4] += half * v_sigma * hit.dy * hit.dy;
+                            e[d + 5] += hit.vis * v_alpha;
+                            e[d + 6] += vx.abs();
+                            e[d + 7] += vy.abs();
+                        }
+                    };
+                    match mode {
+                        GradientMode::Exact => {
+                            let mut r = -va;
+                            if let Some(bg) = bg {
+                                for ch in 0..d {
+                                    r += bg[ch] * vc[ch];
+                                }
+                            }
+                            for (hit, gi) in hits.iter().rev() {
+                                let mut wsum = T::ZERO;
+                                for ch in 0..d {
+                                    wsum += vc[ch] * inp.colors[gi * d + ch];
+                                }
+                                let v_alpha = hit.t * (wsum - r);
+                                r = hit.alpha * wsum + (T::ONE - hit.alpha) * r;
+                                put(hit, *gi, v_alpha, hit.alpha * hit.t);
+                            }
+                        }
+                        GradientMode::Gsplat => {
+                            let t_final = T::ONE - fwd.render_alphas[pix];
+                            let mut t = t_final;
+                            buffer.iter_mut().for_each(|v| *v = T::ZERO);
+                            for (hit, gi) in hits.iter().rev() {
+                                let oma = T::ONE - hit.alpha;
+                                let ra = T::ONE
+                                    / match k.min_one_minus_alpha {
+                                        Some(m) => m.max(oma),
+                                        None => oma,
+                                    };
+                                t *= ra;
+                                let fac = hit.alpha * t;
+                                let mut v_alpha = T::ZERO;
+                                for ch in 0..d {
+                                    v_alpha +=
+                                        (inp.colors[gi * d + ch] * t - buffer[ch] * ra) * vc[ch];
+                                }
+                                v_alpha += t_final * ra * va;
+                                if let Some(bg) = bg {
+                                    let mut accum = T::ZERO;
+                                    for ch in 0..d {
+                                        accum += bg[ch] * vc[ch];
+                                    }
+                                    v_alpha += -t_final * ra * accum;
+                                }
+                                put(hit, *gi, v_alpha, fac);
+                                for ch in 0..d {
+                                    buffer[ch] += inp.colors[gi * d + ch] * fac;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    }
+
+    // 2. Per entry: its intersections in ascending order.
+    let m = inp.opacities.len();
+    let mut start = vec![0usize; m + 1];
+    for &f in inp.flatten_ids {
+        start[f as usize + 1] += 1;
+    }
+    for i in 0..m {
+        start[i + 1] += start[i];
+    }
+    let mut fill = start.clone();
+    let mut index = vec![0u32; g.n_isects];
+    for (pos, &f) in inp.flatten_ids.iter().enumerate() {
+        index[fill[f as usize]] = pos as u32;
+        fill[f as usize] += 1;
+    }
+    let sums: Vec<Vec<T>> = (0..m)
+        .into_par_iter()
+        .map(|e| {
+            let mut acc = vec![T::ZERO; stride];
+            for &pos in &index[start[e]..start[e + 1]] {
+                let src = &entry[pos as usize * stride..(pos as usize + 1) * stride];
+                for q in 0..stride {
+                    acc[q] += src[q];
+                }
+            }
+            acc
+        })
+        .collect();
+    let mut out = RasterGrads {
+        v_means2d: Vec::with_capacity(2 * m),
+        v_means2d_abs: Vec::with_capacity(2 * m),
+        v_conics: Vec::with_capacity(3 * m),
+        v_colors: Vec::with_capacity(d * m),
+        v_opacities: Vec::with_capacity(m),
+        v_backgrounds: None,
+    };
+    for acc in &sums {
+        out.v_colors.extend_from_slice(&acc[..d]);
+        out.v_means2d.extend_from_slice(&acc[d..d + 2]);
+        out.v_conics.extend_from_slice(&acc[d + 2..d + 5]);
+        out.v_opacities.push(acc[d + 5]);
+        out.v_means2d_abs.extend_from_slice(&acc[d + 6..d + 8]);
+    }
+
+    // 3. Backgrounds: Σ over pixels (row-major) of v_C·T_final.
+    if inp.backgrounds.is_some() {
+        let mut vb = vec![T::ZERO; g.images * d];
+        for img in 0..g.images {
+            for p in 0..hw {
+                let pix = img * hw + p;
+                let t = match mode {
+                    GradientMode::Exact => fwd.final_t[pix],
+                    GradientMode::Gsplat => T::ONE - fwd.render_alphas[pix],
+                };
+                for ch in 0..d {
+                    vb[img * d + ch] += v_render_colors[pix * d + ch] * t;
+                }
+            }
+        }
+        out.v_backgrounds = Some(vb);
+    }
+    Ok(out)
+}

@@ -1,0 +1,520 @@
+//! `rasterization(means, quats, scales, opacities, colors, viewmats, Ks,
+//! width, height, ...)`: gsplat's composite renderer (`gsplat/rendering.py`;
+//! 1.5.3 in Python, l.33–; 1.6 in C++ `csrc/Rendering.cpp` l.745–), and its
+//! backward (the chain of the stages' backwards, as torch autograd runs it).
+//!
+//! 1. `fully_fused_projection` with the opacities (opacity-aware radii) and
+//!    `calc_compensations = (rasterize_mode == "antialiased")`;
+//! 2. per rasterized row (packed: visible (camera, Gaussian) pairs; dense:
+//!    all), `opacities = o·compensation` in antialiased mode, else `o`;
+//! 3. colours: post-activation `[N, D]` broadcast to each camera, or SH
+//!    `[N, K, 3]` evaluated at `dirs = mean − campos` (`campos = −Rᵀt`) for
+//!    visible rows and turned into `clamp_min(SH + 0.5, 0)` (`rendering.py`
+//!    v1.5.3 l.491–525; 1.6 `Rendering.cpp` l.631–643);
+//! 4. `isect_tiles` (1.5.3 radius box; 1.6 AccuTile with the conics and the
+//!    row opacities, `Rendering.cpp` l.1303–1328) and `isect_offset_encode`;
+//! 5. `rasterize_to_pixels` with the backgrounds (`render_mode = "RGB"`).
+
+use super::isect::{isect_offset_encode, isect_tiles, IsectInput, Isects, TileRule};
+use super::projection::{
+    fully_fused_projection, fully_fused_projection_vjp, Camera, Covars, Projection,
+    ProjectionCotangents, ProjectionInput, ProjectionSettings,
+};
+use super::raster::{
+    rasterize_to_pixels, rasterize_to_pixels_vjp, RasterGrads, RasterInput, RasterOutput,
+};
+use super::sh::{sh_color, sh_color_vjp, MAX_DEGREE};
+use super::{check_len, GradientMode, Version};
+use crate::error::{Error, Result};
+use crate::math::Real;
+
+/// Where the colours come from.
+#[derive(Clone, Copy, Debug)]
+pub enum Colors<'a, T> {
+    /// Post-activation colours `[N, D]`, used as given.
+    Post { colors: &'a [T], channels: usize },
+    /// SH coefficients `[N, K, 3]` with `sh_degree` (`(degree+1)² ≤ K`).
+    Sh {
+        coeffs: &'a [T],
+        k: usize,
+        degree: usize,
+    },
+}
+
+impl<T> Colors<'_, T> {
+    /// Channels `D` of the rendered image.
+    pub fn channels(&self) -> usize {
+        match self {
+            Colors::Post { channels, .. } => *channels,
+            Colors::Sh { .. } => 3,
+        }
+    }
+}
+
+/// `rasterize_mode`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum RasterizeMode {
+    #[default]
+    Classic,
+    /// Opacities multiplied by the EWA-blur compensation (Mip-Splatting's 2D filter).
+    Antialiased,
+}
+
+impl RasterizeMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            RasterizeMode::Classic => "classic",
+            RasterizeMode::Antialiased => "antialiased",
+        }
+    }
+    pub fn from_name(s: &str) -> Result<Self> {
+        match s.trim() {
+            "classic" => Ok(RasterizeMode::Classic),
+            "antialiased" => Ok(RasterizeMode::Antialiased),
+            other => Err(Error::invalid(
+                "rasterize_mode",
+                format!("`{other}` is not one of: classic, antialiased"),
+            )),
+        }
+    }
+}
+
+/// `rasterization`'s keyword arguments.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RasterizationSettings {
+    pub width: usize,
+    pub height: usize,
+    pub near_plane: f64,
+    pub far_plane: f64,
+    pub radius_clip: f64,
+    pub eps2d: f64,
+    pub packed: bool,
+    pub tile_size: usize,
+    pub rasterize_mode: RasterizeMode,
+    pub version: Version,
+}
+
+impl RasterizationSettings {
+    /// gsplat's defaults: `near_plane=0.01`, `far_plane=1e10`,
+    /// `radius_clip=0.0`, `eps2d=0.3`, `packed=True`, `tile_size=16`,
+    /// `rasterize_mode="classic"`.
+    pub fn new(width: usize, height: usize, version: Version) -> Self {
+        RasterizationSettings {
+            width,
+            height,
+            near_plane: 0.01,
+            far_plane: 1e10,
+            radius_clip: 0.0,
+            eps2d: 0.3,
+            packed: true,
+            tile_size: 16,
+            rasterize_mode: RasterizeMode::Classic,
+            version,
+        }
+    }
+
+    fn projection(&self) -> ProjectionSettings {
+        ProjectionSettings {
+            width: self.width,
+            height: self.height,
+            eps2d: self.eps2d,
+            near_plane: self.near_plane,
+            far_plane: self.far_plane,
+            radius_clip: self.radius_clip,
+            calc_compensations: self.rasterize_mode == RasterizeMode::Antialiased,
+            version: self.version,
+        }
+    }
+}
+
+/// The tensors `rasterization` reads.
+#[derive(Clone, Copy, Debug)]
+pub struct RasterizationInput<'a, T> {
+    /// `[N, 3]`.
+    pub means: &'a [T],
+    /// quats `[N,4]` + scales `[N,3]`, or covars `[N,6]`.
+    pub covars: Covars<'a, T>,
+    /// `[N]` activated.
+    pub opacities: &'a [T],
+    pub colors: Colors<'a, T>,
+    /// `[C, 4, 4]`.
+    pub viewmats: &'a [T],
+    /// `[C, 3, 3]`.
+    pub ks: &'a [T],
+    /// `[C, D]`, optional.
+    pub backgrounds: Option<&'a [T]>,
+}
+
+/// Outputs: the images and gsplat's `meta`.
+#[derive(Clone, Debug)]
+pub struct Rasterization<T> {
+    /// `[C, H, W, D]`.
+    pub render_colors: Vec<T>,
+    /// `[C, H, W, 1]`.
+    pub render_alphas: Vec<T>,
+    /// Dense projection (`meta["radii"]` etc. in the dense layout).
+    pub projection: Projection<T>,
+    /// Dense entry `c·N + g` of each rasterized row (packed: the visible ones).
+    pub rows: Vec<usize>,
+    /// `meta["opacities"]` per row.
+    pub opacities: Vec<T>,
+    /// Colours per row `[rows, D]` (after SH, `+0.5` and the clamp).
+    pub colors: Vec<T>,
+    /// `meta["tiles_per_gauss"]`, `meta["isect_ids"]`, `meta["flatten_ids"]`.
+    pub isects: Isects,
+    /// `meta["isect_offsets"]` `[C, tile_height, tile_width]`.
+    pub isect_offsets: Vec<i32>,
+    pub tile_width: usize,
+    pub tile_height: usize,
+    /// The rasterizer's outputs (final transmittance, `last_ids`).
+    pub raster: RasterOutput<T>,
+    /// For SH colours: whether `SH + 0.5` was clamped, per row and channel.
+    pub color_clamped: Vec<bool>,
+}
+
+/// Gradients of `rasterization`'s inputs (and of `meta["means2d"]`).
+#[derive(Clone, Debug, PartialEq)]
+pub struct RasterizationGrads<T> {
+    pub v_means: Vec<T>,
+    pub v_quats: Vec<T>,
+    pub v_scales: Vec<T>,
+    pub v_covars: Vec<T>,
+    pub v_opacities: Vec<T>,
+    /// `[N, D]` or `[N, K, 3]` (zero above the degree).
+    pub v_colors: Vec<T>,
+    /// `[C, D]` when backgrounds were given.
+    pub v_backgrounds: Option<Vec<T>>,
+    /// Per row `[rows, 2]` (packed `[nnz, 2]`, dense `[C, N, 2]`): the
+    /// gradient of `meta["means2d"]`, in pixels, and its `absgrad`.
+    pub v_means2d: Vec<T>,
+    pub v_means2d_abs: Vec<T>,
+}
+
+impl<T: Real> RasterizationInput<'_, T> {
+    fn validate(&self, s: &RasterizationSettings) -> Result<(usize, usize)> {
+        let (c, n) = self.projection_input().validate(&s.projection())?;
+        check_len("opacities", self.opacities.len(), n)?;
+        match self.colors {
+            Colors::Post { colors, channels } => {
+                if channels == 0 {
+                    return Err(Error::invalid("colors", "0 channels"));
+                }
+                check_len("colors", colors.len(), n * channels)?
+            }
+            Colors::Sh { coeffs, k, degree } => {
+                if degree > MAX_DEGREE || (degree + 1) * (degree + 1) > k {
+                    return Err(Error::invalid(
+                        "sh_degree",
+                        format!("{degree} with {k} coefficients (at most degree {MAX_DEGREE}, (degree+1)² ≤ K)"),
+                    ));
+                }
+                check_len("colors", coeffs.len(), n * k * 3)?
+            }
+        }
+        if let Some(bg) = self.backgrounds {
+            check_len("backgrounds", bg.len(), c * self.colors.channels())?;
+        }
+        if s.tile_size == 0 || s.tile_size > 1024 {
+            return Err(Error::invalid(
+                "tile_size",
+                format!("{} (1 to 1024)", s.tile_size),
+            ));
+        }
+        Ok((c, n))
+    }
+
+    fn projection_input(&self) -> ProjectionInput<'_, T> {
+        ProjectionInput {
+            means: self.means,
+            covars: self.covars,
+            opacities: Some(self.opacities),
+            viewmats: self.viewmats,
+            ks: self.ks,
+        }
+    }
+
+    fn dir(&self, cam: &Camera<T>, g: usize) -> [T; 3] {
+        let off = cam.rt_t();
+        std::array::from_fn(|a| self.means[3 * g + a] + off[a])
+    }
+}
+
+/// Forward of `gsplat.rasterization` (`render_mode="RGB"`, pinhole camera).
+pub fn rasterization<T: Real>(
+    input: &RasterizationInput<T>,
+    s: &RasterizationSettings,
+) -> Result<Rasterization<T>> {
+    let (c, n) = input.validate(s)?;
+    let ps = s.projection();
+    let proj = fully_fused_projection(&input.projection_input(), &ps)?;
+    let rows: Vec<usize> = if s.packed {
+        proj.packed_entries()
+    } else {
+        (0..c * n).collect()
+    };
+    let d = input.colors.channels();
+    let mut opacities = Vec::with_capacity(rows.len());
+    let mut colors = vec![T::ZERO; rows.len() * d];
+    let mut color_clamped = vec![false; rows.len() * d];
+    let cams: Vec<Camera<T>> = (0..c)
+        .map(|ci| Camera::from_tensors(input.viewmats, input.ks, ci))
+        .collect();
+    let half = T::from_f64(0.5);
+    for (row, &e) in rows.iter().enumerate() {
+        let g = e % n;
+        let o = input.opacities[g];
+        opacities.push(match &proj.compensations {
+            Some(cv) => o * cv[e],
+            None => o,
+        });
+        let out = &mut colors[row * d..(row + 1) * d];
+        match input.colors {
+            Colors::Post { colors: src, .. } => out.copy_from_slice(&src[g * d..(g + 1) * d]),
+            Colors::Sh { coeffs, k, degree } => {
+                if proj.visible(e) {
+                    let dir = input.dir(&cams[e / n], g);
+                    sh_color(degree, dir, &coeffs[g * k * 3..(g + 1) * k * 3], 3, out);
+                }
+                for ch in 0..3 {
+                    let v = out[ch] + half;
+                    color_clamped[row * 3 + ch] = v < T::ZERO;
+                    out[ch] = v.max(T::ZERO);
+                }
+            }
+        }
+    }
+    let (row_means2d, row_radii, row_depths, row_conics, image_ids) = gather_rows(&proj, &rows);
+    let tile_width = s.width.div_ceil(s.tile_size);
+    let tile_height = s.height.div_ceil(s.tile_size);
+    let rule = if s.version.accutile() {
+        TileRule::AccuTile
+    } else {
+        TileRule::RadiusBox
+    };
+    let isects = isect_tiles(
+        &IsectInput {
+            means2d: &row_means2d,
+            radii: &row_radii,
+            depths: &row_depths,
+            conics: Some(&row_conics),
+            opacities: Some(&opacities),
+            image_ids: Some(&image_ids),
+            n,
+        },
+        s.tile_size,
+        tile_width,
+        tile_height,
+        c,
+        s.version,
+        rule,
+    )?;
+    let isect_offsets =
+        isect_offset_encode(&isects.isect_ids, c, tile_width, tile_height, s.version);
+    let raster = rasterize_to_pixels(
+        &RasterInput {
+            means2d: &row_means2d,
+            conics: &row_conics,
+            colors: &colors,
+            opacities: &opacities,
+            backgrounds: input.backgrounds,
+            channels: d,
+            width: s.width,
+            height: s.height,
+            tile_size: s.tile_size,
+            isect_offsets: &isect_offsets,
+            flatten_ids: &isects.flatten_ids,
+        },
+        s.version,
+    )?;
+    Ok(Rasterization {
+        render_colors: raster.render_colors.clone(),
+        render_alphas: raster.render_alphas.clone(),
+        projection: proj,
+        rows,
+        opacities,
+        colors,
+        isects,
+        isect_offsets,
+        tile_width,
+        tile_height,
+        raster,
+        color_clamped,
+    })
+}
+
+type Rows<T> = (Vec<T>, Vec<i32>, Vec<T>, Vec<T>, Vec<i32>);
+
+fn gather_rows<T: Real>(p: &Projection<T>, rows: &[usize]) -> Rows<T> {
+    let mut m2 = Vec::with_capacity(2 * rows.len());
+    let mut r = Vec::with_capacity(2 * rows.len());
+    let mut dp = Vec::with_capacity(rows.len());
+    let mut cn = Vec::with_capacity(3 * rows.len());
+    let mut img = Vec::with_capacity(rows.len());
+    for &e in rows {
+        m2.extend_from_slice(&p.means2d[2 * e..2 * e + 2]);
+        r.extend_from_slice(&p.radii[2 * e..2 * e + 2]);
+        dp.push(p.depths[e]);
+        cn.extend_from_slice(&p.conics[3 * e..3 * e + 3]);
+        img.push((e / p.n) as i32);
+    }
+    (m2, r, dp, cn, img)
+}
+
+/// Rasterizer inputs of a forward (for the backward and for diagnostics).
+pub fn raster_input<'a, T: Real>(
+    input: &'a RasterizationInput<T>,
+    s: &RasterizationSettings,
+    fwd: &'a Rasterization<T>,
+    rows: &'a Rows<T>,
+) -> RasterInput<'a, T> {
+    RasterInput {
+        means2d: &rows.0,
+        conics: &rows.3,
+        colors: &fwd.colors,
+        opacities: &fwd.opacities,
+        backgrounds: input.backgrounds,
+        channels: input.colors.channels(),
+        width: s.width,
+        height: s.height,
+        tile_size: s.tile_size,
+        isect_offsets: &fwd.isect_offsets,
+        flatten_ids: &fwd.isects.flatten_ids,
+    }
+}
+
+/// The rows of a forward, gathered (see [`raster_input`]).
+pub fn rows_of<T: Real>(fwd: &Rasterization<T>) -> Rows<T> {
+    gather_rows(&fwd.projection, &fwd.rows)
+}
+
+/// Backward of [`rasterization`]: gradients of `<v_render_colors,
+/// render_colors> + <v_render_alphas, render_alphas>` (`[C,H,W,D]`,
+/// `[C,H,W,1]`).
+pub fn rasterization_vjp<T: Real>(
+    input: &RasterizationInput<T>,
+    s: &RasterizationSettings,
+    fwd: &Rasterization<T>,
+    v_render_colors: &[T],
+    v_render_alphas: &[T],
+    mode: GradientMode,
+) -> Result<RasterizationGrads<T>> {
+    let (c, n) = input.validate(s)?;
+    if fwd.projection.c != c || fwd.projection.n != n {
+        return Err(Error::invalid(
+            "rasterization state",
+            format!(
+                "computed for {}x{}, called with {c}x{n}",
+                fwd.projection.c, fwd.projection.n
+            ),
+        ));
+    }
+    let d = input.colors.channels();
+    let rows = rows_of(fwd);
+    let rin = raster_input(input, s, fwd, &rows);
+    let rg: RasterGrads<T> = rasterize_to_pixels_vjp(
+        &rin,
+        s.version,
+        &fwd.raster,
+        v_render_colors,
+        v_render_alphas,
+        mode,
+    )?;
+    // Rows → dense entries, and the opacity / colour chains per Gaussian.
+    let ce = c * n;
+    let mut v_means2d = vec![T::ZERO; 2 * ce];
+    let mut v_conics = vec![T::ZERO; 3 * ce];
+    let mut v_comp = fwd
+        .projection
+        .compensations
+        .as_ref()
+        .map(|_| vec![T::ZERO; ce]);
+    let mut v_opacities = vec![T::ZERO; n];
+    let mut v_colors = vec![T::ZERO; input.colors.channels() * n];
+    let mut v_sh_means = vec![T::ZERO; 3 * n];
+    if let Colors::Sh { k, .. } = input.colors {
+        v_colors = vec![T::ZERO; n * k * 3];
+    }
+    let cams: Vec<Camera<T>> = (0..c)
+        .map(|ci| Camera::from_tensors(input.viewmats, input.ks, ci))
+        .collect();
+    // Rows are in ascending dense order, so each Gaussian's sums run in
+    // ascending camera order.
+    let mut vc_row = vec![T::ZERO; d];
+    for (row, &e) in fwd.rows.iter().enumerate() {
+        let g = e % n;
+        v_means2d[2 * e..2 * e + 2].copy_from_slice(&rg.v_means2d[2 * row..2 * row + 2]);
+        v_conics[3 * e..3 * e + 3].copy_from_slice(&rg.v_conics[3 * row..3 * row + 3]);
+        let vo = rg.v_opacities[row];
+        match (&fwd.projection.compensations, v_comp.as_mut()) {
+            (Some(cv), Some(vcomp)) => {
+                v_opacities[g] += vo * cv[e];
+                vcomp[e] = vo * input.opacities[g];
+            }
+            _ => v_opacities[g] += vo,
+        }
+        let vc = &rg.v_colors[row * d..(row + 1) * d];
+        match input.colors {
+            Colors::Post { .. } => {
+                for ch in 0..d {
+                    v_colors[g * d + ch] += vc[ch];
+                }
+            }
+            Colors::Sh { coeffs, k, degree } => {
+                if !fwd.projection.visible(e) {
+                    continue;
+                }
+                for ch in 0..3 {
+                    vc_row[ch] = if fwd.color_clamped[row * 3 + ch] {
+                        T::ZERO
+                    } else {
+                        vc[ch]
+                    };
+                }
+                let dir = input.dir(&cams[e / n], g);
+                let mut vk = vec![T::ZERO; k * 3];
+                let vd = sh_color_vjp(
+                    degree,
+                    dir,
+                    &coeffs[g * k * 3..(g + 1) * k * 3],
+                    3,
+                    &vc_row,
+                    &mut vk,
+                );
+                for q in 0..k * 3 {
+                    v_colors[g * k * 3 + q] += vk[q];
+                }
+                for a in 0..3 {
+                    v_sh_means[3 * g + a] += vd[a];
+                }
+            }
+        }
+    }
+    let zeros = vec![T::ZERO; ce];
+    let pg = fully_fused_projection_vjp(
+        &input.projection_input(),
+        &s.projection(),
+        &fwd.projection,
+        &ProjectionCotangents {
+            v_means2d: &v_means2d,
+            v_depths: &zeros,
+            v_conics: &v_conics,
+            v_compensations: v_comp.as_deref(),
+        },
+        mode,
+    )?;
+    let mut v_means = pg.v_means;
+    for (a, b) in v_means.iter_mut().zip(&v_sh_means) {
+        *a += *b;
+    }
+    Ok(RasterizationGrads {
+        v_means,
+        v_quats: pg.v_quats,
+        v_scales: pg.v_scales,
+        v_covars: pg.v_covars,
+        v_opacities,
+        v_colors,
+        v_backgrounds: rg.v_backgrounds,
+        v_means2d: rg.v_means2d,
+        v_means2d_abs: rg.v_means2d_abs,
+    })
+}
