@@ -136,6 +136,9 @@ pub struct ForwardState<T> {
     splats: Vec<Splat<T>>,
     /// (pixel, Gaussian) pairs the forward evaluated.
     evaluated: u64,
+    /// `[H, grid_x]`: per image row and tile, the largest `n_contrib` of
+    /// the row's pixels in the tile.
+    row_last: Vec<u32>,
 }
 
 impl<T: Real> ForwardState<T> {
@@ -507,6 +510,7 @@ fn forward<T: Real>(
         width: w,
         bg: input.background,
     };
+    let mut row_last = vec![0u32; h * grid_x];
     let (c0, rest) = out.color.split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
     let evaluated: u64 = (
@@ -516,15 +520,17 @@ fn forward<T: Real>(
         out.depth.par_chunks_mut(w),
         out.final_t.par_chunks_mut(w),
         out.n_contrib.par_chunks_mut(w),
+        row_last.par_chunks_mut(grid_x),
     )
         .into_par_iter()
         .enumerate()
-        .map(|(py, (c0, c1, c2, depth, final_t, n_contrib))| {
+        .map(|(py, (c0, c1, c2, depth, final_t, n_contrib, row_last))| {
             let mut row = rasterize::RowOut {
                 color: [c0, c1, c2],
                 depth,
                 final_t,
                 n_contrib,
+                row_last,
             };
             let mut ev = 0u64;
             rasterize::forward_row(&frame, py, &mut row, &mut ev);
@@ -539,6 +545,7 @@ fn forward<T: Real>(
         binning,
         splats,
         evaluated,
+        row_last,
     };
     Ok((out, state))
 }
@@ -613,6 +620,8 @@ pub fn rasterize_backward<T: Real>(
             .for_each_init(Vec::new, |rec, (tile, s, buf)| {
                 let job = rasterize_vjp::TileJob {
                     splats: &state.splats[s..s + buf.len()],
+                    row_last: &state.row_last[tile % grid_x..],
+                    grid_x,
                     bounds: rasterize::tile_bounds(tile, grid_x, w, h),
                     width: w,
                     height: h,

@@ -284,6 +284,9 @@ pub(crate) struct RowOut<'a, T> {
     pub depth: &'a mut [T],
     pub final_t: &'a mut [T],
     pub n_contrib: &'a mut [u32],
+    /// Per tile the row crosses: the largest `n_contrib` of its pixels there
+    /// (the backward's forward walk of the row ends at it).
+    pub row_last: &'a mut [u32],
 }
 
 /// What every row of a frame reads.
@@ -328,6 +331,7 @@ fn forward_row_body<V: Lanes>(
             out.final_t[x0 + l] = t;
             out.n_contrib[x0 + l] = st.last[l];
         }
+        out.row_last[tx] = st.last.iter().copied().max().unwrap_or(0);
         *evaluated += st.evaluated as u64;
     }
 }

@@ -38,6 +38,10 @@ pub(crate) type EntryGrad<T> = [T; 10];
 pub(crate) struct TileJob<'a, T> {
     /// The tile's gathered list.
     pub splats: &'a [Splat<T>],
+    /// Starting at this tile's column: every `grid_x`-th value is, per image
+    /// row, the last list position any pixel of the row blends in the tile.
+    pub row_last: &'a [u32],
+    pub grid_x: usize,
     /// Pixel bounds `[x0, x1, y0, y1]`.
     pub bounds: [usize; 4],
     pub width: usize,
@@ -64,7 +68,10 @@ fn tile_vjp_body<V: Lanes>(
     for py in y0..y1 {
         rec.clear();
         let row = Row { x0, nx, py };
-        let st = walk_row::<V, true>(job.splats, row, &k, rec);
+        // Past the last blended entry the walk records nothing and changes
+        // no state: stop there.
+        let last = job.row_last[py * job.grid_x] as usize;
+        let st = walk_row::<V, true>(&job.splats[..last], row, &k, rec);
         if rec.is_empty() {
             continue;
         }

@@ -58,19 +58,36 @@ pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
             }
         }
     }
-    // Per tile: by depth bits, then index.
+    // Per tile: by depth bits, then index, as one packed integer key.
     let mut chunks = Vec::with_capacity(n_tiles);
     let mut rest: &mut [u32] = &mut list;
     for r in &ranges {
         let (head, tail) = rest.split_at_mut((r[1] - r[0]) as usize);
-        chunks.push(head);
+        if head.len() > 1 {
+            chunks.push(head);
+        }
         rest = tail;
     }
-    chunks.into_par_iter().for_each(|c| {
-        if c.len() > 1 {
-            c.sort_unstable_by_key(|&g| (proj[g as usize].depth.bits(), g));
-        }
-    });
+    let depth_bits = |g: u32| proj[g as usize].depth.bits();
+    if std::mem::size_of::<T>() <= 4 {
+        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
+            keys.clear();
+            keys.extend(c.iter().map(|&g| depth_bits(g) << 32 | g as u64));
+            keys.sort_unstable();
+            for (o, k) in c.iter_mut().zip(keys.iter()) {
+                *o = *k as u32;
+            }
+        });
+    } else {
+        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
+            keys.clear();
+            keys.extend(c.iter().map(|&g| (depth_bits(g) as u128) << 32 | g as u128));
+            keys.sort_unstable();
+            for (o, k) in c.iter_mut().zip(keys.iter()) {
+                *o = *k as u32;
+            }
+        });
+    }
     Binning { list, ranges }
 }
 
