@@ -151,7 +151,7 @@ pub(crate) struct RowState<T> {
     pub last: [u32; LANES],
     /// Pairs the row evaluated: Σ over pixels of the entries up to and
     /// including the one that stopped it.
-    pub evaluated: u32,
+    pub evaluated: u64,
 }
 
 /// A list entry at which at least one lane of a row blended, recorded by the
@@ -200,7 +200,7 @@ pub(crate) fn walk_row<V: Lanes, const REC: bool>(
     let mut c = [V::splat(zero); 3];
     let mut d = V::splat(zero);
     let mut last = [0u32; LANES];
-    let mut evaluated = 0u32;
+    let mut evaluated = 0u64;
     let mut active_bits: u16 = if row.nx >= LANES {
         u16::MAX
     } else {
@@ -215,7 +215,7 @@ pub(crate) fn walk_row<V: Lanes, const REC: bool>(
     );
     if active_bits != 0 {
         for (j, s) in splats.iter().enumerate() {
-            evaluated += active_bits.count_ones();
+            evaluated += active_bits.count_ones() as u64;
             let dx = V::splat(s.xy[0]) - px;
             let p = power_lanes(s, dx, s.xy[1] - pyf, k);
             let cand = V::andnot(V::andnot(active, p.gt(vzero)), p.lt(V::splat(s.power_min)));
@@ -332,7 +332,7 @@ fn forward_row_body<V: Lanes>(
             out.n_contrib[x0 + l] = st.last[l];
         }
         out.row_last[tx] = st.last.iter().copied().max().unwrap_or(0);
-        *evaluated += st.evaluated as u64;
+        *evaluated += st.evaluated;
     }
 }
 
