@@ -12,7 +12,11 @@ fn bench(c: &mut Criterion) {
     );
     let mut group = c.benchmark_group("raster");
     group.sample_size(10);
-    for (w, h, n) in [(64usize, 64usize, 2_600usize), (400, 400, 20_000), (800, 800, 50_000)] {
+    for (w, h, n) in [
+        (64usize, 64usize, 2_600usize),
+        (400, 400, 20_000),
+        (800, 800, 50_000),
+    ] {
         let s = random_scene(&SceneSpec::bench(w, h, n, 1))
             .unwrap()
             .cast::<f32>();
