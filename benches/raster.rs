@@ -1,5 +1,5 @@
 //! Rasterizer forward and backward (f32, SH degree 3) at 800x800 with 50,000
-//! Gaussians and 400x400 with 20,000, on 1 and 2 threads.
+//! Gaussians, 400x400 with 20,000 and 64x64 with 2,600, on 1 and 2 threads.
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
@@ -12,7 +12,11 @@ fn bench(c: &mut Criterion) {
     );
     let mut group = c.benchmark_group("raster");
     group.sample_size(10);
-    for (w, h, n) in [(400usize, 400usize, 20_000usize), (800, 800, 50_000)] {
+    for (w, h, n) in [
+        (64usize, 64usize, 2_600usize),
+        (400, 400, 20_000),
+        (800, 800, 50_000),
+    ] {
         let s = random_scene(&SceneSpec::bench(w, h, n, 1))
             .unwrap()
             .cast::<f32>();
@@ -27,8 +31,11 @@ fn bench(c: &mut Criterion) {
                 .build()
                 .unwrap();
             let (_, state) = pool.install(|| rasterize(&input).unwrap());
-            let pairs = state.tile_pairs();
-            println!("{w}x{h} {n}: {pairs} (pixel, Gaussian) tile-list pairs");
+            println!(
+                "{w}x{h} {n}: {} (pixel, Gaussian) pairs evaluated, {} in the tile lists",
+                state.pairs_evaluated(),
+                state.tile_pairs()
+            );
             group.bench_function(format!("forward {w}x{h} {n} t{threads}"), |b| {
                 b.iter(|| pool.install(|| rasterize(&input).unwrap()))
             });

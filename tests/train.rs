@@ -139,7 +139,7 @@ fn check_record(set: impl Fn(&mut Record)) {
     let load = || -> Record { serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap() };
     let mut got = load();
     got.crate_version = env!("CARGO_PKG_VERSION").into();
-    got.math_library = "libm 0.2.11; matrix products: fused multiply-add; f32 field activations: liquid_splat::deform::fastmath".into();
+    got.math_library = "libm 0.2.11; matrix products: fused multiply-add; f32 field activations and rasterizer exp: liquid_splat::deform::fastmath".into();
     got.iterations = ITERATIONS;
     set(&mut got);
     if std::env::var_os("LIQUID_SPLAT_RECORD").is_some() {

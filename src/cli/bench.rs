@@ -11,9 +11,10 @@ use std::time::Instant;
 
 #[derive(Subcommand)]
 pub enum BenchWhat {
-    /// Rasterizer forward and backward at 800x800/50k and 400x400/20k Gaussians, 1 and 2 threads.
+    /// Rasterizer forward and backward at 800x800/50k, 400x400/20k and 64x64/2.6k Gaussians,
+    /// on 1 thread and all cores: ms, pairs evaluated, pairs/s and % of the FMA peak.
     Raster {
-        /// Repetitions per measurement (the median is reported).
+        /// Repetitions per measurement (the minimum is reported).
         #[arg(long, default_value_t = 3)]
         reps: usize,
     },
@@ -172,24 +173,62 @@ pub(crate) fn median(mut v: Vec<f64>) -> f64 {
     v[v.len() / 2]
 }
 
+/// Nominal FLOPs of one (pixel, Gaussian) pair, counted from the code of a
+/// pair that blends (f32): forward `power` 8, `exp` 23, alpha and
+/// transmittance 3, colour and depth 12; the backward repeats the forward walk
+/// and adds 35 for the per-pixel gradient (lane reductions not counted).
+/// Rejected pairs cost fewer, so the percentages below are upper bounds on
+/// the FMA units' use.
+pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 81.0];
+
 fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
     let reps = reps.max(1);
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    println!("machine threads: {cores}");
+    let mut thread_counts = vec![1usize];
+    if cores > 1 {
+        thread_counts.push(cores);
+    }
+    let peaks: Vec<Option<(&str, f64)>> = thread_counts
+        .iter()
+        .map(|&t| fma_peak(t, 20_000_000))
+        .collect();
+    for (&t, p) in thread_counts.iter().zip(&peaks) {
+        match p {
+            Some((isa, gflops)) => {
+                println!("f32 FMA peak ({isa}), {t} thread(s): {gflops:.1} GFLOP/s")
+            }
+            None => println!("f32 FMA peak: no AVX2+FMA or AVX-512 on this CPU"),
+        }
+    }
     println!(
-        "machine threads: {}",
-        std::thread::available_parallelism().map_or(1, |n| n.get())
+        "instruction set of the row functions: {:?}",
+        crate::deform::fastmath::isa()
     );
     println!(
-        "{:<18} {:>7} {:>12} {:>12} {:>14} {:>14}",
-        "scene", "threads", "forward ms", "backward ms", "fwd pairs/s", "bwd pairs/s"
+        "{:<16} {:>3} {:>10} {:>10} {:>12} {:>11} {:>11} {:>6} {:>6}",
+        "scene",
+        "thr",
+        "fwd ms",
+        "bwd ms",
+        "pairs eval",
+        "fwd pair/s",
+        "bwd pair/s",
+        "fwd %",
+        "bwd %"
     );
-    for (w, h, n) in [(800usize, 800usize, 50_000usize), (400, 400, 20_000)] {
+    for (w, h, n) in [
+        (800usize, 800usize, 50_000usize),
+        (400, 400, 20_000),
+        (64, 64, 2_600),
+    ] {
         let s = scene::random_scene(&scene::SceneSpec::bench(w, h, n, 1))?.cast::<f32>();
         let input = s.input(scene::ColorSource::Sh, scene::CovSource::ScaleRotation);
         let grad: Vec<f32> = crate::math::gradcheck::cotangent(5, 3 * w * h)
             .into_iter()
             .map(|v| v as f32)
             .collect();
-        for threads in [1usize, 2] {
+        for (&threads, peak) in thread_counts.iter().zip(&peaks) {
             let pool = rayon::ThreadPoolBuilder::new()
                 .num_threads(threads)
                 .build()
@@ -202,7 +241,7 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
                     let t0 = Instant::now();
                     let (_, state) = render::rasterize(&input)?;
                     f.push(t0.elapsed().as_secs_f64());
-                    pairs = state.tile_pairs();
+                    pairs = state.pairs_evaluated();
                     let t1 = Instant::now();
                     render::rasterize_backward(
                         &input,
@@ -213,21 +252,117 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
                     )?;
                     b.push(t1.elapsed().as_secs_f64());
                 }
-                Ok((median(f), median(b), pairs))
+                let min = |v: Vec<f64>| v.into_iter().fold(f64::INFINITY, f64::min);
+                Ok((min(f), min(b), pairs))
             })?;
+            let rate = [pairs as f64 / fwd, pairs as f64 / bwd];
+            let pct = |i: usize| match peak {
+                Some((_, g)) => format!(
+                    "{:.1}",
+                    100.0 * rate[i] * RASTER_FLOP_PER_PAIR[i] / (g * 1e9)
+                ),
+                None => "-".into(),
+            };
             println!(
-                "{:<18} {:>7} {:>12.1} {:>12.1} {:>14.3e} {:>14.3e}",
+                "{:<16} {:>3} {:>10.2} {:>10.2} {:>12} {:>11.3e} {:>11.3e} {:>6} {:>6}",
                 format!("{w}x{h} {n}"),
                 threads,
                 fwd * 1e3,
                 bwd * 1e3,
-                pairs as f64 / fwd,
-                pairs as f64 / bwd
+                pairs,
+                rate[0],
+                rate[1],
+                pct(0),
+                pct(1)
             );
         }
     }
-    println!("(pairs: pixels x entries of their tile list, an upper bound on evaluated pairs; f32, SH degree 3)");
+    println!(
+        "(f32, SH degree 3, exact gradients, minimum over {reps} runs; pairs eval: (pixel, Gaussian) \
+         pairs the forward evaluated, up to each pixel's stop; %: pairs/s x {} (forward) or {} \
+         (backward) FLOP per pair over the FMA peak)",
+        RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
+    );
     Ok(ExitCode::SUCCESS)
+}
+
+/// The machine's f32 FMA peak in GFLOP/s (2 FLOPs per lane per fused
+/// multiply-add) on `threads` threads, each running `iters` rounds of 24
+/// (AVX-512) or 12 (AVX2) independent vector FMAs, and the instruction set
+/// used; `None` without AVX2+FMA or AVX-512. The ceiling `benches/fma_peak`
+/// prints.
+pub fn fma_peak(threads: usize, iters: usize) -> Option<(&'static str, f64)> {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let (name, flop_per_iter, run): (&str, f64, fn(usize) -> f32) =
+            if std::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU has AVX-512F (checked above).
+                ("AVX-512", 24.0 * 16.0 * 2.0, |n| unsafe { peak::avx512(n) })
+            } else if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
+            {
+                // SAFETY: the CPU has AVX2 and FMA (checked above).
+                ("AVX2", 12.0 * 8.0 * 2.0, |n| unsafe { peak::avx2(n) })
+            } else {
+                return None;
+            };
+        let t0 = Instant::now();
+        let sum: f32 = (0..threads.max(1))
+            .map(|_| std::thread::spawn(move || run(iters)))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .map(|h| h.join().unwrap_or(0.0))
+            .sum();
+        let s = t0.elapsed().as_secs_f64();
+        std::hint::black_box(sum);
+        Some((
+            name,
+            threads.max(1) as f64 * iters as f64 * flop_per_iter / s / 1e9,
+        ))
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (threads, iters);
+        None
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod peak {
+    use std::arch::x86_64::*;
+
+    #[target_feature(enable = "avx512f")]
+    pub unsafe fn avx512(iters: usize) -> f32 {
+        let mut c = [_mm512_set1_ps(0.0); 24];
+        let a = _mm512_set1_ps(0.999_999);
+        let b = _mm512_set1_ps(1e-7);
+        for _ in 0..iters {
+            for v in c.iter_mut() {
+                *v = _mm512_fmadd_ps(a, *v, b);
+            }
+        }
+        let s = c
+            .iter()
+            .fold(_mm512_set1_ps(0.0), |s, &v| _mm512_add_ps(s, v));
+        _mm512_reduce_add_ps(s)
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn avx2(iters: usize) -> f32 {
+        let mut c = [_mm256_set1_ps(0.0); 12];
+        let a = _mm256_set1_ps(0.999_999);
+        let b = _mm256_set1_ps(1e-7);
+        for _ in 0..iters {
+            for v in c.iter_mut() {
+                *v = _mm256_fmadd_ps(a, *v, b);
+            }
+        }
+        let mut out = [0.0f32; 8];
+        let s = c
+            .iter()
+            .fold(_mm256_set1_ps(0.0), |s, &v| _mm256_add_ps(s, v));
+        _mm256_storeu_ps(out.as_mut_ptr(), s);
+        out.iter().sum()
+    }
 }
 
 /// Train in memory (no files) and print the mean time of each stage, over

@@ -12,8 +12,8 @@
 
 use super::scene::{random_scene, ColorSource, CovSource, Scene, SceneSpec};
 use super::{
-    gather, rasterize as render, rasterize_backward, rasterize_with_ndc_offset, Colors,
-    Covariances, GradientMode, RasterInput,
+    rasterize as render, rasterize_backward, rasterize_with_ndc_offset, Colors, Covariances,
+    GradientMode, RasterInput,
 };
 use crate::error::Result;
 use crate::math::gradcheck::{compare, cotangent, numeric_gradient, GroupReport};
@@ -44,12 +44,13 @@ pub fn decisions<T: Real>(input: &RasterInput<T>, ndc_offset: Option<&[T]>) -> R
     let intr = &state.intr;
     let grid_x = intr.grid[0] as usize;
     for tile in 0..state.binning.ranges.len() {
-        let splats = gather(&state, input.opacities, tile);
+        let [s, e] = state.binning.ranges[tile];
+        let splats = &state.splats[s as usize..e as usize];
         let [x0, x1, y0, y1] = super::rasterize::tile_bounds(tile, grid_x, intr.width, intr.height);
         for py in y0..y1 {
             for px in x0..x1 {
                 let mut t = T::ONE;
-                for s in &splats {
+                for s in splats {
                     match super::rasterize::evaluate(s, T::from_usize(px), T::from_usize(py), &k) {
                         super::rasterize::Step::Skip => sig.push(0),
                         super::rasterize::Step::Hit(h) => {

@@ -31,14 +31,22 @@
 //! - `GradientMode::Exact` is the true derivative (see its documentation);
 //!   `GradientMode::Inria` reproduces upstream's backward formulas instead.
 //!
-//! ## Determinism
-//! Forward: parallel over Gaussians (independent) and over tiles (each tile
-//! owns its pixels). Backward: each tile accumulates its pixels' contributions
-//! in row-major order into a buffer indexed by list position; each Gaussian
-//! then sums its entries in ascending list position; the chain rule runs per
-//! Gaussian. No result depends on the number of threads.
+//! ## Determinism and speed
+//! The per-pixel stages work on one row of a tile (16 pixels) at a time, as
+//! one vector: AVX-512, two AVX2 halves or portable scalar lanes, chosen at
+//! run time ([`crate::deform::fastmath::force_isa`] pins it), with the same
+//! bits on every path (see the private modules `lanes` and `rasterize`). In f32
+//! the rasterizer's `exp` is [`crate::deform::fastmath::exp_f32`] (≤ 1 ulp);
+//! f64 uses the pinned libm.
+//! Forward: parallel over Gaussians (independent) and over image rows (each
+//! row owns its pixels). Backward: each tile accumulates into a buffer
+//! indexed by list position, per entry the fixed pairwise sum of a row's 16
+//! pixels, rows in ascending order; each Gaussian then sums its entries in
+//! ascending list position; the chain rule runs per Gaussian. No result
+//! depends on the number of threads or on the instruction set.
 
 pub mod check;
+pub(crate) mod lanes;
 pub(crate) mod project;
 pub(crate) mod rasterize;
 pub(crate) mod rasterize_vjp;
@@ -51,7 +59,7 @@ use crate::math::covariance::{cov3d, cov3d_vjp, cov3d_vjp_scaled};
 use crate::math::sh::{sh_to_color, sh_to_color_vjp, ShColor, MAX_SH_DEGREE};
 use crate::math::Real;
 use project::{Intrinsics, Projected, ProjectedGrad};
-use rasterize::{Blend, Splat};
+use rasterize::Splat;
 use rasterize_vjp::EntryGrad;
 use rayon::prelude::*;
 
@@ -124,6 +132,13 @@ pub struct ForwardState<T> {
     colors: Vec<ShColor<T>>,
     cov3d: Vec<[T; 6]>,
     binning: tiles::Binning,
+    /// The splat data of each sorted entry, in list order.
+    splats: Vec<Splat<T>>,
+    /// (pixel, Gaussian) pairs the forward evaluated.
+    evaluated: u64,
+    /// `[H, grid_x]`: per image row and tile, the largest `n_contrib` of
+    /// the row's pixels in the tile.
+    row_last: Vec<u32>,
 }
 
 impl<T: Real> ForwardState<T> {
@@ -151,6 +166,13 @@ impl<T: Real> ForwardState<T> {
             total += ((x1 - x0) * (y1 - y0)) as u64 * (r[1] - r[0]) as u64;
         }
         total
+    }
+    /// (pixel, Gaussian) pairs the forward evaluated: Σ over pixels of the
+    /// entries of its tile's list up to and including the one that stopped
+    /// it (all of them if none did). The backward's forward walk evaluates
+    /// the same pairs, then walks back over the blended ones.
+    pub fn pairs_evaluated(&self) -> u64 {
+        self.evaluated
     }
     /// Gaussian index of each sorted entry (tile-major, then depth, then index).
     pub fn sorted_list(&self) -> &[u32] {
@@ -446,74 +468,86 @@ fn forward<T: Real>(
         covs.push(v);
     }
 
-    // 2. Binning.
+    // 2. Binning, and the splat data of every entry in list order.
     let binning = tiles::bin(&proj, intr.grid);
+    let power_mins: Vec<T> = input
+        .opacities
+        .par_iter()
+        .map(|&o| rasterize::power_min(o))
+        .collect();
+    let splats: Vec<Splat<T>> = binning
+        .list
+        .par_iter()
+        .map(|&g| {
+            let g = g as usize;
+            let p = &proj[g];
+            Splat {
+                xy: p.xy,
+                conic: p.conic,
+                opacity: input.opacities[g],
+                color: colors[g].color,
+                depth: p.depth,
+                power_min: power_mins[g],
+            }
+        })
+        .collect();
+
+    // 3. Per-row blending.
+    let grid_x = intr.grid[0] as usize;
+    let hw = w * h;
+    let mut out = RasterOutput {
+        color: vec![T::ZERO; 3 * hw],
+        depth: vec![T::ZERO; hw],
+        radii: proj.iter().map(|p| p.radius).collect(),
+        final_t: vec![T::ZERO; hw],
+        n_contrib: vec![0; hw],
+        means2d: proj.iter().flat_map(|p| p.xy).collect(),
+    };
+    let frame = rasterize::Frame {
+        splats: &splats,
+        ranges: &binning.ranges,
+        grid_x,
+        width: w,
+        bg: input.background,
+    };
+    let mut row_last = vec![0u32; h * grid_x];
+    let (c0, rest) = out.color.split_at_mut(hw);
+    let (c1, c2) = rest.split_at_mut(hw);
+    let evaluated: u64 = (
+        c0.par_chunks_mut(w),
+        c1.par_chunks_mut(w),
+        c2.par_chunks_mut(w),
+        out.depth.par_chunks_mut(w),
+        out.final_t.par_chunks_mut(w),
+        out.n_contrib.par_chunks_mut(w),
+        row_last.par_chunks_mut(grid_x),
+    )
+        .into_par_iter()
+        .enumerate()
+        .map(|(py, (c0, c1, c2, depth, final_t, n_contrib, row_last))| {
+            let mut row = rasterize::RowOut {
+                color: [c0, c1, c2],
+                depth,
+                final_t,
+                n_contrib,
+                row_last,
+            };
+            let mut ev = 0u64;
+            rasterize::forward_row(&frame, py, &mut row, &mut ev);
+            ev
+        })
+        .sum();
     let state = ForwardState {
         intr,
         proj,
         colors,
         cov3d: covs,
         binning,
+        splats,
+        evaluated,
+        row_last,
     };
-
-    // 3. Per-tile blending.
-    let k = Blend::new();
-    let grid_x = intr.grid[0] as usize;
-    let n_tiles = state.binning.ranges.len();
-    let bg = input.background;
-    let tiles_out: Vec<rasterize::TileOut<T>> = (0..n_tiles)
-        .into_par_iter()
-        .map(|tile| {
-            let splats = gather(&state, input.opacities, tile);
-            let bounds = rasterize::tile_bounds(tile, grid_x, w, h);
-            rasterize::render_tile(&splats, bounds, bg, &k)
-        })
-        .collect();
-    let hw = w * h;
-    let mut out = RasterOutput {
-        color: vec![T::ZERO; 3 * hw],
-        depth: vec![T::ZERO; hw],
-        radii: state.proj.iter().map(|p| p.radius).collect(),
-        final_t: vec![T::ZERO; hw],
-        n_contrib: vec![0; hw],
-        means2d: state.proj.iter().flat_map(|p| p.xy).collect(),
-    };
-    for (tile, to) in tiles_out.iter().enumerate() {
-        let [x0, x1, y0, y1] = rasterize::tile_bounds(tile, grid_x, w, h);
-        let mut q = 0;
-        for py in y0..y1 {
-            for px in x0..x1 {
-                let pix = py * w + px;
-                for ch in 0..3 {
-                    out.color[ch * hw + pix] = to.color[q][ch];
-                }
-                out.depth[pix] = to.depth[q];
-                out.final_t[pix] = to.final_t[q];
-                out.n_contrib[pix] = to.n_contrib[q];
-                q += 1;
-            }
-        }
-    }
     Ok((out, state))
-}
-
-/// The splats of one tile in list order (the CUDA kernel's shared-memory batch).
-fn gather<T: Real>(state: &ForwardState<T>, opacities: &[T], tile: usize) -> Vec<Splat<T>> {
-    let [s, e] = state.binning.ranges[tile];
-    state.binning.list[s as usize..e as usize]
-        .iter()
-        .map(|&g| {
-            let g = g as usize;
-            let p = &state.proj[g];
-            Splat {
-                xy: p.xy,
-                conic: p.conic,
-                opacity: opacities[g],
-                color: state.colors[g].color,
-                depth: p.depth,
-            }
-        })
-        .collect()
 }
 
 /// The backward pass: gradients of `<grad_color, color> + <grad_depth, depth>`
@@ -561,8 +595,7 @@ pub fn rasterize_backward<T: Real>(
         }
     }
 
-    // 1. Per tile: contributions per list entry, pixels in row-major order.
-    let k = Blend::new();
+    // 1. Per tile: contributions per list entry, rows in order.
     let grid_x = intr.grid[0] as usize;
     let bg = input.background;
     let mut entry: Vec<EntryGrad<T>> = vec![[T::ZERO; 10]; state.num_rendered()];
@@ -578,17 +611,27 @@ pub fn rasterize_backward<T: Real>(
             // Ranges are contiguous and ascending in tile order.
             let (_, tail) = rest.split_at_mut(s - pos);
             let (head, tail) = tail.split_at_mut(e - s);
-            chunks.push((tile, head));
+            chunks.push((tile, s, head));
             rest = tail;
             pos = e;
         }
-        chunks.into_par_iter().for_each(|(tile, buf)| {
-            let splats = gather(state, input.opacities, tile);
-            let bounds = rasterize::tile_bounds(tile, grid_x, w, h);
-            rasterize_vjp::tile_vjp(
-                &splats, bounds, w, h, bg, grad_color, grad_depth, &k, mode, buf,
-            );
-        });
+        chunks
+            .into_par_iter()
+            .for_each_init(Vec::new, |rec, (tile, s, buf)| {
+                let job = rasterize_vjp::TileJob {
+                    splats: &state.splats[s..s + buf.len()],
+                    row_last: &state.row_last[tile % grid_x..],
+                    grid_x,
+                    bounds: rasterize::tile_bounds(tile, grid_x, w, h),
+                    width: w,
+                    height: h,
+                    bg,
+                    grad_color,
+                    grad_depth,
+                    mode,
+                };
+                rasterize_vjp::tile_vjp(&job, buf, rec);
+            });
     }
 
     // 2. Gaussian -> entries, ascending list position (so ascending tile).

@@ -96,10 +96,6 @@ impl<T: Real> Projected<T> {
             clamped_y: false,
         }
     }
-    pub fn tiles_touched(&self) -> usize {
-        (self.rect_max[0] - self.rect_min[0]) as usize
-            * (self.rect_max[1] - self.rect_min[1]) as usize
-    }
 }
 
 /// `m·[p; 1]` for a row-vector 4×4 stored row-major: component `i` is

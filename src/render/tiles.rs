@@ -3,9 +3,11 @@
 //!
 //! Upstream emits one `(tile << 32 | depth bits, gaussian)` pair per touched
 //! tile and radix-sorts the pairs stably, so equal keys keep ascending
-//! Gaussian index. Sorting the triple `(tile, depth bits, gaussian index)`
-//! gives exactly that order; because the triple is unique, an unstable
-//! (parallel) sort gives the same result on any thread count. Depth is
+//! Gaussian index: the order is `(tile, depth bits, gaussian index)`. Here a
+//! counting sort by tile (in ascending Gaussian index) is followed by a sort
+//! of each tile's entries by `(depth bits, gaussian index)`; because that pair
+//! is unique within a tile, an unstable sort gives one result, and tiles are
+//! sorted in parallel with the same result on any thread count. Depth is
 //! positive (> 0.2), so its IEEE bit pattern orders like its value.
 
 use super::project::Projected;
@@ -23,54 +25,68 @@ pub(crate) struct Binning {
 
 pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
     let n_tiles = grid[0] as usize * grid[1] as usize;
-    // Offsets by an exclusive prefix sum in Gaussian order.
-    let mut offsets = Vec::with_capacity(proj.len() + 1);
-    let mut total = 0usize;
-    offsets.push(0);
+    // Entries per tile, then each tile's start by an exclusive prefix sum.
+    let mut ranges = vec![[0u32; 2]; n_tiles];
     for p in proj {
         if p.radius > 0 {
-            total += p.tiles_touched();
-        }
-        offsets.push(total);
-    }
-    // Key: tile (bits 96..128), depth bits (32..96), index (0..32).
-    let mut keys = vec![0u128; total];
-    {
-        let mut rest: &mut [u128] = &mut keys;
-        let mut chunks = Vec::with_capacity(proj.len());
-        for i in 0..proj.len() {
-            let (head, tail) = rest.split_at_mut(offsets[i + 1] - offsets[i]);
-            chunks.push(head);
-            rest = tail;
-        }
-        chunks.into_par_iter().enumerate().for_each(|(i, out)| {
-            if out.is_empty() {
-                return;
-            }
-            let p = &proj[i];
-            let depth = p.depth.bits() as u128;
-            let mut o = 0;
             for y in p.rect_min[1]..p.rect_max[1] {
+                let row = (y * grid[0]) as usize;
                 for x in p.rect_min[0]..p.rect_max[0] {
-                    let tile = (y * grid[0] + x) as u128;
-                    out[o] = (tile << 96) | (depth << 32) | i as u128;
-                    o += 1;
+                    ranges[row + x as usize][1] += 1;
                 }
             }
-        });
-    }
-    keys.par_sort_unstable();
-    let mut ranges = vec![[0u32; 2]; n_tiles];
-    let list: Vec<u32> = keys.iter().map(|k| *k as u32).collect();
-    let mut start = 0usize;
-    while start < keys.len() {
-        let tile = (keys[start] >> 96) as usize;
-        let mut end = start + 1;
-        while end < keys.len() && (keys[end] >> 96) as usize == tile {
-            end += 1;
         }
-        ranges[tile] = [start as u32, end as u32];
-        start = end;
+    }
+    let mut total = 0u32;
+    for r in ranges.iter_mut() {
+        let n = r[1];
+        *r = [total, total];
+        total += n;
+    }
+    // Fill in ascending Gaussian index; `ranges[t][1]` is the fill cursor and
+    // ends at the tile's end.
+    let mut list = vec![0u32; total as usize];
+    for (i, p) in proj.iter().enumerate() {
+        if p.radius > 0 {
+            for y in p.rect_min[1]..p.rect_max[1] {
+                let row = (y * grid[0]) as usize;
+                for x in p.rect_min[0]..p.rect_max[0] {
+                    let r = &mut ranges[row + x as usize];
+                    list[r[1] as usize] = i as u32;
+                    r[1] += 1;
+                }
+            }
+        }
+    }
+    // Per tile: by depth bits, then index, as one packed integer key.
+    let mut chunks = Vec::with_capacity(n_tiles);
+    let mut rest: &mut [u32] = &mut list;
+    for r in &ranges {
+        let (head, tail) = rest.split_at_mut((r[1] - r[0]) as usize);
+        if head.len() > 1 {
+            chunks.push(head);
+        }
+        rest = tail;
+    }
+    let depth_bits = |g: u32| proj[g as usize].depth.bits();
+    if std::mem::size_of::<T>() <= 4 {
+        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
+            keys.clear();
+            keys.extend(c.iter().map(|&g| depth_bits(g) << 32 | g as u64));
+            keys.sort_unstable();
+            for (o, k) in c.iter_mut().zip(keys.iter()) {
+                *o = *k as u32;
+            }
+        });
+    } else {
+        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
+            keys.clear();
+            keys.extend(c.iter().map(|&g| (depth_bits(g) as u128) << 32 | g as u128));
+            keys.sort_unstable();
+            for (o, k) in c.iter_mut().zip(keys.iter()) {
+                *o = *k as u32;
+            }
+        });
     }
     Binning { list, ranges }
 }

@@ -1,0 +1,479 @@
+//! Sixteen pixels as one value: the vector type the row functions of the
+//! rasterizer are written in ([`super::rasterize`], [`super::rasterize_vjp`]).
+//!
+//! Three implementations of [`Lanes`] with the same bits: [`Scalar`] (sixteen
+//! scalars, any [`Real`], the portable path and the only one for f64),
+//! `Avx512` (one 16-lane f32 register) and `Avx2` (two 8-lane f32 halves).
+//! Every operation is lane-wise IEEE arithmetic (add, subtract, multiply,
+//! divide, each correctly rounded; no fused multiply-add), an ordered
+//! comparison, a select or a bit operation, so a lane computes exactly what
+//! the scalar code does. `exp` is the crate's f32 [`fastmath::exp_f32`]
+//! operation by operation (libm's `exp` per lane in f64).
+
+use super::rasterize::LANES;
+use crate::deform::fastmath;
+use crate::math::Real;
+use std::ops::{Add, Div, Mul, Neg, Sub};
+
+/// Sixteen lanes of `Self::T` with masks `Self::M`.
+pub(crate) trait Lanes:
+    Copy
+    + Add<Output = Self>
+    + Sub<Output = Self>
+    + Mul<Output = Self>
+    + Div<Output = Self>
+    + Neg<Output = Self>
+{
+    type T: Real;
+    type M: Copy;
+    fn splat(v: Self::T) -> Self;
+    fn load(a: &[Self::T; LANES]) -> Self;
+    fn store(self, a: &mut [Self::T; LANES]);
+    /// Ordered `self < o` per lane (false for NaN).
+    fn lt(self, o: Self) -> Self::M;
+    /// Ordered `self > o` per lane (false for NaN).
+    fn gt(self, o: Self) -> Self::M;
+    /// `m ? a : b` per lane.
+    fn select(m: Self::M, a: Self, b: Self) -> Self;
+    fn and(a: Self::M, b: Self::M) -> Self::M;
+    /// `a && !b`.
+    fn andnot(a: Self::M, b: Self::M) -> Self::M;
+    /// Lane `l` is bit `l`.
+    fn bits(m: Self::M) -> u16;
+    fn from_bits(b: u16) -> Self::M;
+    /// `e^x` per lane.
+    fn exp(self) -> Self;
+    /// `Real::min(a, self)` for a splat `a`: `self < a ? self : a`.
+    #[inline(always)]
+    fn min_of(self, a: Self) -> Self {
+        Self::select(self.lt(a), self, a)
+    }
+    /// The fixed pairwise sum: lane `l` with `l + 8`, then `+ 4`, `+ 2`, `+ 1`.
+    #[inline(always)]
+    fn tree_sum(self) -> Self::T {
+        let mut v = [Self::T::ZERO; LANES];
+        self.store(&mut v);
+        let mut a = [Self::T::ZERO; 8];
+        for l in 0..8 {
+            a[l] = v[l] + v[l + 8];
+        }
+        let mut b = [Self::T::ZERO; 4];
+        for l in 0..4 {
+            b[l] = a[l] + a[l + 4];
+        }
+        (b[0] + b[2]) + (b[1] + b[3])
+    }
+}
+
+/// The portable implementation: sixteen scalars.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Scalar<T>(pub [T; LANES]);
+
+macro_rules! scalar_op {
+    ($tr:ident, $f:ident, $op:tt) => {
+        impl<T: Real> $tr for Scalar<T> {
+            type Output = Self;
+            #[inline(always)]
+            fn $f(self, o: Self) -> Self {
+                Scalar(std::array::from_fn(|l| self.0[l] $op o.0[l]))
+            }
+        }
+    };
+}
+scalar_op!(Add, add, +);
+scalar_op!(Sub, sub, -);
+scalar_op!(Mul, mul, *);
+scalar_op!(Div, div, /);
+impl<T: Real> Neg for Scalar<T> {
+    type Output = Self;
+    #[inline(always)]
+    fn neg(self) -> Self {
+        Scalar(std::array::from_fn(|l| -self.0[l]))
+    }
+}
+
+impl<T: Real> Lanes for Scalar<T> {
+    type T = T;
+    type M = u16;
+    #[inline(always)]
+    fn splat(v: T) -> Self {
+        Scalar([v; LANES])
+    }
+    #[inline(always)]
+    fn load(a: &[T; LANES]) -> Self {
+        Scalar(*a)
+    }
+    #[inline(always)]
+    fn store(self, a: &mut [T; LANES]) {
+        *a = self.0;
+    }
+    #[inline(always)]
+    fn lt(self, o: Self) -> u16 {
+        let mut m = 0;
+        for l in 0..LANES {
+            m |= ((self.0[l] < o.0[l]) as u16) << l;
+        }
+        m
+    }
+    #[inline(always)]
+    fn gt(self, o: Self) -> u16 {
+        let mut m = 0;
+        for l in 0..LANES {
+            m |= ((self.0[l] > o.0[l]) as u16) << l;
+        }
+        m
+    }
+    #[inline(always)]
+    fn select(m: u16, a: Self, b: Self) -> Self {
+        Scalar(std::array::from_fn(|l| {
+            if m >> l & 1 != 0 {
+                a.0[l]
+            } else {
+                b.0[l]
+            }
+        }))
+    }
+    #[inline(always)]
+    fn and(a: u16, b: u16) -> u16 {
+        a & b
+    }
+    #[inline(always)]
+    fn andnot(a: u16, b: u16) -> u16 {
+        a & !b
+    }
+    #[inline(always)]
+    fn bits(m: u16) -> u16 {
+        m
+    }
+    #[inline(always)]
+    fn from_bits(b: u16) -> u16 {
+        b
+    }
+    #[inline(always)]
+    fn exp(self) -> Self {
+        Scalar(std::array::from_fn(|l| fastmath::exp(self.0[l])))
+    }
+}
+
+/// The constants of [`fastmath::exp_f32`], shared by the vector versions.
+#[cfg(target_arch = "x86_64")]
+mod expc {
+    #![allow(clippy::excessive_precision)]
+    pub const LOG2E: f32 = std::f32::consts::LOG2_E;
+    pub const LN2_HI: f32 = 0.693_359_4;
+    pub const LN2_LO: f32 = -2.121_944_4e-4;
+    pub const ROUND: f32 = 12_582_912.0;
+    pub const P: [f32; 6] = [
+        1.987_569_1e-4,
+        1.398_199_9e-3,
+        8.333_452e-3,
+        4.166_579_6e-2,
+        1.666_666_5e-1,
+        5.000_000_1e-1,
+    ];
+}
+
+#[cfg(target_arch = "x86_64")]
+pub(crate) use x86::{Avx2, Avx512};
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::{expc, Lanes, LANES};
+    use std::arch::x86_64::*;
+    use std::ops::{Add, Div, Mul, Neg, Sub};
+
+    /// One AVX-512 register of 16 f32 lanes. Only built inside functions
+    /// compiled with `avx512f` on a CPU that has it.
+    #[derive(Clone, Copy, Debug)]
+    pub(crate) struct Avx512(__m512);
+
+    /// Two AVX2 registers of 8 f32 lanes (lanes 0–7, 8–15). Only built
+    /// inside functions compiled with `avx2` on a CPU that has it.
+    #[derive(Clone, Copy, Debug)]
+    pub(crate) struct Avx2([__m256; 2]);
+
+    // SAFETY (every `unsafe` block below): these types only exist inside
+    // functions compiled with their target feature, entered after run-time
+    // detection (`fastmath::isa`); loads and stores are of 16-element arrays.
+
+    macro_rules! avx512_op {
+        ($tr:ident, $f:ident, $intr:ident) => {
+            impl $tr for Avx512 {
+                type Output = Self;
+                #[inline(always)]
+                fn $f(self, o: Self) -> Self {
+                    Avx512(unsafe { $intr(self.0, o.0) })
+                }
+            }
+        };
+    }
+    avx512_op!(Add, add, _mm512_add_ps);
+    avx512_op!(Sub, sub, _mm512_sub_ps);
+    avx512_op!(Mul, mul, _mm512_mul_ps);
+    avx512_op!(Div, div, _mm512_div_ps);
+    impl Neg for Avx512 {
+        type Output = Self;
+        #[inline(always)]
+        fn neg(self) -> Self {
+            unsafe {
+                Avx512(_mm512_castsi512_ps(_mm512_xor_si512(
+                    _mm512_castps_si512(self.0),
+                    _mm512_set1_epi32(i32::MIN),
+                )))
+            }
+        }
+    }
+
+    impl Lanes for Avx512 {
+        type T = f32;
+        type M = u16;
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            Avx512(unsafe { _mm512_set1_ps(v) })
+        }
+        #[inline(always)]
+        fn load(a: &[f32; LANES]) -> Self {
+            Avx512(unsafe { _mm512_loadu_ps(a.as_ptr()) })
+        }
+        #[inline(always)]
+        fn store(self, a: &mut [f32; LANES]) {
+            unsafe { _mm512_storeu_ps(a.as_mut_ptr(), self.0) }
+        }
+        #[inline(always)]
+        fn lt(self, o: Self) -> u16 {
+            unsafe { _mm512_cmp_ps_mask::<_CMP_LT_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn gt(self, o: Self) -> u16 {
+            unsafe { _mm512_cmp_ps_mask::<_CMP_GT_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn select(m: u16, a: Self, b: Self) -> Self {
+            Avx512(unsafe { _mm512_mask_blend_ps(m, b.0, a.0) })
+        }
+        #[inline(always)]
+        fn and(a: u16, b: u16) -> u16 {
+            a & b
+        }
+        #[inline(always)]
+        fn andnot(a: u16, b: u16) -> u16 {
+            a & !b
+        }
+        #[inline(always)]
+        fn bits(m: u16) -> u16 {
+            m
+        }
+        #[inline(always)]
+        fn from_bits(b: u16) -> u16 {
+            b
+        }
+        #[inline(always)]
+        fn tree_sum(self) -> f32 {
+            unsafe {
+                let lo = _mm512_castps512_ps256(self.0);
+                let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(self.0)));
+                sum8(_mm256_add_ps(lo, hi))
+            }
+        }
+        #[inline(always)]
+        fn exp(self) -> Self {
+            unsafe {
+                // clamp(x, −104, 89) as f32::clamp: NaN stays NaN (max/min
+                // return their second operand when one is NaN).
+                let xc = _mm512_min_ps(
+                    _mm512_set1_ps(89.0),
+                    _mm512_max_ps(_mm512_set1_ps(-104.0), self.0),
+                );
+                let t = _mm512_add_ps(
+                    _mm512_mul_ps(xc, _mm512_set1_ps(expc::LOG2E)),
+                    _mm512_set1_ps(expc::ROUND),
+                );
+                let kf = _mm512_sub_ps(t, _mm512_set1_ps(expc::ROUND));
+                let r = _mm512_sub_ps(
+                    _mm512_sub_ps(xc, _mm512_mul_ps(kf, _mm512_set1_ps(expc::LN2_HI))),
+                    _mm512_mul_ps(kf, _mm512_set1_ps(expc::LN2_LO)),
+                );
+                let z = _mm512_mul_ps(r, r);
+                let mut p = _mm512_set1_ps(expc::P[0]);
+                for &c in &expc::P[1..] {
+                    p = _mm512_add_ps(_mm512_mul_ps(p, r), _mm512_set1_ps(c));
+                }
+                let p = _mm512_add_ps(_mm512_add_ps(_mm512_mul_ps(p, z), r), _mm512_set1_ps(1.0));
+                let k = _mm512_sub_epi32(
+                    _mm512_castps_si512(t),
+                    _mm512_set1_epi32(expc::ROUND.to_bits() as i32),
+                );
+                let k1 = _mm512_srai_epi32::<1>(k);
+                let k2 = _mm512_sub_epi32(k, k1);
+                let bias = _mm512_set1_epi32(127);
+                let s1 = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(k1, bias)));
+                let s2 = _mm512_castsi512_ps(_mm512_slli_epi32::<23>(_mm512_add_epi32(k2, bias)));
+                Avx512(_mm512_mul_ps(_mm512_mul_ps(p, s1), s2))
+            }
+        }
+    }
+
+    macro_rules! avx2_op {
+        ($tr:ident, $f:ident, $intr:ident) => {
+            impl $tr for Avx2 {
+                type Output = Self;
+                #[inline(always)]
+                fn $f(self, o: Self) -> Self {
+                    unsafe { Avx2([$intr(self.0[0], o.0[0]), $intr(self.0[1], o.0[1])]) }
+                }
+            }
+        };
+    }
+    avx2_op!(Add, add, _mm256_add_ps);
+    avx2_op!(Sub, sub, _mm256_sub_ps);
+    avx2_op!(Mul, mul, _mm256_mul_ps);
+    avx2_op!(Div, div, _mm256_div_ps);
+    impl Neg for Avx2 {
+        type Output = Self;
+        #[inline(always)]
+        fn neg(self) -> Self {
+            unsafe {
+                let m = _mm256_set1_ps(-0.0);
+                Avx2([_mm256_xor_ps(self.0[0], m), _mm256_xor_ps(self.0[1], m)])
+            }
+        }
+    }
+
+    /// [`crate::deform::fastmath::exp_f32`] on 8 lanes.
+    #[inline(always)]
+    fn exp8(x: __m256) -> __m256 {
+        unsafe {
+            let xc = _mm256_min_ps(
+                _mm256_set1_ps(89.0),
+                _mm256_max_ps(_mm256_set1_ps(-104.0), x),
+            );
+            let t = _mm256_add_ps(
+                _mm256_mul_ps(xc, _mm256_set1_ps(expc::LOG2E)),
+                _mm256_set1_ps(expc::ROUND),
+            );
+            let kf = _mm256_sub_ps(t, _mm256_set1_ps(expc::ROUND));
+            let r = _mm256_sub_ps(
+                _mm256_sub_ps(xc, _mm256_mul_ps(kf, _mm256_set1_ps(expc::LN2_HI))),
+                _mm256_mul_ps(kf, _mm256_set1_ps(expc::LN2_LO)),
+            );
+            let z = _mm256_mul_ps(r, r);
+            let mut p = _mm256_set1_ps(expc::P[0]);
+            for &c in &expc::P[1..] {
+                p = _mm256_add_ps(_mm256_mul_ps(p, r), _mm256_set1_ps(c));
+            }
+            let p = _mm256_add_ps(_mm256_add_ps(_mm256_mul_ps(p, z), r), _mm256_set1_ps(1.0));
+            let k = _mm256_sub_epi32(
+                _mm256_castps_si256(t),
+                _mm256_set1_epi32(expc::ROUND.to_bits() as i32),
+            );
+            let k1 = _mm256_srai_epi32::<1>(k);
+            let k2 = _mm256_sub_epi32(k, k1);
+            let bias = _mm256_set1_epi32(127);
+            let s1 = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(k1, bias)));
+            let s2 = _mm256_castsi256_ps(_mm256_slli_epi32::<23>(_mm256_add_epi32(k2, bias)));
+            _mm256_mul_ps(_mm256_mul_ps(p, s1), s2)
+        }
+    }
+
+    /// The last three levels of [`Lanes::tree_sum`] on `a[l] = v[l] + v[l + 8]`.
+    #[inline(always)]
+    fn sum8(a: __m256) -> f32 {
+        unsafe {
+            // b[l] = a[l] + a[l + 4]
+            let b = _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps::<1>(a));
+            // c[l] = b[l] + b[l + 2]
+            let c = _mm_add_ps(b, _mm_movehl_ps(b, b));
+            // c[0] + c[1]
+            let d = _mm_add_ss(c, _mm_shuffle_ps::<0b01>(c, c));
+            _mm_cvtss_f32(d)
+        }
+    }
+
+    /// All-ones in the lanes of `h`'s low 8 bits.
+    #[inline(always)]
+    fn mask8(h: i32) -> __m256 {
+        unsafe {
+            let sel = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
+            let v = _mm256_and_si256(_mm256_set1_epi32(h), sel);
+            _mm256_castsi256_ps(_mm256_cmpeq_epi32(v, sel))
+        }
+    }
+
+    impl Lanes for Avx2 {
+        type T = f32;
+        /// Two all-ones/all-zeros lane masks.
+        type M = [__m256; 2];
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            unsafe { Avx2([_mm256_set1_ps(v); 2]) }
+        }
+        #[inline(always)]
+        fn load(a: &[f32; LANES]) -> Self {
+            unsafe {
+                Avx2([
+                    _mm256_loadu_ps(a.as_ptr()),
+                    _mm256_loadu_ps(a.as_ptr().add(8)),
+                ])
+            }
+        }
+        #[inline(always)]
+        fn store(self, a: &mut [f32; LANES]) {
+            unsafe {
+                _mm256_storeu_ps(a.as_mut_ptr(), self.0[0]);
+                _mm256_storeu_ps(a.as_mut_ptr().add(8), self.0[1]);
+            }
+        }
+        #[inline(always)]
+        fn lt(self, o: Self) -> Self::M {
+            unsafe {
+                [
+                    _mm256_cmp_ps::<_CMP_LT_OQ>(self.0[0], o.0[0]),
+                    _mm256_cmp_ps::<_CMP_LT_OQ>(self.0[1], o.0[1]),
+                ]
+            }
+        }
+        #[inline(always)]
+        fn gt(self, o: Self) -> Self::M {
+            unsafe {
+                [
+                    _mm256_cmp_ps::<_CMP_GT_OQ>(self.0[0], o.0[0]),
+                    _mm256_cmp_ps::<_CMP_GT_OQ>(self.0[1], o.0[1]),
+                ]
+            }
+        }
+        #[inline(always)]
+        fn select(m: Self::M, a: Self, b: Self) -> Self {
+            unsafe {
+                Avx2([
+                    _mm256_blendv_ps(b.0[0], a.0[0], m[0]),
+                    _mm256_blendv_ps(b.0[1], a.0[1], m[1]),
+                ])
+            }
+        }
+        #[inline(always)]
+        fn and(a: Self::M, b: Self::M) -> Self::M {
+            unsafe { [_mm256_and_ps(a[0], b[0]), _mm256_and_ps(a[1], b[1])] }
+        }
+        #[inline(always)]
+        fn andnot(a: Self::M, b: Self::M) -> Self::M {
+            // _mm256_andnot_ps(x, y) = !x & y.
+            unsafe { [_mm256_andnot_ps(b[0], a[0]), _mm256_andnot_ps(b[1], a[1])] }
+        }
+        #[inline(always)]
+        fn bits(m: Self::M) -> u16 {
+            unsafe { (_mm256_movemask_ps(m[0]) as u16) | ((_mm256_movemask_ps(m[1]) as u16) << 8) }
+        }
+        #[inline(always)]
+        fn from_bits(b: u16) -> Self::M {
+            [mask8((b & 0xff) as i32), mask8((b >> 8) as i32)]
+        }
+        #[inline(always)]
+        fn tree_sum(self) -> f32 {
+            unsafe { sum8(_mm256_add_ps(self.0[0], self.0[1])) }
+        }
+        #[inline(always)]
+        fn exp(self) -> Self {
+            Avx2([exp8(self.0[0]), exp8(self.0[1])])
+        }
+    }
+}
