@@ -48,6 +48,7 @@ pub mod dataset;
 pub mod deform;
 pub mod densify;
 pub mod error;
+pub mod fuzz;
 pub mod gaussians;
 pub mod io;
 pub mod loss;

@@ -997,15 +997,7 @@ impl<T: Real> Field<T> {
         // Every tensor present with its shape before the vector is allocated:
         // a small file cannot claim a huge architecture.
         for s in &lb.specs {
-            let found = file.shape(&s.name)?;
-            if found != s.shape.as_slice() {
-                return Err(Error::Tensor {
-                    context: file.path.display().to_string(),
-                    name: s.name.clone(),
-                    expected: format!("shape {:?}", s.shape),
-                    found: format!("shape {found:?}"),
-                });
-            }
+            file.expect_shape(&s.name, &s.shape)?;
         }
         let total = lb.specs.iter().map(|s| s.len()).sum();
         let mut params = vec![T::ZERO; total];

@@ -402,6 +402,21 @@ impl TensorFile {
     }
 
     /// A real tensor of element type `T` whose shape must equal `expected`.
+    /// Fail unless tensor `name` is present with shape `expected` (reads
+    /// no data: a check before allocating for it).
+    pub fn expect_shape(&self, name: &str, expected: &[usize]) -> Result<()> {
+        let shape = self.shape(name)?;
+        if shape != expected {
+            return Err(Error::Tensor {
+                context: self.ctx(),
+                name: name.into(),
+                expected: format!("shape {}", shape_str(expected)),
+                found: format!("shape {}", shape_str(shape)),
+            });
+        }
+        Ok(())
+    }
+
     pub fn get_real<T: Real>(&self, name: &str, expected: &[usize]) -> Result<Vec<T>> {
         let (shape, v) = self.get_real_any::<T>(name)?;
         if shape != expected {
