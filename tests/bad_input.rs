@@ -172,7 +172,13 @@ fn counters_and_sizes_that_overflowed_or_aborted_are_refused() {
     );
 
     refused(
-        &["count", "--field", "cfc", "--backbone-layers", "4611686018427387904"],
+        &[
+            "count",
+            "--field",
+            "cfc",
+            "--backbone-layers",
+            "4611686018427387904",
+        ],
         &["backbone_layers"],
     );
     refused(
@@ -189,24 +195,64 @@ fn counters_and_sizes_that_overflowed_or_aborted_are_refused() {
         &["field size", "limit"],
     );
     refused(
-        &["case", "new", "rasterize", s(&d.join("x.safetensors")), "--count", "1000000000000"],
+        &[
+            "case",
+            "new",
+            "rasterize",
+            s(&d.join("x.safetensors")),
+            "--count",
+            "1000000000000",
+        ],
         &["--count"],
     );
     refused(
-        &["case", "new", "rasterize", s(&d.join("x.safetensors")), "--width", "100000", "--height", "100000"],
+        &[
+            "case",
+            "new",
+            "rasterize",
+            s(&d.join("x.safetensors")),
+            "--width",
+            "100000",
+            "--height",
+            "100000",
+        ],
         &["--width"],
     );
     let out = d.join("run");
     refused(
-        &["train", SWING, "--init-points", "1000000000000", "--out", s(&out)],
+        &[
+            "train",
+            SWING,
+            "--init-points",
+            "1000000000000",
+            "--out",
+            s(&out),
+        ],
         &["init_points"],
     );
     refused(
-        &["train", SWING, "--backbone-layers", "4611686018427387904", "--out", s(&out)],
+        &[
+            "train",
+            SWING,
+            "--backbone-layers",
+            "4611686018427387904",
+            "--out",
+            s(&out),
+        ],
         &["backbone_layers"],
     );
     refused(
-        &["train", "--scene", "swing", "--resolution", "4096", "--frames", "4096", "--out", s(&out)],
+        &[
+            "train",
+            "--scene",
+            "swing",
+            "--resolution",
+            "4096",
+            "--frames",
+            "4096",
+            "--out",
+            s(&out),
+        ],
         &["frames"],
     );
     refused_within(
@@ -240,7 +286,10 @@ fn a_huge_element_before_vertex_is_a_truncation_error_not_a_hang() {
         "ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n0 0 0\n1 0 0\n",
     )
     .unwrap();
-    refused(&["inspect", s(&data)], &["points3d.ply", "vertex", "at least 4"]);
+    refused(
+        &["inspect", s(&data)],
+        &["points3d.ply", "vertex", "at least 4"],
+    );
 }
 
 // ---- 4, 5, 6, 11: checkpoints ----
@@ -257,7 +306,16 @@ fn another_runs_checkpoint_is_refused() {
 
     // A fresh run into the folder: refused before anything is written.
     refused(
-        &["train", BLOB, "--iterations", "6", "--init-points", "100", "--out", s(&out)],
+        &[
+            "train",
+            BLOB,
+            "--iterations",
+            "6",
+            "--init-points",
+            "100",
+            "--out",
+            s(&out),
+        ],
         &["checkpoints", "--resume"],
     );
     assert_eq!(std::fs::read(out.join("run.json")).unwrap(), swing_spec);
@@ -268,18 +326,44 @@ fn another_runs_checkpoint_is_refused() {
     train(BLOB, &other, &[]);
     std::fs::copy(other.join("run.json"), out.join("run.json")).unwrap();
     let mut args = vec![
-        "train", BLOB, "--iterations", "6", "--init-points", "100", "--quiet", "--resume", "--out",
+        "train",
+        BLOB,
+        "--iterations",
+        "6",
+        "--init-points",
+        "100",
+        "--quiet",
+        "--resume",
+        "--out",
         s(&out),
     ];
     args.extend(SMALL_FIELD);
-    refused(&args, &["state.safetensors", "__metadata__.data.hash", SWING]);
-    refused(&["render", s(&out)], &["state.safetensors", "data.hash", "run.json"]);
+    refused(
+        &args,
+        &["state.safetensors", "__metadata__.data.hash", SWING],
+    );
+    refused(
+        &["render", s(&out)],
+        &["state.safetensors", "data.hash", "run.json"],
+    );
 
     // render honours run.json: another resolution is refused, not rendered.
     let r = d.join("res");
     let mut args = vec![
-        "train", "--scene", "swing", "--resolution", "24", "--frames", "4", "--iterations", "4",
-        "--init-points", "100", "--quiet", "--out", s(&r),
+        "train",
+        "--scene",
+        "swing",
+        "--resolution",
+        "24",
+        "--frames",
+        "4",
+        "--iterations",
+        "4",
+        "--init-points",
+        "100",
+        "--quiet",
+        "--out",
+        s(&r),
     ];
     args.extend(SMALL_FIELD);
     ok(&args);
@@ -348,7 +432,15 @@ fn checkpoint_metadata_and_files_are_verified() {
     let curve = ckpt.join("curve.json");
     std::fs::remove_file(&curve).unwrap();
     let mut args = vec![
-        "train", SWING, "--iterations", "6", "--init-points", "100", "--quiet", "--resume", "--out",
+        "train",
+        SWING,
+        "--iterations",
+        "6",
+        "--init-points",
+        "100",
+        "--quiet",
+        "--resume",
+        "--out",
         s(&out),
     ];
     args.extend(SMALL_FIELD);
@@ -377,7 +469,11 @@ fn non_finite_oracle_inputs_are_refused_naming_tensor_and_index() {
             );
             refused(
                 &["case", "run", s(&p), s(&o)],
-                &[s(&p), &format!("`{tensor}`"), &format!("flat index {index}")],
+                &[
+                    s(&p),
+                    &format!("`{tensor}`"),
+                    &format!("flat index {index}"),
+                ],
             );
         }
     }
@@ -398,20 +494,29 @@ fn non_finite_oracle_inputs_are_refused_naming_tensor_and_index() {
         ("tanfovx", "inf"),
         ("tanfovy", "NaN"),
     ] {
-        let p = case(d.as_path(), &format!("{key}.safetensors"), &["rasterize"], |f| {
-            f.set_meta(key, value)
-        });
+        let p = case(
+            d.as_path(),
+            &format!("{key}.safetensors"),
+            &["rasterize"],
+            |f| f.set_meta(key, value),
+        );
         refused(&["case", "run", s(&p), s(&o)], &[s(&p), key]);
     }
     // Step and deform stages too.
     let p = case(d.as_path(), "step_nan.safetensors", &["step"], |f| {
         set_real(f, "xyz", 1, f64::NAN)
     });
-    refused(&["case", "run", s(&p), s(&o)], &[s(&p), "`xyz`", "flat index 1"]);
+    refused(
+        &["case", "run", s(&p), s(&o)],
+        &[s(&p), "`xyz`", "flat index 1"],
+    );
     let p = case(d.as_path(), "deform_nan.safetensors", &["deform"], |f| {
         set_real(f, "t", 0, f64::INFINITY)
     });
-    refused(&["case", "run", s(&p), s(&o)], &[s(&p), "`t`", "flat index 0"]);
+    refused(
+        &["case", "run", s(&p), s(&o)],
+        &[s(&p), "`t`", "flat index 0"],
+    );
 }
 
 // ---- 8: degenerate cameras ----
@@ -423,8 +528,7 @@ fn degenerate_cameras_and_times_are_refused() {
         let data = d.join(name);
         copy_dir(Path::new(SWING), &data);
         let p = data.join("transforms_train.json");
-        let mut v: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
+        let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&p).unwrap()).unwrap();
         edit(&mut v["frames"][0]);
         std::fs::write(&p, serde_json::to_vec_pretty(&v).unwrap()).unwrap();
         data
@@ -476,8 +580,7 @@ fn degenerate_cameras_and_times_are_refused() {
     refused(&["inspect", s(&n)], &["00000.json", "orientation"]);
     std::fs::write(&cam, &original).unwrap();
     let scene = n.join("scene.json");
-    let mut v: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(&scene).unwrap()).unwrap();
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&scene).unwrap()).unwrap();
     v["scale"] = (-1.0).into();
     std::fs::write(&scene, serde_json::to_vec(&v).unwrap()).unwrap();
     refused(&["inspect", s(&n)], &["scene.json", "scale"]);
@@ -522,7 +625,10 @@ fn unusable_splits_paths_and_views_fail_before_the_work() {
     let out = d.join("run");
     train(SWING, &out, &[]);
     std::fs::remove_dir_all(out.join("test")).unwrap();
-    refused(&["render", s(&out), "--sweep-view", "99"], &["--sweep-view", "99"]);
+    refused(
+        &["render", s(&out), "--sweep-view", "99"],
+        &["--sweep-view", "99"],
+    );
     assert!(!out.join("test").exists(), "rendered before the check");
 }
 
@@ -555,7 +661,11 @@ fn errors_name_the_file_and_field() {
         &["case", "compare", s(&a), s(&a), "--tolerances", s(&tol)],
         &[s(&tol), "default.atol"],
     );
-    std::fs::write(&tol, r#"{"tensors": {"grad*": {"max_mismatch_fraction": 2}}}"#).unwrap();
+    std::fs::write(
+        &tol,
+        r#"{"tensors": {"grad*": {"max_mismatch_fraction": 2}}}"#,
+    )
+    .unwrap();
     refused(
         &["case", "compare", s(&a), s(&a), "--tolerances", s(&tol)],
         &[s(&tol), "tensors.grad*.max_mismatch_fraction"],

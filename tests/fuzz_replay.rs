@@ -109,7 +109,11 @@ fn mutate(seed: &[u8], r: &mut Rng) -> Vec<u8> {
 fn replay(name: &str, seeds: &[Vec<u8>], run: &dyn Fn(&[u8]) -> Outcome) {
     let mut r = Rng::new(0x5eed);
     for (k, seed) in seeds.iter().enumerate() {
-        assert_eq!(run(seed), Outcome::Accepted, "{name}: seed {k} is not accepted");
+        assert_eq!(
+            run(seed),
+            Outcome::Accepted,
+            "{name}: seed {k} is not accepted"
+        );
         let mut counts = [0usize; 3];
         for m in 0..MUTATIONS {
             let input = mutate(seed, &mut r);
@@ -120,7 +124,10 @@ fn replay(name: &str, seeds: &[Vec<u8>], run: &dyn Fn(&[u8]) -> Outcome) {
         // The mutations reach past the first check: some are refused, and
         // some still read (a mutation that only breaks the container would
         // test nothing else).
-        assert!(counts[1] > 0, "{name}: seed {k}: nothing refused {counts:?}");
+        assert!(
+            counts[1] > 0,
+            "{name}: seed {k}: nothing refused {counts:?}"
+        );
         eprintln!("{name} seed {k}: accepted / refused / over budget = {counts:?}");
     }
 }
@@ -130,13 +137,38 @@ fn replay(name: &str, seeds: &[Vec<u8>], run: &dyn Fn(&[u8]) -> Outcome) {
 fn case_seeds(dir: &Path) -> Vec<Vec<u8>> {
     let mut seeds = Vec::new();
     let runs: [&[&str]; 7] = [
-        &["rasterize", "--width", "16", "--height", "12", "--count", "6"],
-        &["rasterize", "--dtype", "f32", "--width", "16", "--height", "12", "--count", "6", "--gradient", "inria"],
+        &[
+            "rasterize",
+            "--width",
+            "16",
+            "--height",
+            "12",
+            "--count",
+            "6",
+        ],
+        &[
+            "rasterize",
+            "--dtype",
+            "f32",
+            "--width",
+            "16",
+            "--height",
+            "12",
+            "--count",
+            "6",
+            "--gradient",
+            "inria",
+        ],
         &["deform", "--count", "5"],
-        &["deform", "--dtype", "f32", "--field", "mlp", "--count", "5", "--6dof"],
+        &[
+            "deform", "--dtype", "f32", "--field", "mlp", "--count", "5", "--6dof",
+        ],
         &["loss", "--width", "12", "--height", "11"],
         &["step", "--width", "16", "--height", "12", "--count", "6"],
-        &["step", "--dtype", "f32", "--width", "16", "--height", "12", "--count", "6", "--field", "mlp"],
+        &[
+            "step", "--dtype", "f32", "--width", "16", "--height", "12", "--count", "6", "--field",
+            "mlp",
+        ],
     ];
     for (k, a) in runs.iter().enumerate() {
         let p = dir.join(format!("seed{k}.safetensors"));
