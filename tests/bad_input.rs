@@ -77,15 +77,13 @@ fn copy_dir(from: &Path, to: &Path) {
 /// `case new` into `dir/name`, then `edit` the file.
 fn case(dir: &Path, name: &str, new: &[&str], edit: impl FnOnce(&mut TensorFile)) -> PathBuf {
     let p = dir.join(name);
-    let mut args = vec!["case", "new"];
-    args.extend(new);
-    args.push(s(&p));
     // `case new STAGE OUTPUT [flags]`: the stage first, then the output.
     let (stage, flags) = new.split_first().unwrap();
-    let mut args2 = vec!["case", "new", stage, s(&p)];
-    args2.extend(flags);
-    let _ = args;
-    ok(&args2);
+    let mut args = vec!["case", "new", stage, s(&p)];
+    args.extend(flags);
+    ok(&args);
+    // The unedited case runs: the refusal below is the edit's doing.
+    ok(&["case", "run", s(&p), s(&dir.join(format!("{name}.out")))]);
     let mut f = TensorFile::load(&p).unwrap();
     edit(&mut f);
     f.save(&p).unwrap();

@@ -13,8 +13,16 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::{Path, PathBuf};
 
 const FIXTURES: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures");
-/// Mutations per seed.
+/// Mutations per seed (`LIQUID_SPLAT_FUZZ_MUTATIONS` overrides it for a
+/// longer replay; `LIQUID_SPLAT_FUZZ_SEED` changes the generator's seed).
 const MUTATIONS: usize = 150;
+
+fn env_or(key: &str, default: u64) -> u64 {
+    std::env::var(key)
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(default)
+}
 
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("ls-fuzz-replay-{}-{name}", std::process::id()));
@@ -107,7 +115,8 @@ fn mutate(seed: &[u8], r: &mut Rng) -> Vec<u8> {
 }
 
 fn replay(name: &str, seeds: &[Vec<u8>], run: &dyn Fn(&[u8]) -> Outcome) {
-    let mut r = Rng::new(0x5eed);
+    let mut r = Rng::new(env_or("LIQUID_SPLAT_FUZZ_SEED", 0x5eed));
+    let mutations = env_or("LIQUID_SPLAT_FUZZ_MUTATIONS", MUTATIONS as u64) as usize;
     for (k, seed) in seeds.iter().enumerate() {
         assert_eq!(
             run(seed),
@@ -115,7 +124,7 @@ fn replay(name: &str, seeds: &[Vec<u8>], run: &dyn Fn(&[u8]) -> Outcome) {
             "{name}: seed {k} is not accepted"
         );
         let mut counts = [0usize; 3];
-        for m in 0..MUTATIONS {
+        for m in 0..mutations {
             let input = mutate(seed, &mut r);
             let outcome = catch_unwind(AssertUnwindSafe(|| run(&input)))
                 .unwrap_or_else(|_| panic!("{name}: seed {k} mutation {m} panicked"));
