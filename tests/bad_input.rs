@@ -405,6 +405,12 @@ fn checkpoint_metadata_and_files_are_verified() {
     edit_meta("extent", "2.5");
     refused(&render, &[s(&state), "corrupt"]);
     std::fs::write(&state, &original).unwrap();
+    // A checkpoint of an earlier version (no record of its data).
+    let mut f = TensorFile::load(&state).unwrap();
+    f.metadata.remove("checkpoint_hash");
+    f.save(&state).unwrap();
+    refused(&render, &[s(&state), "checkpoint_hash", "train again"]);
+    std::fs::write(&state, &original).unwrap();
     ok(&render);
 
     // A bit flip in the field weights is reported against deform.safetensors.

@@ -260,6 +260,13 @@ fn load_checked<T: Real>(
 ) -> Result<Trainer<T>> {
     let path = ckpt.join(STATE_FILE);
     let f = TensorFile::load(&path)?;
+    if !f.metadata.contains_key("checkpoint_hash") {
+        return Err(Error::field(
+            &path,
+            "__metadata__.checkpoint_hash",
+            "missing: written by an earlier version that did not record the data it was trained on; train again",
+        ));
+    }
     let found = f.meta("config")?;
     if found != config.fingerprint() {
         return Err(Error::field(
