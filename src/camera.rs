@@ -64,6 +64,54 @@ pub fn fov2focal(fov: f64, pixels: f64) -> f64 {
     pixels / (2.0 * libm::tan(fov / 2.0))
 }
 
+/// How far a camera rotation may be from orthonormal: every element of
+/// `RᵀR − I` within this, and `det R` within this of 1 (dataset files store
+/// rotations to about 7 significant digits; a scaled, sheared or reflected
+/// matrix is off by far more).
+pub const ROTATION_TOLERANCE: f64 = 1e-4;
+
+/// `Err(reason)` unless `r` is a rotation within [`ROTATION_TOLERANCE`]
+/// (finite, orthonormal, determinant +1).
+pub fn check_rotation(r: &[[f64; 3]; 3]) -> std::result::Result<(), String> {
+    if r.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(format!("{r:?} has a non-finite element"));
+    }
+    let mut worst = 0.0f64;
+    for i in 0..3 {
+        for j in 0..3 {
+            let dot: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
+            let want = if i == j { 1.0 } else { 0.0 };
+            worst = worst.max((dot - want).abs());
+        }
+    }
+    let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
+        - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
+        + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+    if worst > ROTATION_TOLERANCE || (det - 1.0).abs() > ROTATION_TOLERANCE {
+        return Err(format!(
+            "{r:?} is not a rotation: max |RᵀR − I| = {worst:.3e}, det = {det:.6} (tolerance {ROTATION_TOLERANCE:e})"
+        ));
+    }
+    Ok(())
+}
+
+/// `Err(reason)` unless `m` is a rigid transform: its upper-left 3×3 a
+/// rotation ([`check_rotation`]), its translation finite and its bottom
+/// row exactly `[0, 0, 0, 1]`.
+pub fn check_rigid(m: &[[f64; 4]; 4]) -> std::result::Result<(), String> {
+    if m[3] != [0.0, 0.0, 0.0, 1.0] {
+        return Err(format!("bottom row {:?} is not [0, 0, 0, 1]", m[3]));
+    }
+    if !(m[0][3].is_finite() && m[1][3].is_finite() && m[2][3].is_finite()) {
+        return Err("the translation has a non-finite element".into());
+    }
+    check_rotation(&[
+        [m[0][0], m[0][1], m[0][2]],
+        [m[1][0], m[1][1], m[1][2]],
+        [m[2][0], m[2][1], m[2][2]],
+    ])
+}
+
 fn check_finite(what: &str, vals: &[f64]) -> Result<()> {
     if vals.iter().all(|v| v.is_finite()) {
         Ok(())

@@ -83,4 +83,31 @@ impl Error {
             why: why.into(),
         }
     }
+
+    /// The error with the file it concerns: an [`Error::Invalid`] (which
+    /// names a field or setting but no file) becomes an [`Error::Field`] of
+    /// `path`; every other variant already names its file and is returned
+    /// as it is.
+    pub fn in_file(self, path: impl Into<PathBuf>) -> Self {
+        match self {
+            Error::Invalid { what, why } => Error::Field {
+                path: path.into(),
+                field: what,
+                what: why,
+            },
+            e => e,
+        }
+    }
+}
+
+/// `Result` with [`Error::in_file`] applied to its error.
+pub trait InFile<T> {
+    /// Name `path` in an error that names no file (see [`Error::in_file`]).
+    fn in_file(self, path: impl Into<PathBuf>) -> Result<T>;
+}
+
+impl<T> InFile<T> for Result<T> {
+    fn in_file(self, path: impl Into<PathBuf>) -> Result<T> {
+        self.map_err(|e| e.in_file(path))
+    }
 }

@@ -51,6 +51,7 @@ pub mod dataset;
 pub mod deform;
 pub mod densify;
 pub mod error;
+pub mod fuzz;
 pub mod gaussians;
 pub mod gsplat;
 pub mod io;

@@ -207,9 +207,14 @@ fn run(
         checkpoint_every: every,
         eval_every: 0,
         resume,
+        data_name: "fixtures/scenes/swing".into(),
         lpips: None,
     };
     train::run::<f32>(config, data, &opts, &mut |_: Event| {}).unwrap()
+}
+
+fn binding(data: &Dataset) -> checkpoint::DataBinding {
+    checkpoint::DataBinding::of(data, "fixtures/scenes/swing")
 }
 
 fn copy_dir(from: &Path, to: &Path) {
@@ -256,7 +261,7 @@ fn resumed_run_ends_bit_identical_to_the_uninterrupted_run() {
     }
     // The final checkpoint loads and its PLY is a valid Inria file of the same Gaussians.
     let last = checkpoint::latest(&a.join("checkpoints")).unwrap().unwrap();
-    let t = checkpoint::load::<f32>(&last, &cfg).unwrap();
+    let t = checkpoint::load::<f32>(&last, &cfg, &binding(&data)).unwrap();
     assert_eq!(format!("{:016x}", t.state_hash()), full.state_hash);
     let ply = liquid_splat::gaussians::ply::read_gaussians::<f32>(&last.join(checkpoint::PLY_FILE))
         .unwrap();
@@ -271,14 +276,14 @@ fn damaged_or_foreign_checkpoints_are_errors() {
     let a = tmp("damaged");
     run(&cfg, &data, &a, 0, false);
     let ckpt = checkpoint::latest(&a.join("checkpoints")).unwrap().unwrap();
-    assert!(checkpoint::load::<f32>(&ckpt, &cfg).is_ok());
+    assert!(checkpoint::load::<f32>(&ckpt, &cfg, &binding(&data)).is_ok());
 
     let state = ckpt.join(checkpoint::STATE_FILE);
     let field = ckpt.join(checkpoint::FIELD_FILE);
     let original = std::fs::read(&state).unwrap();
     let original_field = std::fs::read(&field).unwrap();
     let expect_err = |what: &str, needle: &str| {
-        let e = checkpoint::load::<f32>(&ckpt, &cfg)
+        let e = checkpoint::load::<f32>(&ckpt, &cfg, &binding(&data))
             .err()
             .unwrap_or_else(|| panic!("{what}: loaded"));
         assert!(e.to_string().contains(needle), "{what}: {e}");
@@ -304,9 +309,13 @@ fn damaged_or_foreign_checkpoints_are_errors() {
 
     let mut other = cfg.clone();
     other.seed += 1;
-    let e = checkpoint::load::<f32>(&ckpt, &other).err().unwrap();
+    let e = checkpoint::load::<f32>(&ckpt, &other, &binding(&data))
+        .err()
+        .unwrap();
     assert!(e.to_string().contains("different run configuration"), "{e}");
-    let e = checkpoint::load::<f64>(&ckpt, &cfg).err().unwrap();
+    let e = checkpoint::load::<f64>(&ckpt, &cfg, &binding(&data))
+        .err()
+        .unwrap();
     assert!(e.to_string().contains("dtype"), "{e}");
-    assert!(checkpoint::load::<f32>(&ckpt, &cfg).is_ok());
+    assert!(checkpoint::load::<f32>(&ckpt, &cfg, &binding(&data)).is_ok());
 }

@@ -11,6 +11,9 @@ use clap::{Args, Subcommand};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
+/// The most Gaussians or points `case new --count` writes.
+pub const MAX_COUNT: usize = 1 << 22;
+
 /// Subcommands of `case`.
 #[derive(Subcommand)]
 pub enum CaseCommand {
@@ -189,6 +192,23 @@ fn run_new(a: NewArgs) -> ExitCode {
         spec.width = a.width.unwrap_or(spec.width);
         spec.height = a.height.unwrap_or(spec.height);
         spec.count = a.count.unwrap_or(spec.count);
+        if spec.width.saturating_mul(spec.height) > crate::render::MAX_PIXELS {
+            return Err(Error::invalid(
+                "--width/--height",
+                format!(
+                    "{}x{} pixels, more than the limit {}",
+                    spec.width,
+                    spec.height,
+                    crate::render::MAX_PIXELS
+                ),
+            ));
+        }
+        if spec.count > MAX_COUNT {
+            return Err(Error::invalid(
+                "--count",
+                format!("{} is above the limit {MAX_COUNT}", spec.count),
+            ));
+        }
         if let Some(g) = &a.gradient {
             if gs.contains(&a.stage.as_str()) {
                 spec.gsplat.gradient = liquid_splat::gsplat::GradientMode::from_name(g)?;

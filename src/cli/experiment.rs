@@ -144,6 +144,7 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
     for (k, (scene, s)) in plan.iter().enumerate() {
         let data = s.load_dataset()?;
         let config = s.train_config(&data)?;
+        s.check_eval_split(&data)?;
         let label = report::field_label(&config.field);
         let rec_path = report::record_path(&a.out, scene, &label, s.seed);
         if rec_path.exists() {
@@ -170,6 +171,7 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
             checkpoint_every: (a.iterations / 4).max(1),
             eval_every,
             resume: true,
+            data_name: s.data_name(),
             lpips: lpips.clone(),
         };
         let mut stages = StageTimes::default();
@@ -201,7 +203,8 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
         let ckpt = checkpoint::latest(&work.join("checkpoints"))?.ok_or_else(|| {
             Error::invalid("experiment", format!("no checkpoint in {}", work.display()))
         })?;
-        let trainer = checkpoint::load::<f32>(&ckpt, &config)?;
+        let binding = checkpoint::DataBinding::of(&data, &s.data_name());
+        let trainer = checkpoint::load::<f32>(&ckpt, &config, &binding)?;
         let m = a.sweep_gaussians.min(trainer.gaussians.len());
         let smooth = report::temporal_smoothness(
             |t| match trainer.offsets(t) {

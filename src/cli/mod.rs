@@ -25,7 +25,7 @@ use std::process::ExitCode;
     about = "Deterministic CPU reference for deformable 3D Gaussian splatting with a liquid (CfC) deformation field"
 )]
 struct Cli {
-    /// Worker threads (default: all cores). Results are bit-identical for any value.
+    /// Worker threads, 1 to 1024 (default: all cores). Results are bit-identical for any value.
     #[arg(long, global = true)]
     threads: Option<usize>,
     #[command(subcommand)]
@@ -67,6 +67,10 @@ enum Command {
     },
 }
 
+/// The most worker threads `--threads` accepts (far above any core count
+/// the tool is run on; each thread is an OS thread with its own stack).
+pub const MAX_THREADS: usize = 1024;
+
 /// Print a library error as one line and map it to exit code 2.
 fn report(result: crate::Result<ExitCode>) -> ExitCode {
     match result {
@@ -98,10 +102,11 @@ where
     };
     let code = match cli.threads {
         None => dispatch(cli.command),
-        Some(n) => match rayon::ThreadPoolBuilder::new()
-            .num_threads(n.max(1))
-            .build()
-        {
+        Some(n) if !(1..=MAX_THREADS).contains(&n) => {
+            eprintln!("error: invalid --threads: {n} (expected 1 to {MAX_THREADS})");
+            ExitCode::from(2)
+        }
+        Some(n) => match rayon::ThreadPoolBuilder::new().num_threads(n).build() {
             Ok(pool) => pool.install(|| dispatch(cli.command)),
             Err(e) => {
                 eprintln!("error: cannot start {n} threads: {e}");

@@ -235,6 +235,26 @@ impl RunSpec {
         ))
     }
 
+    /// Refuse data with no views to evaluate before any work is done
+    /// (a nerfies-layout folder whose split rule picks no test views).
+    pub fn check_eval_split(&self, data: &Dataset) -> Result<()> {
+        if !train::run::eval_frames(data).is_empty() {
+            return Ok(());
+        }
+        match (&self.data, data.kind) {
+            (Some(dir), DatasetKind::Nerfies) => Err(Error::field(
+                dir.join("dataset.json"),
+                "ids",
+                "the split rule for this folder (its parent folder's name is not vrig*, NeRF* or interp*: every fourth id trains, none is a test view) picks no test views, so nothing could be evaluated",
+            )),
+            (Some(dir), _) => Err(Error::format(dir, "no test or val views to evaluate")),
+            (None, _) => Err(Error::invalid(
+                "--scene",
+                "no test views to evaluate",
+            )),
+        }
+    }
+
     /// A short name of the data for messages.
     pub fn data_name(&self) -> String {
         match (&self.data, &self.scene) {
@@ -278,8 +298,20 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
         eprintln!("warning: {w}");
     }
     let config = a.spec.train_config(&data)?;
+    a.spec.check_eval_split(&data)?;
     mkdir(&a.out)?;
     let spec_path = a.out.join("run.json");
+    let ckpt_dir = a.out.join("checkpoints");
+    if let (false, Some(dir)) = (a.resume, checkpoint::latest(&ckpt_dir)?) {
+        return Err(Error::invalid(
+            "--out",
+            format!(
+                "{} holds a checkpoint of an earlier run ({}); continue it with --resume, or train into another folder (nothing was written)",
+                ckpt_dir.display(),
+                dir.display()
+            ),
+        ));
+    }
     if a.resume && spec_path.exists() {
         let old = read_spec(&a.out)?;
         if serde_json::to_value(&old).ok() != serde_json::to_value(&a.spec).ok() {
@@ -311,6 +343,7 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
         checkpoint_every: a.checkpoint_every,
         eval_every: a.eval_every,
         resume: a.resume,
+        data_name: a.spec.data_name(),
         lpips: a.lpips.metric()?,
     };
     let mut progress = Progress::new(config.iterations, a.quiet);
@@ -470,7 +503,22 @@ fn load_run<T: Real>(out: &Path) -> Result<(RunSpec, Dataset, PathBuf, train::Tr
             format!("no checkpoint in {}", ckpt_dir.display()),
         )
     })?;
-    let trainer = checkpoint::load::<T>(&ckpt, &config)?;
+    let binding = checkpoint::DataBinding::of(&data, &spec.data_name());
+    let trainer = checkpoint::load::<T>(&ckpt, &config, &binding).map_err(|e| match e {
+        Error::Field { path, field, what }
+            if field.starts_with("__metadata__.data") || field == "__metadata__.background" =>
+        {
+            Error::Field {
+                path,
+                field,
+                what: format!(
+                    "{what}; {} records the arguments the data was loaded with",
+                    out.join("run.json").display()
+                ),
+            }
+        }
+        e => e,
+    })?;
     Ok((spec, data, ckpt, trainer))
 }
 
@@ -487,6 +535,17 @@ pub fn render(a: RenderArgs) -> Result<ExitCode> {
 fn render_as<T: Real>(a: &RenderArgs) -> Result<ExitCode> {
     let (_, data, ckpt, trainer) = load_run::<T>(&a.out)?;
     let test: Vec<View<T>> = train::run::views(train::run::eval_frames(&data));
+    // The sweep view before any rendering: a bad index fails at once.
+    let sweep_view = if a.sweep_frames == 0 && a.times.is_empty() {
+        None
+    } else {
+        Some(test.get(a.sweep_view).ok_or_else(|| {
+            Error::invalid(
+                "--sweep-view",
+                format!("{} (there are {} test views)", a.sweep_view, test.len()),
+            )
+        })?)
+    };
     let per_view = train::run::render_views(&trainer, &test, &a.out.join("test"), None)?;
     eprintln!(
         "rendered {} test views from {} into {}",
@@ -494,15 +553,9 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<ExitCode> {
         ckpt.display(),
         a.out.join("test").display()
     );
-    if a.sweep_frames == 0 && a.times.is_empty() {
+    let Some(v) = sweep_view else {
         return Ok(ExitCode::SUCCESS);
-    }
-    let v = test.get(a.sweep_view).ok_or_else(|| {
-        Error::invalid(
-            "--sweep-view",
-            format!("{} (there are {} test views)", a.sweep_view, test.len()),
-        )
-    })?;
+    };
     if a.sweep_frames > 0 {
         let dir = a.out.join("sweep");
         let times: Vec<f64> = (0..a.sweep_frames)

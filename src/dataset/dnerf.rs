@@ -75,6 +75,13 @@ fn read_split(dir: &Path, split: &str) -> Result<SplitSpec> {
         )?;
         let t_field = format!("frames[{i}].time");
         let time = json::num(&file, json::get(&file, f, "time", &t_field)?, &t_field)?;
+        if !(0.0..=1.0).contains(&time) {
+            return Err(Error::field(
+                &file,
+                &t_field,
+                format!("{time} is not in [0, 1]"),
+            ));
+        }
         let m_field = format!("frames[{i}].transform_matrix");
         let m = json::matrix(
             &file,
@@ -87,6 +94,7 @@ fn read_split(dir: &Path, split: &str) -> Result<SplitSpec> {
         for r in 0..4 {
             c2w[r].copy_from_slice(&m[r]);
         }
+        crate::camera::check_rigid(&c2w).map_err(|w| Error::field(&file, &m_field, w))?;
         let image = dir.join(format!("{fp}.png"));
         let name = Path::new(fp)
             .file_name()
@@ -136,19 +144,21 @@ fn load_frames(spec: &SplitSpec, opts: &LoadOptions) -> Result<Vec<Frame>> {
 
 /// Every image of a dataset must have the size of the first one.
 pub(crate) fn check_sizes(dataset_files: &[(&[Frame], &[PathBuf])]) -> Result<()> {
-    let mut first: Option<(usize, usize)> = None;
+    let mut first: Option<(usize, usize, &PathBuf)> = None;
     for (frames, files) in dataset_files {
         for (f, file) in frames.iter().zip(files.iter()) {
             match first {
-                None => first = Some((f.width, f.height)),
-                Some((w, h)) if (w, h) != (f.width, f.height) => {
+                None => first = Some((f.width, f.height, file)),
+                Some((w, h, first_file)) if (w, h) != (f.width, f.height) => {
                     return Err(Error::format(
                         file,
                         format!(
-                        "image is {}x{} after downscaling, the dataset's first image is {w}x{h}",
-                        f.width, f.height
-                    ),
-                    ))
+                            "image is {}x{} after downscaling, but {} (the dataset's first image) is {w}x{h}: every image must have one size",
+                            f.width,
+                            f.height,
+                            first_file.display()
+                        ),
+                    ));
                 }
                 _ => {}
             }
@@ -198,6 +208,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let points = dir.join("points3d.ply");
     let init = if points.is_file() {
         let pc = crate::gaussians::ply::read_points(&points)?;
+        super::init::check_count(pc.len()).map_err(|w| Error::field(&points, "vertex", w))?;
         InitialPoints::Cloud {
             xyz: pc.xyz,
             rgb: pc.rgb,

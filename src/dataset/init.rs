@@ -26,6 +26,26 @@ pub const RANDOM_CUBE_HALF_EXTENT: f64 = 1.3;
 pub const C0: f64 = 0.28209479177387814;
 /// Byte colour of points without colour.
 pub const DEFAULT_COLOUR: u8 = 127;
+/// The fewest initial points (each needs 3 neighbours for its scale).
+pub const MIN_POINTS: usize = 4;
+/// The most random initial points (`init_points`): larger counts are
+/// refused before anything is allocated.
+pub const MAX_INIT_POINTS: usize = 1 << 24;
+
+/// `Err(reason)` when `n` initial points cannot be used: fewer than
+/// [`MIN_POINTS`] or more than [`MAX_INIT_POINTS`].
+pub fn check_count(n: usize) -> std::result::Result<(), String> {
+    if n < MIN_POINTS {
+        Err(format!(
+            "{n} points; at least {MIN_POINTS} are needed for the 3-nearest-neighbour scales"
+        ))
+    } else if n > MAX_INIT_POINTS {
+        Err(format!("{n} points, more than the limit {MAX_INIT_POINTS}"))
+    } else {
+        Ok(())
+    }
+}
+
 /// SH degree of the initial Gaussians.
 pub const MAX_SH_DEGREE: usize = 3;
 
@@ -83,16 +103,21 @@ impl InitialPoints {
 
 /// The initial Gaussians for `init` (see the module documentation).
 pub fn initial_gaussians<T: Real>(init: &InitialPoints) -> Result<Gaussians<T>> {
+    if let InitialPoints::RandomCube { count, .. } = init {
+        check_count(*count).map_err(|w| Error::invalid("init_points", w))?;
+    }
     gaussians_from_points(&init.points())
 }
 
 /// Upstream's `create_from_pcd` for a point cloud. Needs at least 4 points (3 neighbours each).
 pub fn gaussians_from_points<T: Real>(pc: &PointCloud) -> Result<Gaussians<T>> {
     let n = pc.len();
-    if n < 4 {
+    if n < MIN_POINTS {
         return Err(Error::invalid(
             "initial point cloud",
-            format!("{n} points; at least 4 are needed for the 3-nearest-neighbour scales"),
+            format!(
+                "{n} points; at least {MIN_POINTS} are needed for the 3-nearest-neighbour scales"
+            ),
         ));
     }
     if let Some(rgb) = &pc.rgb {

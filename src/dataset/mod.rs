@@ -176,6 +176,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             format!("{} is not 1, 2, 4 or 8", opts.downscale),
         ));
     }
+    init::check_count(opts.init_points).map_err(|w| Error::invalid("init_points", w))?;
     if dir.join("transforms_train.json").is_file() {
         dnerf::load(dir, opts)
     } else if dir.join("dataset.json").is_file() {

@@ -126,6 +126,13 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         json::get(&scene_path, &scene, "scale", "scale")?,
         "scale",
     )?;
+    if !(scale > 0.0 && scale.is_finite()) {
+        return Err(Error::field(
+            &scene_path,
+            "scale",
+            format!("{scale} (must be finite and > 0)"),
+        ));
+    }
     let center = json::vector(
         &scene_path,
         json::get(&scene_path, &scene, "center", "center")?,
@@ -136,7 +143,15 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let time_id = |id: &str| -> Result<f64> {
         let f = format!("{id}.time_id");
         let entry = json::get(&meta_path, &meta, id, id)?;
-        json::num(&meta_path, json::get(&meta_path, entry, "time_id", &f)?, &f)
+        let t = json::num(&meta_path, json::get(&meta_path, entry, "time_id", &f)?, &f)?;
+        if !(t >= 0.0 && t.is_finite()) {
+            return Err(Error::field(
+                &meta_path,
+                &f,
+                format!("{t} (must be finite and >= 0)"),
+            ));
+        }
+        Ok(t)
     };
     let mut max_t = 0.0f64;
     for id in train_ids.iter().chain(&test_ids) {
@@ -199,6 +214,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             [o[1][0], o[1][1], o[1][2]],
             [o[2][0], o[2][1], o[2][2]],
         ];
+        crate::camera::check_rotation(&rot).map_err(|w| Error::field(&cp, "orientation", w))?;
         let t: [f64; 3] = std::array::from_fn(|i| {
             -(rot[i][0] * pos[0] + rot[i][1] * pos[1] + rot[i][2] * pos[2])
         });
@@ -271,6 +287,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let npy = dir.join("points.npy");
     let init = if npy.is_file() {
         let mut xyz = super::npy::read_points(&npy)?;
+        super::init::check_count(xyz.len() / 3).map_err(|w| Error::field(&npy, "points", w))?;
         for (k, v) in xyz.iter_mut().enumerate() {
             *v = (*v - center[k % 3]) * scale;
         }

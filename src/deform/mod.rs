@@ -139,6 +139,17 @@ pub const TIMENET_HIDDEN: usize = 256;
 /// Output width of the timenet.
 pub const TIMENET_OUT: usize = 30;
 
+/// The most layers (MLP) or cells (CfC) a field may have.
+pub const MAX_DEPTH: usize = 4096;
+/// The largest width (MLP trunk, CfC hidden size, CfC backbone units).
+pub const MAX_WIDTH: usize = 1 << 16;
+/// The most CfC backbone layers per cell.
+pub const MAX_BACKBONE_LAYERS: usize = 64;
+/// The most learned parameters a field may have (67,108,864: 512 MiB in
+/// f64, before gradients and Adam moments). The count comes from the
+/// layout, before any parameter is allocated.
+pub const MAX_FIELD_PARAMS: usize = 1 << 26;
+
 /// Architecture of a deformation field.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct FieldConfig {
@@ -191,8 +202,18 @@ impl FieldConfig {
         if self.width == 0 {
             return Err(Error::invalid("width", "must be at least 1"));
         }
-        if self.depth > 4096 || self.width > 1 << 16 || self.backbone_units > 1 << 16 {
-            return Err(Error::invalid("field size", "unreasonably large"));
+        for (name, v, max) in [
+            ("depth", self.depth, MAX_DEPTH),
+            ("width", self.width, MAX_WIDTH),
+            ("backbone_units", self.backbone_units, MAX_WIDTH),
+            ("backbone_layers", self.backbone_layers, MAX_BACKBONE_LAYERS),
+        ] {
+            if v > max {
+                return Err(Error::invalid(
+                    name,
+                    format!("{v} is above the limit {max}"),
+                ));
+            }
         }
         match self.kind {
             FieldKind::Mlp => {
@@ -814,6 +835,15 @@ impl<T: Real> Field<T> {
             FieldKind::Mlp => Net::Mlp(mlp::MlpNet::build(&config, &mut lb)),
             FieldKind::Cfc => Net::Cfc(cfc::CfcNet::build(&config, &mut lb)),
         };
+        if lb.len > MAX_FIELD_PARAMS {
+            return Err(Error::invalid(
+                "field size",
+                format!(
+                    "{} D{} W{} has {} parameters, more than the limit {MAX_FIELD_PARAMS}",
+                    config.kind, config.depth, config.width, lb.len
+                ),
+            ));
+        }
         Ok((net, lb))
     }
 
@@ -964,6 +994,11 @@ impl<T: Real> Field<T> {
     /// the architecture is `config`.
     pub fn from_tensor_file(config: FieldConfig, file: &TensorFile) -> Result<Self> {
         let (net, lb) = Self::build(config)?;
+        // Every tensor present with its shape before the vector is allocated:
+        // a small file cannot claim a huge architecture.
+        for s in &lb.specs {
+            file.expect_shape(&s.name, &s.shape)?;
+        }
         let total = lb.specs.iter().map(|s| s.len()).sum();
         let mut params = vec![T::ZERO; total];
         for s in &lb.specs {

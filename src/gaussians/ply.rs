@@ -247,6 +247,24 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<VertexTable> {
             "truncated PLY body at vertex {row} (header declares {count})"
         )));
     }
+    // The same guard for every element before `vertex`: each row of an
+    // ASCII body is a line of at least one byte, a binary row its size.
+    for e in &elements[..vi] {
+        let row = match encoding {
+            Encoding::Ascii => 1,
+            _ => e
+                .props
+                .iter()
+                .map(|p| p.ty.map_or(1, |t| t.size()))
+                .sum::<usize>(),
+        };
+        if e.count.saturating_mul(row) > body.len() {
+            return Err(fmt(format!(
+                "truncated PLY body: element `{}` declares {} rows, more than the file holds",
+                e.name, e.count
+            )));
+        }
+    }
     let mut data = Vec::with_capacity(count * np);
     match encoding {
         Encoding::Ascii => {
@@ -254,8 +272,13 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<VertexTable> {
                 std::str::from_utf8(body).map_err(|_| fmt("ASCII PLY body is not text".into()))?;
             let mut lines = text.lines().filter(|l| !l.trim().is_empty());
             for e in &elements[..vi] {
-                for _ in 0..e.count {
-                    lines.next();
+                for k in 0..e.count {
+                    if lines.next().is_none() {
+                        return Err(fmt(format!(
+                            "truncated PLY body at element `{}` row {k} (header declares {})",
+                            e.name, e.count
+                        )));
+                    }
                 }
             }
             for k in 0..count {

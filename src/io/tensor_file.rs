@@ -277,7 +277,55 @@ impl TensorFile {
         }
     }
 
+    /// A required finite metadata number (`NaN` and `±inf` are refused,
+    /// naming the key).
+    pub fn meta_finite(&self, key: &str) -> Result<f64> {
+        let v: f64 = self.meta_parse(key)?;
+        if !v.is_finite() {
+            return Err(Error::field(
+                &self.path,
+                format!("__metadata__.{key}"),
+                format!("{v} is not finite"),
+            ));
+        }
+        Ok(v)
+    }
+
+    /// [`meta_finite`](Self::meta_finite) with a default for an absent key.
+    pub fn meta_finite_or(&self, key: &str, default: f64) -> Result<f64> {
+        if self.metadata.contains_key(key) {
+            self.meta_finite(key)
+        } else {
+            Ok(default)
+        }
+    }
+
     // ---- tensors ----
+
+    /// Fail on the first `NaN` or `±inf` element of a floating-point tensor
+    /// (tensors in name order, elements in row-major order), naming the
+    /// tensor, the flat index and the value.
+    pub fn check_finite(&self) -> Result<()> {
+        for (name, t) in &self.tensors {
+            let bad = match &t.data {
+                TensorData::F32(v) => v
+                    .iter()
+                    .position(|x| !x.is_finite())
+                    .map(|i| (i, v[i] as f64)),
+                TensorData::F64(v) => v.iter().position(|x| !x.is_finite()).map(|i| (i, v[i])),
+                TensorData::I32(_) => None,
+            };
+            if let Some((i, x)) = bad {
+                return Err(Error::Tensor {
+                    context: self.ctx(),
+                    name: name.clone(),
+                    expected: "finite values".into(),
+                    found: format!("{x} at flat index {i}"),
+                });
+            }
+        }
+        Ok(())
+    }
 
     pub fn contains(&self, name: &str) -> bool {
         self.tensors.contains_key(name)
@@ -354,6 +402,21 @@ impl TensorFile {
     }
 
     /// A real tensor of element type `T` whose shape must equal `expected`.
+    /// Fail unless tensor `name` is present with shape `expected` (reads
+    /// no data: a check before allocating for it).
+    pub fn expect_shape(&self, name: &str, expected: &[usize]) -> Result<()> {
+        let shape = self.shape(name)?;
+        if shape != expected {
+            return Err(Error::Tensor {
+                context: self.ctx(),
+                name: name.into(),
+                expected: format!("shape {}", shape_str(expected)),
+                found: format!("shape {}", shape_str(shape)),
+            });
+        }
+        Ok(())
+    }
+
     pub fn get_real<T: Real>(&self, name: &str, expected: &[usize]) -> Result<Vec<T>> {
         let (shape, v) = self.get_real_any::<T>(name)?;
         if shape != expected {

@@ -110,7 +110,12 @@ impl<T: Real> AdamState<T> {
                 format!("{} learning rates do not tile {n} elements", lrs.len()),
             ));
         }
-        self.step += 1;
+        self.step = self.step.checked_add(1).ok_or_else(|| {
+            Error::invalid(
+                "Adam step",
+                format!("the step counter {} cannot advance", self.step),
+            )
+        })?;
         let c = self.config;
         let t = self.step as f64;
         let bc1 = 1.0 - libm::pow(c.beta1, t);

@@ -163,7 +163,7 @@ impl ToleranceSpec {
             if let Some(v) = v {
                 if !(v.is_finite() && v >= 0.0) {
                     return Err(Error::invalid(
-                        format!("tolerance `{at}.{field}`"),
+                        format!("{at}.{field}"),
                         format!("{v} is not a finite number >= 0"),
                     ));
                 }
@@ -172,7 +172,7 @@ impl ToleranceSpec {
         if let Some(v) = self.max_mismatch_fraction {
             if !(0.0..=1.0).contains(&v) {
                 return Err(Error::invalid(
-                    format!("tolerance `{at}.max_mismatch_fraction`"),
+                    format!("{at}.max_mismatch_fraction"),
                     format!("{v} is not in [0, 1]"),
                 ));
             }
@@ -200,7 +200,7 @@ impl Tolerances {
     pub fn from_json(path: &Path, text: &str) -> Result<Self> {
         let t: Tolerances = serde_json::from_str(text)
             .map_err(|e| Error::format(path, format!("not a valid tolerance file: {e}")))?;
-        t.validate()?;
+        t.validate().map_err(|e| e.in_file(path))?;
         Ok(t)
     }
 

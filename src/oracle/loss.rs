@@ -35,12 +35,12 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     }
     let (h, w) = (shape[1], shape[2]);
     let gt = case.get_real::<T>("gt", &shape)?;
-    let lambda: f64 = case.meta_or("lambda_dssim", LAMBDA_DSSIM)?;
-    if !lambda.is_finite() {
+    let lambda = case.meta_finite_or("lambda_dssim", LAMBDA_DSSIM)?;
+    if !(0.0..=1.0).contains(&lambda) {
         return Err(Error::field(
             &case.path,
             "__metadata__.lambda_dssim",
-            format!("{lambda} is not finite"),
+            format!("{lambda} (must be in [0, 1])"),
         ));
     }
     let (out, grad) = loss_and_grad(&image, &gt, h, w, lambda)?;

@@ -52,7 +52,17 @@ pub const STAGES: &[&str] = &[
 ];
 
 /// Run the stage named by the case's `stage` metadata.
+///
+/// Every floating-point input must be finite: a `NaN` or `±inf` element of
+/// any tensor is an error naming the tensor and its flat index (a backend
+/// that propagates `NaN` must not be compared against a result computed
+/// from culled Gaussians). Errors name the case file.
 pub fn run_case(case: &TensorFile) -> Result<TensorFile> {
+    run_stage(case).map_err(|e| e.in_file(&case.path))
+}
+
+fn run_stage(case: &TensorFile) -> Result<TensorFile> {
+    case.check_finite()?;
     match case.meta("stage")? {
         s if s == rasterize::STAGE => rasterize::run(case),
         s if s == deform::STAGE => deform::run(case),

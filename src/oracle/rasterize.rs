@@ -53,14 +53,26 @@ fn array<T: Real, const K: usize>(
 /// `projmatrix [4,4]`, `campos [3]` (Inria layout). Shared with the `step`
 /// stage.
 pub fn read_camera<T: Real>(case: &TensorFile) -> Result<RasterCamera<T>> {
+    let width: usize = case.meta_parse("image_width")?;
+    let height: usize = case.meta_parse("image_height")?;
+    if width.saturating_mul(height) > crate::render::MAX_PIXELS {
+        return Err(Error::field(
+            &case.path,
+            "__metadata__.image_width",
+            format!(
+                "{width}x{height} pixels, more than the {} an image may have",
+                crate::render::MAX_PIXELS
+            ),
+        ));
+    }
     Ok(RasterCamera {
         viewmatrix: array::<T, 16>(case, "viewmatrix", &[4, 4])?,
         projmatrix: array::<T, 16>(case, "projmatrix", &[4, 4])?,
         campos: array::<T, 3>(case, "campos", &[3])?,
-        tanfovx: T::from_f64(case.meta_parse::<f64>("tanfovx")?),
-        tanfovy: T::from_f64(case.meta_parse::<f64>("tanfovy")?),
-        width: case.meta_parse("image_width")?,
-        height: case.meta_parse("image_height")?,
+        tanfovx: T::from_f64(case.meta_finite("tanfovx")?),
+        tanfovy: T::from_f64(case.meta_finite("tanfovy")?),
+        width,
+        height,
     })
 }
 
@@ -100,7 +112,7 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     };
     let camera = read_camera::<T>(case)?;
     let (h, w) = (camera.height, camera.width);
-    let scale_modifier: f64 = case.meta_parse("scale_modifier")?;
+    let scale_modifier = case.meta_finite("scale_modifier")?;
 
     let (shape, means) = case.get_real_any::<T>("means3D")?;
     if shape.len() != 2 || shape[1] != 3 {

@@ -174,7 +174,15 @@ fn read_adam<T: Real>(case: &TensorFile, group: &str, shape: &[usize]) -> Result
             });
         }
     }
-    state.step = case.meta_or(&format!("adam.{group}.step"), 0u64)?;
+    let key = format!("adam.{group}.step");
+    state.step = case.meta_or(&key, 0u64)?;
+    if state.step == u64::MAX {
+        return Err(Error::field(
+            &case.path,
+            format!("__metadata__.{key}"),
+            format!("{} (the step counter cannot advance)", state.step),
+        ));
+    }
     Ok(state)
 }
 

@@ -66,6 +66,10 @@ use rayon::prelude::*;
 /// Tile side in pixels (`BLOCK_X = BLOCK_Y = 16`).
 pub const BLOCK: usize = 16;
 
+/// The most pixels an image may have (8192 × 8192): larger sizes are
+/// refused before any buffer is allocated.
+pub const MAX_PIXELS: usize = 1 << 26;
+
 /// Where Gaussian colours come from.
 #[derive(Clone, Copy, Debug)]
 pub enum Colors<'a, T> {
@@ -345,6 +349,15 @@ impl<T: Real> RasterInput<'_, T> {
                 format!("{}x{}", cam.width, cam.height),
             ));
         }
+        if cam.width.saturating_mul(cam.height) > MAX_PIXELS {
+            return Err(Error::invalid(
+                "image size",
+                format!(
+                    "{}x{} pixels, more than {MAX_PIXELS}",
+                    cam.width, cam.height
+                ),
+            ));
+        }
         if cam.width.div_ceil(BLOCK) as u64 * cam.height.div_ceil(BLOCK) as u64 >= 1 << 31
             || n >= u32::MAX as usize
         {
@@ -353,11 +366,15 @@ impl<T: Real> RasterInput<'_, T> {
                 "too many tiles or Gaussians",
             ));
         }
-        if !(cam.tanfovx > T::ZERO && cam.tanfovy > T::ZERO) {
+        if !(cam.tanfovx > T::ZERO
+            && cam.tanfovy > T::ZERO
+            && cam.tanfovx.to_f64().is_finite()
+            && cam.tanfovy.to_f64().is_finite())
+        {
             return Err(Error::invalid(
                 "camera",
                 format!(
-                    "tanfovx {} and tanfovy {} must be > 0",
+                    "tanfovx {} and tanfovy {} must be finite and > 0",
                     cam.tanfovx, cam.tanfovy
                 ),
             ));

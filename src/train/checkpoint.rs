@@ -8,17 +8,24 @@
 //!   the metadata;
 //! - `deform.safetensors`: the field weights under their PyTorch `state_dict`
 //!   names (loadable by the D-3DGS / ncps modules after conversion to torch);
-//! - `point_cloud.ply`: the canonical Gaussians in the Inria layout (f32).
+//! - `point_cloud.ply`: the canonical Gaussians in the Inria layout (f32);
+//! - `curve.json`: the training curve up to this iteration (written by the
+//!   caller through `extra` files of [`save`]).
 //!
 //! The folder is first written as `iteration_NNNNNN.partial/` and renamed when
 //! every file is on disk, so an interrupted write never looks like a
-//! checkpoint. Loading recomputes the state hash and refuses a checkpoint whose
-//! contents do not match it (corruption), whose configuration differs from the
-//! run's, or whose precision differs.
+//! checkpoint. The state's metadata also records what the run was trained
+//! on ([`DataBinding`]: the data's name, resolution, background and a hash of
+//! the training frames), the scene extent, a hash of the field weights and
+//! of every other file, and a checkpoint hash over the state hash, extent,
+//! background and data binding. Loading recomputes every hash and refuses a
+//! checkpoint whose contents do not match (corruption, reported against the
+//! file that does not match), whose configuration, data, resolution or
+//! background differ from the run's, or whose precision differs.
 
 use super::cameras::CameraSampler;
 use super::config::TrainConfig;
-use super::trainer::Trainer;
+use super::trainer::{Fnv, Trainer};
 use crate::deform::Field;
 use crate::densify::DensifyStats;
 use crate::error::{Error, Result};
@@ -32,6 +39,72 @@ pub const STATE_FILE: &str = "state.safetensors";
 pub const FIELD_FILE: &str = "deform.safetensors";
 pub const PLY_FILE: &str = "point_cloud.ply";
 
+/// What a run is trained on, recorded in its checkpoints and compared on
+/// loading (resume, render, export): a checkpoint of other data is refused.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DataBinding {
+    /// The data's name for messages (dataset folder or built-in scene);
+    /// recorded, not compared (a moved dataset folder is the same data).
+    pub source: String,
+    /// Width and height of the training images.
+    pub resolution: (usize, usize),
+    /// The background colour the images are composited onto and trained with.
+    pub background: [f64; 3],
+    /// Hash of every training frame: name, time, camera and pixels.
+    pub data_hash: u64,
+}
+
+impl DataBinding {
+    /// The binding of `data`, named `source` in messages.
+    pub fn of(data: &crate::dataset::Dataset, source: &str) -> Self {
+        let mut h = Fnv::new();
+        h.u64(data.train.len() as u64);
+        for f in &data.train {
+            h.bytes(f.name.as_bytes());
+            h.u64(f.time.to_bits());
+            h.u64(f.width as u64);
+            h.u64(f.height as u64);
+            // Debug of f64 is exact (shortest round-trip).
+            h.bytes(format!("{:?}", f.camera).as_bytes());
+            h.words(f.image.iter().map(|&v| v.to_bits() as u64));
+        }
+        let resolution = data.train.first().map_or((0, 0), |f| (f.width, f.height));
+        DataBinding {
+            source: source.to_string(),
+            resolution,
+            background: [if data.white_background { 1.0 } else { 0.0 }; 3],
+            data_hash: h.0,
+        }
+    }
+}
+
+/// The hash the checkpoint metadata records over the state hash and what
+/// the state hash leaves out: extent, background and data binding.
+fn checkpoint_hash(state_hash: u64, extent: f64, background: [f64; 3], b: &DataBinding) -> u64 {
+    let mut h = Fnv::new();
+    h.u64(state_hash);
+    h.u64(extent.to_bits());
+    for v in background {
+        h.u64(v.to_bits());
+    }
+    h.u64(b.resolution.0 as u64);
+    h.u64(b.resolution.1 as u64);
+    h.u64(b.data_hash);
+    h.0
+}
+
+fn field_hash<T: Real>(field: &Field<T>) -> u64 {
+    let mut h = Fnv::new();
+    h.reals(field.params());
+    h.0
+}
+
+fn file_hash(path: &Path) -> Result<u64> {
+    let mut h = Fnv::new();
+    h.bytes(&crate::io::read(path)?);
+    Ok(h.0)
+}
+
 /// The folder name of the checkpoint at `iteration`.
 pub fn checkpoint_name(iteration: u64) -> String {
     format!("iteration_{iteration:06}")
@@ -44,8 +117,16 @@ fn to_i32(what: &str, v: impl Iterator<Item = u64>) -> Result<Vec<i32>> {
     .collect()
 }
 
-/// Write the trainer's state to `dir/iteration_NNNNNN/`; returns that folder.
-pub fn save<T: Real>(trainer: &Trainer<T>, dir: &Path) -> Result<PathBuf> {
+/// Write the trainer's state, trained on `binding`, to
+/// `dir/iteration_NNNNNN/`, with `extra` files (name, bytes) beside it;
+/// returns that folder. Every file is written before the folder is renamed
+/// into place.
+pub fn save<T: Real>(
+    trainer: &Trainer<T>,
+    dir: &Path,
+    binding: &DataBinding,
+    extra: &[(&str, &[u8])],
+) -> Result<PathBuf> {
     let name = checkpoint_name(trainer.iteration);
     let final_dir = dir.join(&name);
     let partial = dir.join(format!("{name}.partial"));
@@ -88,17 +169,38 @@ pub fn save<T: Real>(trainer: &Trainer<T>, dir: &Path) -> Result<PathBuf> {
     f.set_meta("sampler.views", trainer.sampler.count());
     f.set_meta("sampler.rng", trainer.sampler.rng_state());
     f.set_meta("ast.rng", trainer.ast_rng.state());
-    f.set_meta("extent", trainer.extent);
+    f.set_meta("extent", format!("{:?}", trainer.extent));
     f.set_meta("background", format!("{:?}", trainer.background));
     f.set_meta("config", trainer.config.fingerprint());
-    f.set_meta("state_hash", format!("{:016x}", trainer.state_hash()));
+    let state_hash = trainer.state_hash();
+    f.set_meta("state_hash", format!("{state_hash:016x}"));
+    f.set_meta("data.source", &binding.source);
+    f.set_meta(
+        "data.resolution",
+        format!("{}x{}", binding.resolution.0, binding.resolution.1),
+    );
+    f.set_meta("data.hash", format!("{:016x}", binding.data_hash));
+    f.set_meta(
+        "checkpoint_hash",
+        format!(
+            "{:016x}",
+            checkpoint_hash(state_hash, trainer.extent, trainer.background, binding)
+        ),
+    );
     f.set_meta("crate_version", env!("CARGO_PKG_VERSION"));
-    f.save(&partial.join(STATE_FILE))?;
     trainer
         .field
         .to_tensor_file()
         .save(&partial.join(FIELD_FILE))?;
-    ply::write_gaussians(&partial.join(PLY_FILE), g)?;
+    f.set_meta("field_hash", format!("{:016x}", field_hash(&trainer.field)));
+    let ply_path = partial.join(PLY_FILE);
+    ply::write_gaussians(&ply_path, g)?;
+    f.set_meta("ply_hash", format!("{:016x}", file_hash(&ply_path)?));
+    for (name, bytes) in extra {
+        crate::io::write_atomic(&partial.join(name), bytes)?;
+    }
+    // The state last: its hashes cover the files above.
+    f.save(&partial.join(STATE_FILE))?;
 
     if final_dir.exists() {
         std::fs::remove_dir_all(&final_dir).map_err(|e| Error::io(&final_dir, e))?;
@@ -141,10 +243,30 @@ pub fn latest(dir: &Path) -> Result<Option<PathBuf>> {
     Ok(best.map(|(_, p)| p))
 }
 
-/// Load a checkpoint folder written by [`save`] for a run with `config`.
-pub fn load<T: Real>(ckpt: &Path, config: &TrainConfig) -> Result<Trainer<T>> {
+/// Load a checkpoint folder written by [`save`] for a run with `config` on
+/// the data `binding` describes.
+pub fn load<T: Real>(
+    ckpt: &Path,
+    config: &TrainConfig,
+    binding: &DataBinding,
+) -> Result<Trainer<T>> {
+    load_checked(ckpt, config, binding).map_err(|e| e.in_file(ckpt.join(STATE_FILE)))
+}
+
+fn load_checked<T: Real>(
+    ckpt: &Path,
+    config: &TrainConfig,
+    binding: &DataBinding,
+) -> Result<Trainer<T>> {
     let path = ckpt.join(STATE_FILE);
     let f = TensorFile::load(&path)?;
+    if !f.metadata.contains_key("checkpoint_hash") {
+        return Err(Error::field(
+            &path,
+            "__metadata__.checkpoint_hash",
+            "missing: written by an earlier version that did not record the data it was trained on; train again",
+        ));
+    }
     let found = f.meta("config")?;
     if found != config.fingerprint() {
         return Err(Error::field(
@@ -168,8 +290,38 @@ pub fn load<T: Real>(ckpt: &Path, config: &TrainConfig) -> Result<Trainer<T>> {
         opacity: f.get_real("opacity", &[n, 1])?,
     };
     gaussians.validate()?;
-    let field_file = TensorFile::load(&ckpt.join(FIELD_FILE))?;
+    let field_path = ckpt.join(FIELD_FILE);
+    let field_file = TensorFile::load(&field_path)?;
     let field = Field::<T>::from_tensor_file(config.field, &field_file)?;
+    let hex = |key: &str| -> Result<u64> {
+        let s = f.meta(key)?;
+        u64::from_str_radix(s, 16).map_err(|_| {
+            Error::field(
+                &path,
+                format!("__metadata__.{key}"),
+                format!("{s:?} is not a hexadecimal hash"),
+            )
+        })
+    };
+    if field_hash(&field) != hex("field_hash")? {
+        return Err(Error::format(
+            &field_path,
+            format!(
+                "the field weights do not match the hash recorded in {}: the checkpoint is corrupt",
+                path.display()
+            ),
+        ));
+    }
+    let ply_path = ckpt.join(PLY_FILE);
+    if file_hash(&ply_path)? != hex("ply_hash")? {
+        return Err(Error::format(
+            &ply_path,
+            format!(
+                "the file does not match the hash recorded in {}: the checkpoint is corrupt",
+                path.display()
+            ),
+        ));
+    }
     let adam = |group: &str, len: usize| -> Result<AdamState<T>> {
         let mut a = AdamState::new(len);
         a.m = f.get_real(&format!("adam.{group}.m"), &[len])?;
@@ -217,6 +369,20 @@ pub fn load<T: Real>(ckpt: &Path, config: &TrainConfig) -> Result<Trainer<T>> {
         ));
     }
     let background = parse_background(&path, f.meta("background")?)?;
+    let extent: f64 = f.meta_finite("extent")?;
+    if extent < 0.0 {
+        return Err(Error::field(
+            &path,
+            "__metadata__.extent",
+            format!("{extent} is negative"),
+        ));
+    }
+    let recorded = DataBinding {
+        source: f.meta("data.source")?.to_string(),
+        resolution: parse_resolution(&path, f.meta("data.resolution")?)?,
+        background,
+        data_hash: hex("data.hash")?,
+    };
     let trainer = Trainer {
         config: config.clone(),
         iteration: f.meta_parse("iteration")?,
@@ -228,11 +394,12 @@ pub fn load<T: Real>(ckpt: &Path, config: &TrainConfig) -> Result<Trainer<T>> {
         stats,
         sampler: CameraSampler::from_state(views, stack, f.meta_parse("sampler.rng")?),
         ast_rng: Rng::new(f.meta_parse("ast.rng")?),
-        extent: f.meta_parse("extent")?,
+        extent,
         background,
     };
     let want = f.meta("state_hash")?;
-    let got = format!("{:016x}", trainer.state_hash());
+    let state_hash = trainer.state_hash();
+    let got = format!("{state_hash:016x}");
     if want != got {
         return Err(Error::format(
             &path,
@@ -241,7 +408,64 @@ pub fn load<T: Real>(ckpt: &Path, config: &TrainConfig) -> Result<Trainer<T>> {
             ),
         ));
     }
+    if checkpoint_hash(state_hash, extent, background, &recorded) != hex("checkpoint_hash")? {
+        return Err(Error::format(
+            &path,
+            "the extent, background or data record does not match the recorded checkpoint_hash: the checkpoint is corrupt",
+        ));
+    }
+    check_binding(&path, &recorded, binding)?;
     Ok(trainer)
+}
+
+/// Refuse a checkpoint trained on other data than `run`'s.
+fn check_binding(path: &Path, ckpt: &DataBinding, run: &DataBinding) -> Result<()> {
+    let (cw, ch) = ckpt.resolution;
+    let (rw, rh) = run.resolution;
+    let mismatch = if ckpt.resolution != run.resolution {
+        Some((
+            "data.resolution",
+            format!("{cw}x{ch} images, this run's are {rw}x{rh}"),
+        ))
+    } else if ckpt.background != run.background {
+        Some((
+            "background",
+            format!(
+                "background {:?}, this run's is {:?}",
+                ckpt.background, run.background
+            ),
+        ))
+    } else if ckpt.data_hash != run.data_hash {
+        Some((
+            "data.hash",
+            "other training frames (names, times, cameras or pixels differ)".to_string(),
+        ))
+    } else {
+        None
+    };
+    match mismatch {
+        None => Ok(()),
+        Some((field, what)) => Err(Error::field(
+            path,
+            format!("__metadata__.{field}"),
+            format!(
+                "the checkpoint was trained on {} with {what} ({}); it is not this run's",
+                ckpt.source, run.source
+            ),
+        )),
+    }
+}
+
+fn parse_resolution(path: &Path, s: &str) -> Result<(usize, usize)> {
+    s.split_once('x')
+        .and_then(|(w, h)| Some((w.parse().ok()?, h.parse().ok()?)))
+        .ok_or_else(|| {
+            Error::field(
+                path,
+                "__metadata__.data.resolution",
+                format!("cannot parse {s:?} as WIDTHxHEIGHT"),
+            )
+        })
 }
 
 fn parse_background(path: &Path, s: &str) -> Result<[f64; 3]> {
@@ -257,11 +481,21 @@ fn parse_background(path: &Path, s: &str) -> Result<[f64; 3]> {
                 format!("cannot parse {s:?}"),
             )
         })?;
-    v.try_into().map_err(|_| {
+    let b: [f64; 3] = v.try_into().map_err(|_| {
         Error::field(
             path,
             "__metadata__.background",
             format!("{s:?} is not 3 numbers"),
         )
-    })
+    })?;
+    if b.iter()
+        .any(|v| !(v.is_finite() && (0.0..=1.0).contains(v)))
+    {
+        return Err(Error::field(
+            path,
+            "__metadata__.background",
+            format!("{s:?}: every value must be finite and in [0, 1]"),
+        ));
+    }
+    Ok(b)
 }

@@ -3,7 +3,7 @@
 //!
 //! Output folder:
 //! ```text
-//! OUT/checkpoints/iteration_NNNNNN/   state, field weights, PLY, curve.json
+//! OUT/checkpoints/iteration_NNNNNN/   state, field weights, PLY, curve.json (see checkpoint)
 //! OUT/test/renders/NAME.png           8-bit renders (torchvision save_image rounding)
 //! OUT/test/renders_exr/NAME.exr       float renders
 //! OUT/test/gt/NAME.png                ground truth, saved the same way
@@ -33,8 +33,12 @@ pub struct RunOptions {
     /// Evaluate the test views every this many iterations for the curve
     /// (0: only at the end).
     pub eval_every: u64,
-    /// Continue from the newest checkpoint in `OUT/checkpoints` if there is one.
+    /// Continue from the newest checkpoint in `OUT/checkpoints` if there is
+    /// one. Without it, a folder that holds checkpoints is refused (it is
+    /// another run's, or this one's to be resumed).
     pub resume: bool,
+    /// The data's name, recorded in checkpoints and used in messages.
+    pub data_name: String,
     /// LPIPS for every evaluation (periodic and final) when given; without
     /// it LPIPS is absent from every record.
     pub lpips: Option<Arc<crate::lpips::Metric>>,
@@ -152,16 +156,39 @@ pub fn run<T: Real>(
             ));
         }
     }
+    if test.is_empty() {
+        return Err(Error::invalid(
+            "evaluation split",
+            "the dataset has no test or val views to evaluate (for a nerfies-layout folder, the split rule picked none)",
+        ));
+    }
     let ckpt_dir = opts.out.join("checkpoints");
+    let existing = checkpoint::latest(&ckpt_dir)?;
+    if let (false, Some(dir)) = (opts.resume, &existing) {
+        return Err(Error::invalid(
+            "output folder",
+            format!(
+                "{} holds a checkpoint of an earlier run ({}); continue it with --resume, or train into another folder",
+                ckpt_dir.display(),
+                dir.file_name().map_or(String::new(), |n| n.to_string_lossy().into_owned())
+            ),
+        ));
+    }
+    // Every output folder exists before the first iteration: a path that
+    // cannot be written fails now, not after training.
+    for sub in [
+        ckpt_dir.clone(),
+        opts.out.join("test").join("renders"),
+        opts.out.join("test").join("renders_exr"),
+        opts.out.join("test").join("gt"),
+    ] {
+        std::fs::create_dir_all(&sub).map_err(|e| Error::io(&sub, e))?;
+    }
+    let binding = checkpoint::DataBinding::of(data, &opts.data_name);
 
-    let (mut trainer, mut curve) = match opts
-        .resume
-        .then(|| checkpoint::latest(&ckpt_dir))
-        .transpose()?
-        .flatten()
-    {
+    let (mut trainer, mut curve) = match existing.filter(|_| opts.resume) {
         Some(dir) => {
-            let t = checkpoint::load::<T>(&dir, config)?;
+            let t = checkpoint::load::<T>(&dir, config, &binding)?;
             if t.sampler.count() != train.len() {
                 return Err(Error::invalid(
                     "resume",
@@ -219,8 +246,12 @@ pub fn run<T: Real>(
             (loss_sum, loss_n) = (0.0, 0);
         }
         if last || (opts.checkpoint_every > 0 && it % opts.checkpoint_every == 0) {
-            let dir = checkpoint::save(&trainer, &ckpt_dir)?;
-            write_json(&dir.join("curve.json"), &curve)?;
+            let dir = checkpoint::save(
+                &trainer,
+                &ckpt_dir,
+                &binding,
+                &[(CURVE_FILE, &json_bytes(&dir_curve_path(&ckpt_dir), &curve)?)],
+            )?;
             on_event(Event::Checkpoint(&dir));
         }
     }
@@ -381,16 +412,27 @@ pub fn write_metrics(
 }
 
 pub fn write_json(path: &Path, v: &impl serde::Serialize) -> Result<()> {
-    let mut bytes = serde_json::to_vec_pretty(v).map_err(|e| Error::format(path, e.to_string()))?;
-    bytes.push(b'\n');
-    write_atomic(path, &bytes)
+    write_atomic(path, &json_bytes(path, v)?)
 }
 
+/// `v` as pretty JSON with a final newline (`path` names the file in errors).
+fn json_bytes(path: &Path, v: &impl serde::Serialize) -> Result<Vec<u8>> {
+    let mut bytes = serde_json::to_vec_pretty(v).map_err(|e| Error::format(path, e.to_string()))?;
+    bytes.push(b'\n');
+    Ok(bytes)
+}
+
+/// The training curve's file in a checkpoint folder.
+pub const CURVE_FILE: &str = "curve.json";
+
+fn dir_curve_path(ckpt_dir: &Path) -> PathBuf {
+    ckpt_dir.join(CURVE_FILE)
+}
+
+/// The curve of a checkpoint folder: written with the checkpoint, so a
+/// missing one is an error, not an empty curve.
 fn read_curve(dir: &Path) -> Result<Vec<CurvePoint>> {
-    let path = dir.join("curve.json");
-    if !path.exists() {
-        return Ok(Vec::new());
-    }
+    let path = dir.join(CURVE_FILE);
     let bytes = crate::io::read(&path)?;
     serde_json::from_slice(&bytes).map_err(|e| Error::format(&path, e.to_string()))
 }

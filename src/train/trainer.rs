@@ -545,21 +545,29 @@ pub fn view_metrics_with<T: Real>(
 }
 
 /// 64-bit FNV-1a.
-struct Fnv(u64);
+/// 64-bit FNV-1a, the hash of the state and of checkpoint files.
+pub(crate) struct Fnv(pub u64);
 
 impl Fnv {
-    fn new() -> Self {
+    pub fn new() -> Self {
         Fnv(0xcbf2_9ce4_8422_2325)
     }
-    fn bytes(&mut self, b: &[u8]) {
+    /// FNV-1a over 64-bit words instead of bytes (for large inputs such as
+    /// images; a different hash from [`bytes`](Self::bytes)).
+    pub fn words(&mut self, w: impl IntoIterator<Item = u64>) {
+        for x in w {
+            self.0 = (self.0 ^ x).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+    }
+    pub fn bytes(&mut self, b: &[u8]) {
         for &x in b {
             self.0 = (self.0 ^ x as u64).wrapping_mul(0x0000_0100_0000_01b3);
         }
     }
-    fn u64(&mut self, v: u64) {
+    pub fn u64(&mut self, v: u64) {
         self.bytes(&v.to_le_bytes());
     }
-    fn reals<T: Real>(&mut self, v: &[T]) {
+    pub fn reals<T: Real>(&mut self, v: &[T]) {
         self.u64(v.len() as u64);
         for x in v {
             self.u64(x.bits());

@@ -85,6 +85,12 @@ pub enum Layout {
     Nerfies,
 }
 
+/// The most frames per split a built-in scene may have.
+pub const MAX_FRAMES: usize = 4096;
+/// The most pixels of all a built-in scene's images together (3 GiB of f32
+/// RGB).
+pub const MAX_TOTAL_PIXELS: usize = 1 << 28;
+
 impl SynthOptions {
     fn check(&self) -> Result<()> {
         if !(1..=4096).contains(&self.resolution) {
@@ -93,6 +99,27 @@ impl SynthOptions {
                 format!("{} is not in 1..=4096", self.resolution),
             ));
         }
+        if self.frames > MAX_FRAMES || self.eval_frames > MAX_FRAMES {
+            return Err(Error::invalid(
+                "frames",
+                format!(
+                    "{} train and {} evaluation frames, more than the limit {MAX_FRAMES}",
+                    self.frames, self.eval_frames
+                ),
+            ));
+        }
+        let views = self.frames + 2 * self.eval_frames;
+        if views.saturating_mul(self.resolution * self.resolution) > MAX_TOTAL_PIXELS {
+            return Err(Error::invalid(
+                "frames",
+                format!(
+                    "{views} images of {0}x{0} pixels, more than {MAX_TOTAL_PIXELS} pixels in all",
+                    self.resolution
+                ),
+            ));
+        }
+        crate::dataset::init::check_count(self.init_points)
+            .map_err(|w| Error::invalid("init_points", w))?;
         if self.frames == 0 || self.eval_frames == 0 {
             return Err(Error::invalid(
                 "frames",
