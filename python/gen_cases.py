@@ -47,7 +47,7 @@ def look_at_w2c(eye, target, up):
 
 
 def projection(tanfovx, tanfovy):
-    """getProjectionMatrix (UPSTREAM 2.2), f64."""
+    """getProjectionMatrix (docs/UPSTREAM.md §2.2), f64."""
     top = tanfovy * ZNEAR
     right = tanfovx * ZNEAR
     P = torch.zeros(4, 4, dtype=torch.float64)

@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Independent PyTorch reference of the deformation fields: the D-3DGS MLP and the CfC field.
 
-Written from the project's specification (UPSTREAM.md 6.1-6.2, DECISIONS.md section 2), not
-from the Rust code. The CfC cells are the real `ncps.torch.CfCCell` (mode 'default').
+Written from the project's notes (docs/UPSTREAM.md §6.1–§6.2, docs/DECISIONS.md §2), not from
+the Rust code. The CfC cells are the real `ncps.torch.CfCCell` (mode 'default').
 
 Usage:
     python reference_deform.py CASE.safetensors OUT.safetensors
@@ -18,7 +18,7 @@ Output: d_xyz, d_rotation, d_scaling, grad_t [N,1] and grad.<name> for every wei
 gradients of sum(d_xyz*grad_d_xyz) + sum(d_rotation*grad_d_rotation) +
 sum(d_scaling*grad_d_scaling) by autograd. xyz is detached (stop-gradient), as upstream.
 
-Conventions written down here (the specification leaves them to this project):
+Conventions written down here (upstream leaves them open; docs/DECISIONS.md §2):
 - gamma_L(p) = [p, sin(2^0 p), cos(2^0 p), ..., sin(2^(L-1) p), cos(2^(L-1) p)], no pi.
 - The timenet (synthetic variant) is Linear(13, 256) -> ReLU -> Linear(256, 30) whatever the
   field width W: its 11,294 parameters are in every published count.
@@ -56,7 +56,7 @@ def make_timenet():
 
 
 class DeformNetwork(nn.Module):
-    """The D-3DGS MLP (UPSTREAM 6.2); parameter names equal upstream deform.pth keys."""
+    """The D-3DGS MLP (docs/UPSTREAM.md §6.2); parameter names equal upstream deform.pth keys."""
 
     def __init__(self, D=8, W=256, variant="synthetic", is_6dof=False):
         super().__init__()
@@ -130,7 +130,7 @@ def exp_se3(w, v, theta):
 
 
 class CfCField(nn.Module):
-    """The liquid field (DECISIONS 2): D stacked ncps CfC cells in depth."""
+    """The liquid field (docs/DECISIONS.md §2): D stacked ncps CfC cells in depth."""
 
     def __init__(self, D=6, W=128, variant="synthetic", activation="gelu",
                  backbone_units=64, backbone_layers=2):

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Independent PyTorch reference of the training loss: (1 - l) * L1 + l * (1 - SSIM), l = 0.2.
 
-Written from the project's specification (UPSTREAM.md 6.4 and 6.7, DECISIONS.md 2b):
+Written from the project's notes (docs/UPSTREAM.md §6.4 and §6.7, docs/DECISIONS.md §2b):
 11x11 Gaussian window with sigma 1.5 (in f32 cases the upstream f32 window: exp in f64,
 stored as f32, normalised by its f32 sum; in f64 cases the same formula in f64), depthwise
 convolution with zero padding 5, C1 = 0.01^2, C2 = 0.03^2, mean over channels and pixels.

@@ -1,12 +1,12 @@
 #!/usr/bin/env python3
 """Independent PyTorch reference of the Inria 3DGS rasterizer forward (R1p: with depth).
 
-Written from the project's specification (UPSTREAM.md sections 1-3, DECISIONS.md section 1),
+Written from the project's notes (docs/UPSTREAM.md §1–§3, docs/DECISIONS.md §1),
 not from the Rust code. With `gradient=exact` (the default) gradients come from PyTorch
 autograd of this forward: the true derivative of the forward as computed (zero through the
 0.99 alpha clamp where it clamps, the exact tz term under the tx/tz clamp, stored
 transmittance). With `gradient=inria` they come from `reference_raster_inria.py`, a port of
-the Inria backward's formulas as written (UPSTREAM.md section 4).
+the Inria backward's formulas as written (docs/UPSTREAM.md §4).
 
 Usage:
     python reference_raster.py CASE.safetensors OUT.safetensors
@@ -25,8 +25,8 @@ The differentiated loss is sum(color * grad_out_color) + sum(depth * grad_out_de
 (`inria`: the depth has no backward upstream, grad_out_depth is ignored).
 
 Conventions of this reference (for culled Gaussians, radius 0): means2D is 0 and every
-gradient is 0. All arithmetic is in the case dtype (f32 or f64) in the order the
-specification gives, except ndc2Pix, which upstream evaluates in f64 and rounds to f32.
+gradient is 0. All arithmetic is in the case dtype (f32 or f64) in the order
+docs/UPSTREAM.md gives, except ndc2Pix, which upstream evaluates in f64 and rounds to f32.
 The scale gradient includes the scale_modifier factor (exact derivative; `inria`:
 d/d(scale_modifier * scales), as upstream returns it).
 

@@ -1,15 +1,15 @@
 """The Inria rasterizer's backward formulas as written: the `inria` gradient mode.
 
 A port to PyTorch (no autograd: every formula spelled out, in the case dtype) of
-diff-gaussian-rasterization's cuda_rasterizer/backward.cu at 59f5f77 (UPSTREAM.md R1 and
-section 4; the D-3DGS fork R1p has the same backward.cu and no depth backward), written from
-that code and the specification, not from the Rust code. The forward values it needs (pixel
-centres, conics, clamped colours, final transmittance, last contributors, tile lists) come
-from `reference_raster.forward`.
+diff-gaussian-rasterization's cuda_rasterizer/backward.cu at 59f5f77 (R1 in docs/UPSTREAM.md
+§0, the formulas in §4; the D-3DGS fork R1p has the same backward.cu and no depth backward),
+written from that code and docs/UPSTREAM.md, not from the Rust code. The forward values it
+needs (pixel centres, conics, clamped colours, final transmittance, last contributors, tile
+lists) come from `reference_raster.forward`.
 
-Where these formulas are not the exact derivative of the forward (UPSTREAM.md 4.6): the 0.99
-alpha clamp is ignored by the gradient, the transmittance is recovered by division from
-T_final, the tz term under the tangent clamp is 2 fx tx'/tz^3 (twice the derivative), the
+Where these formulas are not the exact derivative of the forward (docs/UPSTREAM.md §4.6):
+the 0.99 alpha clamp is ignored by the gradient, the transmittance is recovered by division
+from T_final, the tz term under the tangent clamp is 2 fx tx'/tz^3 (twice the derivative), the
 conic inverse uses det^2 + 1e-7, the depth output has no backward, the scale gradient is
 with respect to scale_modifier * scales. The per-Gaussian sums run in tile order and, inside
 a tile, over pixels in row-major order (upstream adds them with float atomics in no fixed

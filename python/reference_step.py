@@ -1,8 +1,9 @@
 #!/usr/bin/env python3
 """Independent PyTorch reference of one D-3DGS training iteration: the `step` stage.
 
-Written from the project's specification (UPSTREAM.md A.2-A.3, 6.2, 6.4-6.5; DECISIONS.md
-sections 1-2b), not from the Rust code, the way upstream's train.py runs an iteration:
+Written from the project's notes (docs/UPSTREAM.md §A.2–§A.3, §6.2, §6.4–§6.5;
+docs/DECISIONS.md §1–§2b), not from the Rust code, the way upstream's train.py runs an
+iteration:
 
 1. the field on the detached canonical means (`deform.step(xyz.detach(), t)`), skipped with
    field_on=false (warm-up): upstream's DeformNetwork (is_6dof included) or the CfC field,

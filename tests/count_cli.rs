@@ -1,4 +1,4 @@
-//! `liquid-splat count`: the paper's parameter counts (UPSTREAM §6.3, §8.2)
+//! `liquid-splat count`: the paper's parameter counts (docs/UPSTREAM.md §6.3, §8.2)
 //! and the ptflops MAC conventions (§8.3), as the CLI prints them.
 
 use std::process::Command;
@@ -26,7 +26,7 @@ fn json(args: &[&str]) -> serde_json::Value {
 
 #[test]
 fn paper_parameter_counts() {
-    // UPSTREAM §8.2: 0.5223 M, 0.7829 M, 0.3345 M in the paper's Table 3.
+    // docs/UPSTREAM.md §8.2: 0.5223 M, 0.7829 M, 0.3345 M in the paper's Table 3.
     for (args, params) in [
         (&["--field", "mlp"][..], 522_280u64),
         (
@@ -58,7 +58,7 @@ fn paper_parameter_counts() {
 
 #[test]
 fn macs_per_gaussian_and_total() {
-    // UPSTREAM §8.3 reference table, CfC D6 W128 with GELU and with SiLU.
+    // docs/UPSTREAM.md §8.3 reference table, CfC D6 W128 with GELU and with SiLU.
     let v = json(&["--field", "cfc", "--gaussians", "20000"]);
     assert_eq!(v["gaussians"], 20_000);
     assert_eq!(v["macs"]["pytorch"]["per_gaussian"], 336_552);

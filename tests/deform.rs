@@ -254,7 +254,7 @@ fn cross(a: &[f64], b: &[f64]) -> [f64; 3] {
     ]
 }
 
-/// Independent form of the 6-DoF warp (UPSTREAM §6.2) with cross products
+/// Independent form of the 6-DoF warp (docs/UPSTREAM.md §6.2) with cross products
 /// instead of matrices: `R·x = x + sin θ·w'×x + (1 − cos θ)·w'×(w'×x)`,
 /// `p = θ·v' + (1 − cos θ)·w'×v' + (θ − sin θ)·w'×(w'×v')`, with
 /// `w' = w/θ + 1e-5`, `v' = v/θ + 1e-5`; returns `R·x + p − x` (and the

@@ -1,6 +1,6 @@
 //! `liquid-splat count`: parameters and multiply-accumulates (MACs) of a
 //! deformation field, per Gaussian and for N Gaussians, under the ptflops
-//! counting conventions of UPSTREAM §8.3 (see `crate::deform::count`).
+//! counting conventions of docs/UPSTREAM.md §8.3 (see `crate::deform::count`).
 
 use crate::deform::count::{macs_per_gaussian, param_count, MacConvention};
 use crate::deform::{FieldConfig, FieldKind, Variant};
@@ -101,7 +101,7 @@ pub fn run(a: CountArgs) -> crate::Result<ExitCode> {
         params as f64 / 1e6
     );
     println!("gaussians: {}", thousands(n));
-    println!("MACs (ptflops conventions, UPSTREAM §8.3; a Linear layer counts in·out + out per Gaussian;");
+    println!("MACs (ptflops conventions, docs/UPSTREAM.md §8.3; a Linear layer counts in·out + out per Gaussian;");
     println!("      sin/cos, tanh, sigmoid and element-wise arithmetic count 0):");
     println!(
         "  {:<52} {:>16} {:>22}",

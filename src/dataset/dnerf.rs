@@ -343,7 +343,7 @@ mod tests {
         assert_eq!(fy, 0.6911112070083618);
         assert_eq!(
             fx, 0.6911112070083618,
-            "this value round-trips exactly (UPSTREAM 6.9)"
+            "this value round-trips exactly (docs/UPSTREAM.md §6.9)"
         );
         let (fx, fy) = fov_pair(0.8, 200, 100);
         assert_eq!(fx, 0.8);

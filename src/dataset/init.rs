@@ -1,4 +1,4 @@
-//! Initial Gaussians from a point cloud (upstream `create_from_pcd`, UPSTREAM §6.8).
+//! Initial Gaussians from a point cloud (upstream `create_from_pcd`, docs/UPSTREAM.md §6.8).
 //!
 //! - Positions are rounded to f32 first: upstream writes the initial cloud to a PLY with
 //!   `float` positions and reads it back.
@@ -333,7 +333,7 @@ mod tests {
         g.validate().unwrap();
         assert_eq!(g.max_sh_degree, 3);
         assert!(g.xyz.iter().all(|&v| (-1.3..1.3).contains(&v)));
-        // (127/255 − 0.5)/C0 in f32 ≈ −0.0069508 (UPSTREAM 6.8).
+        // (127/255 − 0.5)/C0 in f32 ≈ −0.0069508 (docs/UPSTREAM.md §6.8).
         let dc = (127.0f32 / 255.0 - 0.5) / C0 as f32;
         assert!((dc + 0.0069508).abs() < 1e-6);
         assert_eq!(g.sh[0], dc);

@@ -1,4 +1,5 @@
-//! The nerfies / HyperNeRF / NeRF-DS layout (upstream `readNerfiesCameras`, UPSTREAM §6.9).
+//! The nerfies / HyperNeRF / NeRF-DS layout (upstream `readNerfiesCameras`,
+//! docs/UPSTREAM.md §6.9).
 //!
 //! Files: `dataset.json` (`ids`, `train_ids`, `val_ids`), `metadata.json` (per id `time_id`,
 //! `camera_id`; the other keys are ignored), `scene.json` (`scale`, `center`),

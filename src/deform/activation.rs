@@ -1,7 +1,7 @@
 //! Element-wise activations of the deformation fields, each with its
 //! derivative (the vjp multiplies the incoming gradient by it).
 //!
-//! Names follow ncps (UPSTREAM §7.1): `relu`, `gelu` (exact erf form, not the
+//! Names follow ncps (docs/UPSTREAM.md §7.1): `relu`, `gelu` (exact erf form, not the
 //! tanh approximation), `silu`, `tanh`, `lecun_tanh` (1.7159·tanh(0.666·x),
 //! with 0.666 as upstream writes it, not 2/3). `sigmoid` is used by the CfC
 //! gate and is not selectable as a backbone activation.

@@ -1,4 +1,4 @@
-//! The liquid deformation field: D CfC cells stacked in depth (DECISIONS §2).
+//! The liquid deformation field: D CfC cells stacked in depth (docs/DECISIONS.md §2).
 //!
 //! `u = [γ₁₀(x), t_feat]` (93 synthetic, 84 real), `h = 0`. For cell
 //! `l = 0..D`: if `l == D/2`, first `h += skip(u)`; then

@@ -1,5 +1,5 @@
 //! Parameter and multiply-accumulate (MAC) counts of the deformation fields,
-//! with the conventions of ptflops (UPSTREAM §8.3).
+//! with the conventions of ptflops (docs/UPSTREAM.md §8.3).
 //!
 //! MACs per Gaussian are the figure ptflops reports for a batch of one point.
 //! Every convention counts each Linear layer as `in·out + out`. They differ in
@@ -122,13 +122,13 @@ mod tests {
         use Activation::*;
         use FieldKind::*;
         use Variant::*;
-        // UPSTREAM §6.3 and §8.2 (counts of the PyTorch modules).
+        // docs/UPSTREAM.md §6.3 and §8.2 (counts of the PyTorch modules).
         assert_eq!(
             param_count(&cfg(Mlp, 8, 256, Relu, Synthetic)).unwrap(),
             522_280
         );
         assert_eq!(param_count(&cfg(Mlp, 8, 256, Relu, Real)).unwrap(), 506_378);
-        // UPSTREAM §6.3: the 6-DoF MLP (branch_w and branch_v replace the warp head).
+        // docs/UPSTREAM.md §6.3: the 6-DoF MLP (branch_w and branch_v replace the warp head).
         let six = FieldConfig {
             is_6dof: true,
             ..cfg(Mlp, 8, 256, Relu, Synthetic)
@@ -161,7 +161,7 @@ mod tests {
         use FieldKind::*;
         use MacConvention::*;
         use Variant::*;
-        // UPSTREAM §8.3 reference counts (one point), columns:
+        // docs/UPSTREAM.md §8.3 reference counts (one point), columns:
         // pytorch (functional on), pytorch (functional off), aten.
         let table: &[(FieldConfig, [u64; 3])] = &[
             (

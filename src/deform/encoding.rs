@@ -1,4 +1,4 @@
-//! Positional encoding γ_L of D-3DGS (UPSTREAM §6.1), with its vjp.
+//! Positional encoding γ_L of D-3DGS (docs/UPSTREAM.md §6.1), with its vjp.
 //!
 //! `γ_L(p) = [p, sin(2⁰p), cos(2⁰p), sin(2¹p), cos(2¹p), …, sin(2^{L−1}p), cos(2^{L−1}p)]`,
 //! where each sin/cos block covers all `d` input dimensions at once, so for

@@ -10,7 +10,7 @@
 //! minutes; every test run checks a strided sample and each range boundary),
 //! so the encoding's values are unchanged, about 8× cheaper.
 //!
-//! **Decision (deform DECISIONS).** In f32 the deformation fields evaluate
+//! **Decision (docs/DECISIONS.md §3).** In f32 the deformation fields evaluate
 //! every `exp`, `erf`, `tanh` and `sigmoid` of their activations and of the CfC
 //! cell — forward and backward alike — with the functions of this module and
 //! nothing else; f64 keeps the pinned libm of [`Real`] (it is the

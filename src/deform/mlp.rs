@@ -1,4 +1,4 @@
-//! The D-3DGS `DeformNetwork` (UPSTREAM §6.2), exactly.
+//! The D-3DGS `DeformNetwork` (docs/UPSTREAM.md §6.2), exactly.
 //!
 //! `h₀ = [γ₁₀(x), t_feat]` (93 or 84 wide); for `k = 0..D`:
 //! `h = ReLU(linear[k](h))`, and after layer `D/2` the input is concatenated

@@ -1,9 +1,9 @@
 //! Deformation fields: `F(γ(sg(x)), t) → (Δx, Δr, Δs)` per Gaussian.
 //!
 //! Two fields share one interface, [`Field`]:
-//! - [`FieldKind::Mlp`]: the D-3DGS `DeformNetwork` (UPSTREAM §6.2), the baseline.
+//! - [`FieldKind::Mlp`]: the D-3DGS `DeformNetwork` (docs/UPSTREAM.md §6.2), the baseline.
 //! - [`FieldKind::Cfc`]: the liquid field, a stack of CfC cells in depth
-//!   (DECISIONS §2).
+//!   (docs/DECISIONS.md §2).
 //!
 //! Conventions, for both fields:
 //! - The position input is stop-gradient (`x.detach()` upstream). The
@@ -71,7 +71,7 @@ pub enum FieldKind {
     Cfc,
 }
 
-/// Which time input (UPSTREAM §6.2 `is_blender`).
+/// Which time input (docs/UPSTREAM.md §6.2 `is_blender`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Variant {
     /// D-NeRF scenes: `timenet(γ₆(t))`, 30 wide.
@@ -847,7 +847,7 @@ impl<T: Real> Field<T> {
         Ok((net, lb))
     }
 
-    /// A field with seeded initial weights (DECISIONS §2): one generator
+    /// A field with seeded initial weights (docs/DECISIONS.md §2): one generator
     /// `Rng::new(seed)` draws, in layout order, each weight then its bias;
     /// CfC cell weights are xavier-uniform, every other weight and every bias
     /// is `U(±1/√fan_in)` (PyTorch's default Linear init).

@@ -1,4 +1,4 @@
-//! The SE(3) warp of the 6-DoF D-3DGS MLP (UPSTREAM §6.2, `is_6dof`), with
+//! The SE(3) warp of the 6-DoF D-3DGS MLP (docs/UPSTREAM.md §6.2, `is_6dof`), with
 //! its vjp.
 //!
 //! From the two 3-wide heads `w = branch_w(h)` and `v = branch_v(h)`:

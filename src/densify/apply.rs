@@ -1,6 +1,6 @@
 //! Applying densification and opacity reset to the Gaussian parameters, their
 //! Adam moments and the densification statistics **together**, so the three
-//! can never fall out of step (UPSTREAM §6.5).
+//! can never fall out of step (docs/UPSTREAM.md §6.5).
 //!
 //! ## Order (as upstream `densify_and_prune`)
 //! 1. mean gradients `accum / denom` (0/0 → 0);
@@ -24,7 +24,7 @@
 //! drawn from `Rng::stream(seed, i)`: three for child 0, then three for
 //! child 1, and so on. The result does not depend on threads or on which
 //! other Gaussians are split. Upstream draws with the CUDA Philox generator,
-//! which a CPU cannot reproduce (UPSTREAM §0). The quaternion is normalised
+//! which a CPU cannot reproduce (docs/UPSTREAM.md §0). The quaternion is normalised
 //! with `max(|q|, 1e-12)` (upstream divides by `|q|` alone, NaN for a zero
 //! quaternion). The sample is `T(z) · scale` (upstream `torch.normal(0, std)`).
 

@@ -1,4 +1,4 @@
-//! Adaptive density control of D-3DGS (UPSTREAM §6.5, paper-branch values):
+//! Adaptive density control of D-3DGS (docs/UPSTREAM.md §6.5, paper-branch values):
 //! gradient statistics, the clone / split / prune policy, and its application
 //! to parameters, Adam state and statistics in one place.
 //!

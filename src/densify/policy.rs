@@ -1,4 +1,4 @@
-//! What to clone, split and prune (UPSTREAM §6.5, R2p values). Pure
+//! What to clone, split and prune (docs/UPSTREAM.md §6.5, R2p values). Pure
 //! selection functions; [`super::apply`] applies them to the parameters,
 //! the Adam state and the statistics together.
 //!

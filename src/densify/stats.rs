@@ -1,4 +1,4 @@
-//! Per-Gaussian densification statistics (UPSTREAM §6.5), accumulated every
+//! Per-Gaussian densification statistics (docs/UPSTREAM.md §6.5), accumulated every
 //! iteration from the rasterizer's outputs.
 
 use crate::error::{Error, Result};

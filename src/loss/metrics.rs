@@ -1,4 +1,4 @@
-//! Evaluation metrics as D-3DGS `metrics.py` computes them (UPSTREAM §6.10):
+//! Evaluation metrics as D-3DGS `metrics.py` computes them (docs/UPSTREAM.md §6.10):
 //! on 8-bit-quantised images.
 //!
 //! Renders and ground truth are saved with torchvision `save_image`
@@ -45,7 +45,7 @@ pub fn psnr<T: Real>(render: &[T], gt: &[T], h: usize, w: usize) -> Result<T> {
     Ok(psnr_raw(&quantize_image(render), &quantize_image(gt)))
 }
 
-/// SSIM (UPSTREAM §6.7) of `[3, h, w]` images after 8-bit quantisation of both.
+/// SSIM (docs/UPSTREAM.md §6.7) of `[3, h, w]` images after 8-bit quantisation of both.
 pub fn ssim_u8<T: Real>(render: &[T], gt: &[T], h: usize, w: usize) -> Result<T> {
     check_image_pair(render.len(), gt.len(), h, w)?;
     Ok(ssim::ssim(&quantize_image(render), &quantize_image(gt), h, w).value)

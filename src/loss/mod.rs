@@ -2,7 +2,7 @@
 //! the rendered image.
 //!
 //! `loss = (1 − λ)·L1(image, gt) + λ·(1 − SSIM(image, gt))`, λ = `lambda_dssim`
-//! = 0.2 by default (UPSTREAM §6.4, DECISIONS §2b). The render is **not**
+//! = 0.2 by default (docs/UPSTREAM.md §6.4, docs/DECISIONS.md §2b). The render is **not**
 //! clamped before the loss; `gt` is used as given (the loader clamps it).
 //!
 //! Scalars are combined as PyTorch does for an f32 tensor and a Python float:

@@ -1,7 +1,7 @@
 //! Structural similarity (SSIM) as D-3DGS computes it (`utils/loss_utils.py`),
 //! and its hand-written backward with respect to the first image.
 //!
-//! ## Definition (UPSTREAM §6.7)
+//! ## Definition (docs/UPSTREAM.md §6.7)
 //! For each channel of a `[C, H, W]` image pair (x, y), with `*` a zero-padded
 //! (pad 5), stride-1 correlation with the 11×11 window `w = g gᵀ`:
 //!
@@ -56,7 +56,7 @@ pub const C1: f64 = 0.01 * 0.01;
 /// `C2 = 0.03²` (as Python computes it, in f64).
 pub const C2: f64 = 0.03 * 0.03;
 
-/// Bits of the upstream f32 window (UPSTREAM §6.7): 0x1.0d956cp-10,
+/// Bits of the upstream f32 window (docs/UPSTREAM.md §6.7): 0x1.0d956cp-10,
 /// 0x1.f1fe02p-8, 0x1.26eb18p-5, 0x1.bff0fep-4, 0x1.b43c3ep-3, 0x1.106560p-2,
 /// then the mirror image.
 pub const WINDOW_F32_BITS: [u32; WINDOW_SIZE] = [

@@ -1,4 +1,4 @@
-//! Learning-rate schedules and the AST noise scale of D-3DGS (UPSTREAM §6.4,
+//! Learning-rate schedules and the AST noise scale of D-3DGS (docs/UPSTREAM.md §6.4,
 //! §6.6), computed in f64 as the upstream numpy code does.
 //!
 //! The transcendental functions are the pinned `libm`'s, not numpy's, so a
@@ -168,7 +168,7 @@ mod tests {
         // Log-linear: the midpoint is the geometric mean.
         assert!((lr.xyz(15_000) - (8e-4f64 * 8e-6).sqrt()).abs() < 1e-18);
         assert!((lr.deform(40_000) - 1.6e-6).abs() < 1e-20);
-        // UPSTREAM §9.9: at 20k of a 40k deform schedule the rate is ≈ 3.58e-5.
+        // docs/UPSTREAM.md §9.9: at 20k of a 40k deform schedule the rate is ≈ 3.58e-5.
         assert!((lr.deform(20_000) - 3.5777e-5).abs() < 1e-8);
     }
 

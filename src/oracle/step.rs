@@ -1,7 +1,7 @@
 //! Oracle stage `step`: one whole training iteration of D-3DGS on a case
 //! file, in upstream's order, with every intermediate a backend must match.
 //!
-//! The iteration (UPSTREAM §6.4–6.6, `train.py`):
+//! The iteration (docs/UPSTREAM.md §6.4–6.6, `train.py`):
 //!
 //! 1. field forward at `time` on the detached canonical centres (skipped
 //!    with `field_on=false`, upstream's warm-up);

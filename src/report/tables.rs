@@ -611,7 +611,8 @@ mod tests {
         ];
         let t = cost_table(&recs).unwrap();
         let col = |i: usize, c: usize| t.rows[i][c].csv.clone();
-        // UPSTREAM §8.2/§8.3: 522,280 / 782,888 / 334,504 parameters; aten MACs equal them.
+        // docs/UPSTREAM.md §8.2/§8.3: 522,280 / 782,888 / 334,504 parameters; aten MACs
+        // equal them.
         assert_eq!(
             (col(0, 3), col(1, 3), col(2, 3)),
             ("522280".into(), "782888".into(), "334504".into())

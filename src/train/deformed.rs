@@ -1,5 +1,5 @@
 //! Canonical Gaussians + field offsets → the tensors the rasterizer receives,
-//! and the chain rule back (UPSTREAM A.3, DECISIONS §1):
+//! and the chain rule back (docs/UPSTREAM.md §A.3, docs/DECISIONS.md §1):
 //!
 //! - `means     = xyz + d_xyz`
 //! - `scales    = exp(scaling) + d_scaling` (offset added to the linear scale)

@@ -1,4 +1,4 @@
-//! The training state and one iteration of D-3DGS (UPSTREAM §6.4–6.6).
+//! The training state and one iteration of D-3DGS (docs/UPSTREAM.md §6.4–6.6).
 //!
 //! [`Trainer::step`] is the whole data flow of an iteration:
 //! camera + time → field → deformed Gaussians → rasterizer → loss → the
@@ -384,7 +384,7 @@ impl<T: Real> Trainer<T> {
     }
 
     /// Statistics, densify/prune and opacity reset for iteration `it`
-    /// (UPSTREAM §6.5). Returns which Gaussian groups may still step.
+    /// (docs/UPSTREAM.md §6.5). Returns which Gaussian groups may still step.
     fn densify(
         &mut self,
         it: u64,
