@@ -459,7 +459,88 @@ fn bench_deform<T: Real>(
         }
         deform_profile::<T>(name, config, &xyz, &t, &g, reps)?;
     }
+    kernel_shapes::<T>(n, reps);
     Ok(ExitCode::SUCCESS)
+}
+
+/// The matrix kernels alone on the shapes of the fields' products (no
+/// epilogue): `[N, K]·[K, M]` as in a forward or an input gradient, and
+/// `Gᵀ·X` (`[M, N]·[N, K]`) as in a weight gradient.
+fn kernel_shapes<T: Real>(n: usize, reps: usize) {
+    use liquid_splat::deform::matmul::{matmul, matmul_tn, MatRef};
+    let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
+    println!();
+    println!(
+        "matrix kernels alone on the fields' shapes, {} threads, path {:?}, median of {} (fastest)",
+        rayon::current_num_threads(),
+        liquid_splat::deform::matmul::kernel_path(),
+        reps.max(1)
+    );
+    println!(
+        "{:<10} {:>26} {:>16} {:>14}   used in",
+        "product", "shape", "ms", "GFLOP/s"
+    );
+    let shapes: [(&str, usize, usize, &str); 8] = [
+        ("x·W", 256, 256, "MLP trunk layers"),
+        (
+            "x·W",
+            93,
+            512,
+            "CfC u part of every first layer and the skip",
+        ),
+        ("x·W", 128, 64, "CfC backbone.0 state part"),
+        ("x·W", 64, 64, "CfC backbone.1"),
+        ("x·W", 64, 512, "CfC heads (4W)"),
+        ("x·W", 512, 64, "CfC heads' input gradient"),
+        ("Gᵀ·X", 256, 256, "MLP trunk weight gradients"),
+        ("Gᵀ·X", 512, 64, "CfC heads' weight gradient"),
+    ];
+    let more: [(&str, usize, usize, &str); 3] = [
+        ("Gᵀ·X", 64, 128, "CfC backbone.0 state weight gradient"),
+        ("Gᵀ·X", 64, 64, "CfC backbone.1 weight gradient"),
+        ("Gᵀ·X", 512, 93, "CfC u part weight gradients"),
+    ];
+    for (kind, k, m, used) in shapes.iter().chain(&more) {
+        // x·W: A [N, k], B [k, m]. Gᵀ·X: G [N, k] (the output gradient,
+        // k = out), X [N, m].
+        let (rows_b, cols_b) = if *kind == "x·W" { (*k, *m) } else { (n, *m) };
+        let (a, b) = (
+            cast(cotangent(15, n * k)),
+            cast(cotangent(16, rows_b * cols_b)),
+        );
+        let run = || {
+            let am = MatRef::row_major(&a, n, *k);
+            let bm = MatRef::row_major(&b, rows_b, cols_b);
+            if *kind == "x·W" {
+                matmul(am, bm)
+            } else {
+                matmul_tn(am, bm)
+            }
+        };
+        drop(run());
+        let times: Vec<f64> = (0..reps.max(1))
+            .map(|_| {
+                let t0 = Instant::now();
+                drop(run());
+                t0.elapsed().as_secs_f64()
+            })
+            .collect();
+        let fastest = times.iter().copied().fold(f64::INFINITY, f64::min);
+        let s = median(times);
+        let shape = if *kind == "x·W" {
+            format!("[{n},{k}]·[{k},{m}]")
+        } else {
+            format!("[{k},{n}]·[{n},{m}]")
+        };
+        let flop = 2.0 * (n * k * m) as f64;
+        println!(
+            "{:<10} {:>26} {:>16} {:>14}   {used}",
+            kind,
+            shape,
+            format!("{:.2} ({:.2})", s * 1e3, fastest * 1e3),
+            format!("{:.0} ({:.0})", flop / s / 1e9, flop / fastest / 1e9),
+        );
+    }
 }
 
 /// `"… / cell 3 / …"` as `"… / cells / …"`: the cells' rows of the
