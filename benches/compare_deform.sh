@@ -22,7 +22,7 @@ cargo build --release --quiet --manifest-path "$tmp/src/Cargo.toml" --target-dir
 cargo build --release --quiet --manifest-path "$root/Cargo.toml"
 old_bin="$tmp/target/release/liquid-splat"
 new_bin="$root/target/release/liquid-splat"
-summary() { awk 'NF == 0 { exit } { print }'; }
+summary() { awk 'NF == 0 { done = 1 } !done'; }
 echo "machine: $(grep -m1 'model name' /proc/cpuinfo 2>/dev/null | cut -d: -f2 | sed 's/^ //'), $(nproc) CPUs"
 for r in $(seq 1 "$rounds"); do
     echo "== round $r, load average: $(cut -d' ' -f1-3 /proc/loadavg)"
