@@ -513,6 +513,10 @@ fn forward_matches_scalar_reimplementation() {
             scalar_cfc,
         ),
         (
+            config(FieldKind::Cfc, Variant::Real, 1, 8, Activation::Gelu),
+            scalar_cfc,
+        ),
+        (
             config(FieldKind::Mlp, Variant::Synthetic, 5, 8, Activation::Relu),
             scalar_mlp,
         ),
@@ -561,6 +565,8 @@ fn fields_are_bit_identical_across_cpu_paths() {
     let n = 700;
     for cfg in [
         config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu),
+        // One cell: the skip is added before it (its state is read).
+        config(FieldKind::Cfc, Variant::Synthetic, 1, 16, Activation::Gelu),
         config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::Silu),
         config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::LecunTanh),
         config(FieldKind::Cfc, Variant::Real, 2, 16, Activation::Tanh),

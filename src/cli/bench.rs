@@ -583,5 +583,216 @@ fn bench_deform<T: Real>(
     }
     println!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs;");
     println!(" CPU/threads: median process CPU time / threads, the wall time with idle cores if the threads never wait; includes spin-waiting)");
+    for (name, config) in [
+        ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
+        ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
+    ] {
+        if only.is_some_and(|k| k != config.kind) {
+            continue;
+        }
+        deform_profile::<T>(name, config, &xyz, &t, &g, reps)?;
+    }
+    kernel_shapes::<T>(n, reps);
     Ok(ExitCode::SUCCESS)
+}
+
+/// The matrix kernels alone on the shapes of the fields' products (no
+/// epilogue): `[N, K]·[K, M]` as in a forward or an input gradient, and
+/// `Gᵀ·X` (`[M, N]·[N, K]`) as in a weight gradient.
+fn kernel_shapes<T: Real>(n: usize, reps: usize) {
+    use liquid_splat::deform::matmul::{matmul, matmul_tn, MatRef};
+    let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
+    println!();
+    println!(
+        "matrix kernels alone on the fields' shapes, {} threads, path {:?}, median of {} (fastest)",
+        rayon::current_num_threads(),
+        liquid_splat::deform::matmul::kernel_path(),
+        reps.max(1)
+    );
+    println!(
+        "{:<10} {:>26} {:>16} {:>14}   used in",
+        "product", "shape", "ms", "GFLOP/s"
+    );
+    let shapes: [(&str, usize, usize, &str); 8] = [
+        ("x·W", 256, 256, "MLP trunk layers"),
+        (
+            "x·W",
+            93,
+            512,
+            "CfC u part of every first layer and the skip",
+        ),
+        ("x·W", 128, 64, "CfC backbone.0 state part"),
+        ("x·W", 64, 64, "CfC backbone.1"),
+        ("x·W", 64, 512, "CfC heads (4W)"),
+        ("x·W", 512, 64, "CfC heads' input gradient"),
+        ("Gᵀ·X", 256, 256, "MLP trunk weight gradients"),
+        ("Gᵀ·X", 512, 64, "CfC heads' weight gradient"),
+    ];
+    let more: [(&str, usize, usize, &str); 3] = [
+        ("Gᵀ·X", 64, 128, "CfC backbone.0 state weight gradient"),
+        ("Gᵀ·X", 64, 64, "CfC backbone.1 weight gradient"),
+        ("Gᵀ·X", 512, 93, "CfC u part weight gradients"),
+    ];
+    for (kind, k, m, used) in shapes.iter().chain(&more) {
+        // x·W: A [N, k], B [k, m]. Gᵀ·X: G [N, k] (the output gradient,
+        // k = out), X [N, m].
+        let (rows_b, cols_b) = if *kind == "x·W" { (*k, *m) } else { (n, *m) };
+        let (a, b) = (
+            cast(cotangent(15, n * k)),
+            cast(cotangent(16, rows_b * cols_b)),
+        );
+        let run = || {
+            let am = MatRef::row_major(&a, n, *k);
+            let bm = MatRef::row_major(&b, rows_b, cols_b);
+            if *kind == "x·W" {
+                matmul(am, bm)
+            } else {
+                matmul_tn(am, bm)
+            }
+        };
+        drop(run());
+        let times: Vec<f64> = (0..reps.max(1))
+            .map(|_| {
+                let t0 = Instant::now();
+                drop(run());
+                t0.elapsed().as_secs_f64()
+            })
+            .collect();
+        let fastest = times.iter().copied().fold(f64::INFINITY, f64::min);
+        let s = median(times);
+        let shape = if *kind == "x·W" {
+            format!("[{n},{k}]·[{k},{m}]")
+        } else {
+            format!("[{k},{n}]·[{n},{m}]")
+        };
+        let flop = 2.0 * (n * k * m) as f64;
+        println!(
+            "{:<10} {:>26} {:>16} {:>14}   {used}",
+            kind,
+            shape,
+            format!("{:.2} ({:.2})", s * 1e3, fastest * 1e3),
+            format!("{:.0} ({:.0})", flop / s / 1e9, flop / fastest / 1e9),
+        );
+    }
+}
+
+/// `"… / cell 3 / …"` as `"… / cells / …"`: the cells' rows of the
+/// profile are summed over the cells (their count is the calls column).
+fn every_cell(label: &str) -> String {
+    label
+        .split(" / ")
+        .map(|part| match part.strip_prefix("cell ") {
+            Some(d) if !d.is_empty() && d.bytes().all(|b| b.is_ascii_digit()) => "cells",
+            _ => part,
+        })
+        .collect::<Vec<_>>()
+        .join(" / ")
+}
+
+/// The per-operation profile of one field's forward and backward: every
+/// product (with what is fused into its epilogue) and every separate
+/// element-wise pass, its shape, its median time over `reps` profiled runs,
+/// and its rate.
+fn deform_profile<T: Real>(
+    name: &str,
+    config: FieldConfig,
+    xyz: &[T],
+    t: &[T],
+    g: &Deformation<T>,
+    reps: usize,
+) -> liquid_splat::Result<()> {
+    use liquid_splat::deform::profile;
+    let field = Field::<T>::new(config, 0)?;
+    // Rows keyed by (label, shape), in first-seen order; per run, the time
+    // summed over the calls with that key.
+    let mut rows: Vec<(String, String, profile::Kind, f64, usize, Vec<f64>)> = Vec::new();
+    let mut totals = (Vec::new(), Vec::new());
+    for rep in 0..reps.max(1) + 1 {
+        profile::take();
+        profile::enable(true);
+        let t0 = Instant::now();
+        let r = profile::layer(|| "forward".into(), || field.forward(xyz, t));
+        let t1 = Instant::now();
+        let b = r.and_then(|(_, cache)| {
+            profile::layer(|| "backward".into(), || field.backward(&cache, g))
+        });
+        let t2 = Instant::now();
+        profile::enable(false);
+        let recs = profile::take();
+        b?;
+        if rep == 0 {
+            // Warm-up run, not counted.
+            continue;
+        }
+        totals.0.push((t1 - t0).as_secs_f64());
+        totals.1.push((t2 - t1).as_secs_f64());
+        let mut seen = vec![false; rows.len()];
+        for mut rec in recs {
+            rec.label = every_cell(&rec.label);
+            let i = match rows
+                .iter()
+                .position(|r| r.0 == rec.label && r.1 == rec.shape)
+            {
+                Some(i) => i,
+                None => {
+                    rows.push((rec.label, rec.shape, rec.kind, 0.0, 0, Vec::new()));
+                    seen.push(false);
+                    rows.len() - 1
+                }
+            };
+            let row = &mut rows[i];
+            if !seen[i] {
+                seen[i] = true;
+                row.5.push(0.0);
+                if rep == 1 {
+                    row.3 = 0.0;
+                    row.4 = 0;
+                }
+            }
+            if rep == 1 {
+                row.3 += rec.work;
+                row.4 += 1;
+            }
+            *row.5.last_mut().expect("pushed above") += rec.seconds;
+        }
+    }
+    let (tf, tb) = (median(totals.0), median(totals.1));
+    println!();
+    println!(
+        "{name}: per-operation profile, {} threads, N = {}, median of {} profiled runs (forward {:.1} ms, backward {:.1} ms while profiled)",
+        rayon::current_num_threads(),
+        t.len(),
+        reps.max(1),
+        tf * 1e3,
+        tb * 1e3
+    );
+    println!(
+        "{:<100} {:>26} {:>6} {:>9} {:>6} {:>12}",
+        "operation (product: x·Wᵀ etc. with its fused epilogue; pass: a separate element-wise pass)",
+        "shape",
+        "calls",
+        "ms",
+        "%",
+        "rate"
+    );
+    for (label, shape, kind, work, calls, times) in rows {
+        let s = median(times);
+        let total = if label.starts_with("forward") { tf } else { tb };
+        let rate = match kind {
+            profile::Kind::Product => format!("{:.1} GFLOP/s", work / s / 1e9),
+            profile::Kind::Elementwise => format!("{:.2} Gel/s", work / s / 1e9),
+        };
+        println!(
+            "{:<100} {:>26} {:>6} {:>9.2} {:>6.1} {:>12}",
+            label,
+            shape,
+            calls,
+            s * 1e3,
+            100.0 * s / total,
+            rate
+        );
+    }
+    println!("(% of the profiled forward or backward; rate: FLOPs (2 per multiply-add) per second of a product, elements per second of a pass;");
+    println!(" cells: summed over the cells that run it (calls); time outside the listed operations: allocation, gathering weights, small copies)");
+    Ok(())
 }

@@ -8,15 +8,36 @@
 //! `h ← tanh(ff1(z))·(1 − σ) + σ·tanh(ff2(z))` (ncps CfCCell, mode "default").
 //! Output: `head(h)` = Linear(W, 10) split 3 | 4 | 3.
 //!
-//! The four heads of a cell run as one stacked product, and the gate, both
-//! tanh's and the new state are computed in one fused pass over the `N × W`
-//! block, which keeps what the backward needs (tanh(ff1), tanh(ff2),
-//! time_a(z) and σ). tanh and sigmoid are [`fastmath`]'s (vectorised in f32).
+//! The computation is arranged around its shapes:
+//! - Every cell's first backbone layer and the skip read the same `u`, so
+//!   their `u` columns are one product `[N, |u|]·[|u|, D·U + W]` per pass;
+//!   each cell's first layer then continues those sums over its state
+//!   columns ([`matmul_from_parts_then`]), the same bits as one sum over
+//!   `[u; h]` in order. The backward collects the gradients of those outputs
+//!   of all cells and of the skip, and computes their weight gradients over
+//!   `u` as one product `[D·U + W, N]·[N, |u|]` and their bias gradients as
+//!   one column sum (each element its own fixed-order sum, as layer by layer).
+//! - Before the first cell the state is zero (unless the skip is added
+//!   there, D = 1). A sum over `k` that starts from +0 is never −0 (round to
+//!   nearest), so the terms `0·w` of the zero state would add exact zeros:
+//!   the first cell's product over the state and its gradients are not run,
+//!   with the same bits for finite weights.
+//! - The four heads of a cell run as one stacked product `4W` wide, and the
+//!   gate, both tanh's and the new state are computed in its epilogue on each
+//!   block of rows while it is in cache, which keeps what the backward needs
+//!   (tanh(ff1), tanh(ff2), time_a(z) and σ); the backward runs the heads'
+//!   weight gradient and input gradient as one product each. tanh and
+//!   sigmoid are [`fastmath`]'s (vectorised in f32).
+//!
+//! Every product and element-wise pass is timed by [`profile`] when it is on
+//! (`liquid-splat bench deform`).
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
 use super::fastmath::{self, multiversion};
 use super::linear::InputGrad;
+use super::matmul::{column_sums, matmul, matmul_from_parts_then, matmul_tn, MatRef};
+use super::profile;
 use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
     XYZ_LEVELS,
@@ -68,9 +89,8 @@ struct CellCache<T> {
 /// What the CfC field's backward needs.
 pub(crate) struct CfcCache<T> {
     time: TimeCache<T>,
-    /// The two blocks of `u`: `γ(x)` `[n, 63]` and `t_feat`.
-    x_emb: Vec<T>,
-    t_feat: Vec<T>,
+    /// `u = [γ(x) | t_feat]` `[n, |u|]`.
+    u: Vec<T>,
     cells: Vec<CellCache<T>>,
     head_in: Vec<T>,
 }
@@ -110,88 +130,232 @@ impl CfcNet {
         }
     }
 
+    /// Rows of the wide product over `u`: every cell's first backbone
+    /// layer (`units` rows each, cell by cell), then the skip (`W` rows).
+    fn wide_rows(&self) -> usize {
+        self.cells.len() * self.units() + self.width
+    }
+
+    fn units(&self) -> usize {
+        self.cells[0].backbone[0].shape.out_dim
+    }
+
+    /// The weights of the wide product over `u`, `[wide_rows, |u|]`: the
+    /// `u` columns of every cell's first backbone layer, then the skip's.
+    fn wide_weight<T: Real>(&self, p: &[T]) -> Vec<T> {
+        let ud = self.u_dim;
+        let mut out = Vec::with_capacity(self.wide_rows() * ud);
+        for cell in &self.cells {
+            let lin = &cell.backbone[0];
+            for row in lin.weight(p).chunks_exact(lin.shape.in_dim) {
+                out.extend_from_slice(&row[..ud]);
+            }
+        }
+        out.extend_from_slice(self.skip.weight(p));
+        out
+    }
+
+    /// Whether cell `l`'s first layer reads a state that may be non-zero:
+    /// before the first cell the state is zero unless the skip is added
+    /// there, and its terms `0·w` would add exact zeros (see the module
+    /// docs), so that part of the product and its gradients are not run.
+    fn reads_state(&self, l: usize) -> bool {
+        l > 0 || self.skip_at == 0
+    }
+
     pub fn forward<T: Real>(&self, p: &[T], xyz: &[T], t: &[T]) -> (Deformation<T>, CfcCache<T>) {
         let n = t.len();
-        let w = self.width;
+        let (w, ud, units) = (self.width, self.u_dim, self.units());
         let xd = encoded_dim(3, XYZ_LEVELS);
-        let x_emb = encode(xyz, 3, XYZ_LEVELS);
-        let (t_feat, time) = self.time.forward(p, t);
-        let td = self.u_dim - xd;
+        let td = ud - xd;
+        let x_emb = profile::elementwise(
+            || "γ(x) encoding".into(),
+            n,
+            xd,
+            || encode(xyz, 3, XYZ_LEVELS),
+        );
+        let (t_feat, time) = profile::layer(|| "timenet".into(), || self.time.forward(p, t));
+        // u = [γ(x) | t_feat], one row per Gaussian.
+        let u = profile::elementwise(
+            || "u = [γ(x) | t_feat] (copy)".into(),
+            n,
+            ud,
+            || concat_columns(&x_emb, xd, &t_feat, td, n),
+        );
+        drop((x_emb, t_feat));
+        // Every cell's first layer and the skip see the same u: their u
+        // parts are one product [n, |u|]·[|u|, D·units + W]. Each cell's
+        // first layer then continues these sums over its state columns
+        // (the same bits as one sum over [u; h]).
+        let wide_n = self.wide_rows();
+        let wide_w = self.wide_weight(p);
+        let pu = profile::layer(
+            || "u part of every cell's backbone.0 and of the skip".into(),
+            || {
+                profile::product(
+                    || "u·Wᵤᵀ".into(),
+                    n,
+                    ud,
+                    wide_n,
+                    || {
+                        matmul(
+                            MatRef::row_major(&u, n, ud),
+                            MatRef::row_major(&wide_w, wide_n, ud).t(),
+                        )
+                    },
+                )
+            },
+        );
+        let pum = MatRef::row_major(&pu, n, wide_n);
         let mut h = vec![T::ZERO; n * w];
         let mut cells = Vec::with_capacity(self.cells.len());
-        for (l, cell) in self.cells.iter().enumerate() {
-            let u = [(&x_emb[..], xd), (&t_feat[..], td)];
+        for l in 0..self.cells.len() {
             if l == self.skip_at {
-                let s = self
-                    .skip
-                    .forward_parts_then::<T, T, _>(p, &u, n, &mut [], 0, |_, _, _| {});
-                let step = (ROWS_PER_TASK * w).max(1);
-                h.par_chunks_mut(step)
-                    .zip(s.par_chunks(step))
-                    .for_each(|(hb, sb)| {
-                        for (hv, &sv) in hb.iter_mut().zip(sb) {
-                            *hv += sv;
-                        }
-                    });
+                // h += skip(u), the skip's sums plus its bias (added after
+                // the sum, as in every linear layer).
+                let (bias, s0) = (self.skip.bias(p), self.cells.len() * units);
+                profile::elementwise(
+                    || "skip: h += (u·Wᵀ + b)".into(),
+                    n,
+                    w,
+                    || {
+                        h.par_chunks_mut((ROWS_PER_TASK * w).max(1))
+                            .enumerate()
+                            .for_each(|(blk, hb)| {
+                                let r0 = blk * ROWS_PER_TASK;
+                                for (r, hr) in hb.chunks_exact_mut(w).enumerate() {
+                                    let o = (r0 + r) * wide_n + s0;
+                                    let sr = &pu[o..o + w];
+                                    for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(bias) {
+                                        *hv += sv + b;
+                                    }
+                                }
+                            })
+                    },
+                );
             }
-            let mut inputs = Vec::with_capacity(cell.backbone.len() - 1);
-            let mut pres = Vec::with_capacity(cell.backbone.len());
-            let mut cur: Vec<T> = Vec::new();
-            for (j, lin) in cell.backbone.iter().enumerate() {
-                // The activation on each block of rows as it leaves the
-                // product, written into `out` (which is never zeroed: every
-                // value is written once). The first layer reads [u; h] as
-                // column blocks.
-                let units = lin.shape.out_dim;
-                let mut out: Vec<T> = Vec::with_capacity(n * units);
-                let ob = &mut out.spare_capacity_mut()[..n * units];
-                let act = |_: usize, blk: &mut [T], ob: &mut [MaybeUninit<T>]| {
-                    self.act.apply_block_uninit(blk, ob)
-                };
-                let pre = if j == 0 {
-                    let xs = [u[0], u[1], (&h[..], w)];
-                    lin.forward_parts_then(p, &xs, n, ob, units, act)
-                } else {
-                    lin.forward_then(p, &cur, n, ob, units, act)
-                };
-                // SAFETY: the epilogue ran once on every block of rows and
-                // wrote every value of its rows of `out`.
-                unsafe { out.set_len(n * units) };
-                let prev = std::mem::replace(&mut cur, out);
-                if j > 0 {
-                    inputs.push(prev);
-                }
-                pres.push(pre);
-            }
-            let z = cur;
-            // The four heads, then the fused cell pass on each block of rows
-            // while it is in cache, writing the new state (never zeroed).
-            let mut h_next: Vec<T> = Vec::with_capacity(n * w);
-            let hb = &mut h_next.spare_capacity_mut()[..n * w];
-            let gate = Stacked(&cell.heads).forward_then(p, &z, n, hb, w, |r0, g, hb| {
-                let rows = hb.len() / w;
-                cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
-            });
-            // SAFETY: the cell pass wrote every value of every block of rows.
-            unsafe { h_next.set_len(n * w) };
-            cells.push(CellCache {
-                h_in: std::mem::replace(&mut h, h_next),
-                inputs,
-                pres,
-                z,
-                gate,
-            });
+            let cc = profile::layer(
+                || format!("cell {l}"),
+                || self.cell_forward(p, l, pum.cols(l * units, units), h, t, n),
+            );
+            h = cc.1;
+            cells.push(cc.0);
         }
-        let out = self.head.forward(p, &h, n);
+        let out = profile::layer(|| "head".into(), || self.head.forward(p, &h, n));
         (
             Deformation::from_head(&out),
             CfcCache {
                 time,
-                x_emb,
-                t_feat,
+                u,
                 cells,
                 head_in: h,
             },
+        )
+    }
+
+    /// One cell's forward from the sums of its first layer over `u`
+    /// (`pu`, `[n, units]`) and the state `h` entering it; returns its cache
+    /// and the new state.
+    fn cell_forward<T: Real>(
+        &self,
+        p: &[T],
+        l: usize,
+        pu: MatRef<'_, T>,
+        h: Vec<T>,
+        t: &[T],
+        n: usize,
+    ) -> (CellCache<T>, Vec<T>) {
+        let (w, ud) = (self.width, self.u_dim);
+        let cell = &self.cells[l];
+        let mut inputs = Vec::with_capacity(cell.backbone.len() - 1);
+        let mut pres = Vec::with_capacity(cell.backbone.len());
+        let mut cur: Vec<T> = Vec::new();
+        for (j, lin) in cell.backbone.iter().enumerate() {
+            // The activation on each block of rows as it leaves the product,
+            // written into `out` (which is never zeroed: every value is
+            // written once).
+            let units = lin.shape.out_dim;
+            let mut out: Vec<T> = Vec::with_capacity(n * units);
+            let ob = &mut out.spare_capacity_mut()[..n * units];
+            let pre = if j == 0 {
+                // The u sums continued over the state columns, then the
+                // bias and the activation.
+                let wt = MatRef::row_major(lin.weight(p), units, lin.shape.in_dim).t();
+                let k = if self.reads_state(l) { w } else { 0 };
+                let hm = MatRef::row_major(&h, n, k);
+                let bias = lin.bias(p);
+                profile::layer(
+                    || "backbone.0".into(),
+                    || {
+                        profile::product(
+                            || format!("(u sums) + h·Wₕᵀ + b, {} in the epilogue", self.act),
+                            n,
+                            k,
+                            units,
+                            || {
+                                matmul_from_parts_then(
+                                    Some(pu),
+                                    &[(hm, wt.rows(ud, k))],
+                                    ob,
+                                    units,
+                                    |_, blk, ob| {
+                                        for row in blk.chunks_exact_mut(units) {
+                                            for (v, &b) in row.iter_mut().zip(bias) {
+                                                *v += b;
+                                            }
+                                        }
+                                        self.act.apply_block_uninit(blk, ob)
+                                    },
+                                )
+                            },
+                        )
+                    },
+                )
+            } else {
+                profile::layer(
+                    || format!("backbone.{j}, {} in the epilogue", self.act),
+                    || {
+                        lin.forward_then(p, &cur, n, ob, units, |_, blk, ob| {
+                            self.act.apply_block_uninit(blk, ob)
+                        })
+                    },
+                )
+            };
+            // SAFETY: the epilogue ran once on every block of rows and wrote
+            // every value of its rows of `out`.
+            unsafe { out.set_len(n * units) };
+            let prev = std::mem::replace(&mut cur, out);
+            if j > 0 {
+                inputs.push(prev);
+            }
+            pres.push(pre);
+        }
+        let z = cur;
+        // The four heads as one product 4W wide, then the fused cell pass on
+        // each block of rows while it is in cache, writing the new state
+        // (never zeroed).
+        let mut h_next: Vec<T> = Vec::with_capacity(n * w);
+        let hb = &mut h_next.spare_capacity_mut()[..n * w];
+        let gate = profile::layer(
+            || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
+            || {
+                Stacked(&cell.heads).forward_then(p, &z, n, hb, w, |r0, g, hb| {
+                    let rows = hb.len() / w;
+                    cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
+                })
+            },
+        );
+        // SAFETY: the cell pass wrote every value of every block of rows.
+        unsafe { h_next.set_len(n * w) };
+        (
+            CellCache {
+                h_in: h,
+                inputs,
+                pres,
+                z,
+                gate,
+            },
+            h_next,
         )
     }
 
@@ -204,57 +368,231 @@ impl CfcNet {
         gp: &mut [T],
     ) -> Vec<T> {
         let n = t.len();
-        let w = self.width;
+        let (w, ud, units) = (self.width, self.u_dim, self.units());
         let xd = encoded_dim(3, XYZ_LEVELS);
-        let td = self.u_dim - xd;
-        let mut dh = self
-            .head
-            .backward(p, &c.head_in, &g.to_head(), n, InputGrad::From(0), gp)
-            .expect("input gradient requested");
+        let td = ud - xd;
+        let mut dh = profile::layer(
+            || "head".into(),
+            || {
+                self.head
+                    .backward(p, &c.head_in, &g.to_head(), n, InputGrad::From(0), gp)
+            },
+        )
+        .expect("input gradient requested");
+        // The gradients of the wide product's outputs (each cell's first
+        // layer, then the skip), for its weight and bias gradients at the end.
+        let wide_n = self.wide_rows();
+        let mut gu = vec![T::ZERO; n * wide_n];
         let mut g_tfeat = vec![T::ZERO; n * td];
         let mut gate_dt = vec![T::ZERO; n];
         for l in (0..self.cells.len()).rev() {
             let (cell, cc) = (&self.cells[l], &c.cells[l]);
-            let g_heads = cell_backward_fused(&cc.gate, &dh, t, w, &mut gate_dt);
-            let mut dz = Stacked(&cell.heads)
-                .backward(p, &cc.z, &g_heads, n, InputGrad::From(0), gp)
-                .expect("input gradient requested");
-            let u = [(&c.x_emb[..], xd), (&c.t_feat[..], td)];
-            for j in (0..cell.backbone.len()).rev() {
-                self.act.backward_in_place(&cc.pres[j], &mut dz);
-                if j > 0 {
-                    dz = cell.backbone[j]
-                        .backward(p, &cc.inputs[j - 1], &dz, n, InputGrad::From(0), gp)
+            profile::layer(
+                || format!("cell {l}"),
+                || {
+                    let g_heads = profile::elementwise(
+                        || "gate and update vjp".into(),
+                        n,
+                        4 * w,
+                        || cell_backward_fused(&cc.gate, &dh, t, w, &mut gate_dt),
+                    );
+                    let mut dz = profile::layer(
+                        || "heads ff1|ff2|time_a|time_b".into(),
+                        || {
+                            Stacked(&cell.heads).backward(
+                                p,
+                                &cc.z,
+                                &g_heads,
+                                n,
+                                InputGrad::From(0),
+                                gp,
+                            )
+                        },
+                    )
+                    .expect("input gradient requested");
+                    for j in (1..cell.backbone.len()).rev() {
+                        dz = profile::layer(
+                            || format!("backbone.{j}"),
+                            || {
+                                profile::elementwise(
+                                    || format!("{} vjp", self.act),
+                                    n,
+                                    units,
+                                    || self.act.backward_in_place(&cc.pres[j], &mut dz),
+                                );
+                                cell.backbone[j].backward(
+                                    p,
+                                    &cc.inputs[j - 1],
+                                    &dz,
+                                    n,
+                                    InputGrad::From(0),
+                                    gp,
+                                )
+                            },
+                        )
                         .expect("input gradient requested");
-                    continue;
-                }
-                // The first layer's input is [γ(x) | t_feat | h]: γ(x) is
-                // stop-gradient; t_feat's gradient is collected, h's flows on.
-                let xs = [u[0], u[1], (&cc.h_in[..], w)];
-                let mut gin =
-                    cell.backbone[0].backward_parts(p, &xs, &dz, n, InputGrad::From(xd), gp);
-                let g_t = gin[1].take().expect("input gradient requested");
-                for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
-                    *acc += v;
-                }
-                dh = gin[2].take().expect("input gradient requested");
-            }
+                    }
+                    // The first layer's input is [γ(x) | t_feat | h]: γ(x) is
+                    // stop-gradient; t_feat's gradient is collected, h's
+                    // flows on. Its weight gradient over u and its bias
+                    // gradient come from the wide product at the end.
+                    profile::layer(
+                        || "backbone.0".into(),
+                        || {
+                            let lin = &cell.backbone[0];
+                            let in_dim = lin.shape.in_dim;
+                            profile::elementwise(
+                                || format!("{} vjp, into the wide gradient", self.act),
+                                n,
+                                units,
+                                || {
+                                    self.act.backward_in_place(&cc.pres[0], &mut dz);
+                                    set_columns(&mut gu, wide_n, l * units, &dz, units);
+                                },
+                            );
+                            let gm = MatRef::row_major(&dz, n, units);
+                            let wm = MatRef::row_major(lin.weight(p), units, in_dim);
+                            if self.reads_state(l) {
+                                let wh = profile::product(
+                                    || "weight grad Gᵀ·h".into(),
+                                    units,
+                                    n,
+                                    w,
+                                    || matmul_tn(gm, MatRef::row_major(&cc.h_in, n, w)),
+                                );
+                                let wg = &mut gp[lin.w..lin.w + units * in_dim];
+                                for (dst, src) in
+                                    wg.chunks_exact_mut(in_dim).zip(wh.chunks_exact(w))
+                                {
+                                    dst[ud..].copy_from_slice(src);
+                                }
+                            }
+                            let g_t = profile::product(
+                                || "input grad G·Wₜ".into(),
+                                n,
+                                units,
+                                td,
+                                || matmul(gm, wm.cols(xd, td)),
+                            );
+                            add_into(&mut g_tfeat, &g_t);
+                            if self.reads_state(l) {
+                                dh = profile::product(
+                                    || "input grad G·Wₕ".into(),
+                                    n,
+                                    units,
+                                    w,
+                                    || matmul(gm, wm.cols(ud, w)),
+                                );
+                            }
+                        },
+                    );
+                },
+            );
             if l == self.skip_at {
                 // h_in = h_prev + skip(u): the same gradient flows to both.
-                let mut gs = self
-                    .skip
-                    .backward_parts(p, &u, &dh, n, InputGrad::From(xd), gp);
-                let g_t = gs[1].take().expect("input gradient requested");
-                for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
-                    *acc += v;
-                }
+                profile::layer(
+                    || "skip".into(),
+                    || {
+                        set_columns(&mut gu, wide_n, self.cells.len() * units, &dh, w);
+                        let wm = MatRef::row_major(self.skip.weight(p), w, ud);
+                        let g_t = profile::product(
+                            || "input grad G·Wₜ".into(),
+                            n,
+                            w,
+                            td,
+                            || matmul(MatRef::row_major(&dh, n, w), wm.cols(xd, td)),
+                        );
+                        add_into(&mut g_tfeat, &g_t);
+                    },
+                );
             }
         }
-        let mut gt = self.time.backward(p, t, &c.time, &g_tfeat, gp);
+        // The weight and bias gradients of the wide product over u: one
+        // product [D·units + W, n]·[n, |u|] and one column sum (each element
+        // its own fixed-order sum, as layer by layer).
+        profile::layer(
+            || "u part of every cell's backbone.0 and of the skip".into(),
+            || {
+                let wg = profile::product(
+                    || "weight grad Gᵀ·u".into(),
+                    wide_n,
+                    n,
+                    ud,
+                    || {
+                        matmul_tn(
+                            MatRef::row_major(&gu, n, wide_n),
+                            MatRef::row_major(&c.u, n, ud),
+                        )
+                    },
+                );
+                let bg = profile::elementwise(
+                    || "bias grad (column sums of G)".into(),
+                    n,
+                    wide_n,
+                    || column_sums(&gu, n, wide_n),
+                );
+                let mut rows = wg.chunks_exact(ud).zip(&bg);
+                for cell in &self.cells {
+                    let lin = &cell.backbone[0];
+                    let in_dim = lin.shape.in_dim;
+                    for (r, (src, &b)) in rows.by_ref().take(units).enumerate() {
+                        gp[lin.w + r * in_dim..lin.w + r * in_dim + ud].copy_from_slice(src);
+                        gp[lin.b + r] = b;
+                    }
+                }
+                for (r, (src, &b)) in rows.enumerate() {
+                    gp[self.skip.w + r * ud..self.skip.w + (r + 1) * ud].copy_from_slice(src);
+                    gp[self.skip.b + r] = b;
+                }
+            },
+        );
+        let mut gt = profile::layer(
+            || "timenet".into(),
+            || self.time.backward(p, t, &c.time, &g_tfeat, gp),
+        );
         for (a, b) in gt.iter_mut().zip(gate_dt) {
             *a += b;
         }
         gt
+    }
+}
+
+/// `[a | b]` row by row (`a` `[n, da]`, `b` `[n, db]`).
+fn concat_columns<T: Real>(a: &[T], da: usize, b: &[T], db: usize, n: usize) -> Vec<T> {
+    let d = da + db;
+    let mut out = vec![T::ZERO; n * d];
+    out.par_chunks_mut((ROWS_PER_TASK * d).max(1))
+        .enumerate()
+        .for_each(|(blk, o)| {
+            let r0 = blk * ROWS_PER_TASK;
+            for (r, row) in o.chunks_exact_mut(d).enumerate() {
+                let i = r0 + r;
+                row[..da].copy_from_slice(&a[i * da..(i + 1) * da]);
+                row[da..].copy_from_slice(&b[i * db..(i + 1) * db]);
+            }
+        });
+    out
+}
+
+/// Columns `c0..c0 + d` of the row-major `dst` (`ld` wide) set to `src`
+/// `[n, d]`.
+fn set_columns<T: Real>(dst: &mut [T], ld: usize, c0: usize, src: &[T], d: usize) {
+    if d == 0 || ld == 0 {
+        return;
+    }
+    dst.par_chunks_mut(ROWS_PER_TASK * ld)
+        .zip(src.par_chunks(ROWS_PER_TASK * d))
+        .for_each(|(o, s)| {
+            for (orow, srow) in o.chunks_exact_mut(ld).zip(s.chunks_exact(d)) {
+                orow[c0..c0 + d].copy_from_slice(srow);
+            }
+        });
+}
+
+/// `acc += v` element-wise.
+fn add_into<T: Real>(acc: &mut [T], v: &[T]) {
+    for (a, &b) in acc.iter_mut().zip(v) {
+        *a += b;
     }
 }
 

@@ -7,6 +7,7 @@
 use super::matmul::{
     column_sums, matmul, matmul_block_into, matmul_parts_then, matmul_tn, pack, MatRef, Packed,
 };
+use super::profile;
 use crate::math::Real;
 use std::mem::MaybeUninit;
 
@@ -69,10 +70,18 @@ where
             part
         })
         .collect();
-    matmul_parts_then(&parts, side, side_w, |r0, blk, sb| {
-        add_bias(blk, b, out_dim);
-        epilogue(r0, blk, sb)
-    })
+    profile::product(
+        || "x·Wᵀ + b (+ epilogue)".into(),
+        n,
+        in_dim,
+        out_dim,
+        || {
+            matmul_parts_then(&parts, side, side_w, |r0, blk, sb| {
+                add_bias(blk, b, out_dim);
+                epilogue(r0, blk, sb)
+            })
+        },
+    )
 }
 
 /// `y += b` on each row of a block `[rows, out]` (nothing when `b` is
@@ -190,7 +199,13 @@ pub fn linear_backward_parts<T: Real>(
     let mut grads = Vec::with_capacity(xs.len());
     let mut c0 = 0;
     for &(x, d) in xs {
-        let part = matmul_tn(gm, MatRef::row_major(x, n, d));
+        let part = profile::product(
+            || "weight grad Gᵀ·X".into(),
+            out_dim,
+            n,
+            d,
+            || matmul_tn(gm, MatRef::row_major(x, n, d)),
+        );
         if d > 0 {
             for (dst, src) in weight.chunks_exact_mut(in_dim).zip(part.chunks_exact(d)) {
                 dst[c0..c0 + d].copy_from_slice(src);
@@ -199,7 +214,14 @@ pub fn linear_backward_parts<T: Real>(
         grads.push(match input {
             InputGrad::From(from) if from < c0 + d => {
                 let s = from.max(c0);
-                Some(matmul(gm, wm.cols(s, c0 + d - s)))
+                let cols = c0 + d - s;
+                Some(profile::product(
+                    || "input grad G·W".into(),
+                    n,
+                    out_dim,
+                    cols,
+                    || matmul(gm, wm.cols(s, cols)),
+                ))
             }
             _ => None,
         });
@@ -207,7 +229,12 @@ pub fn linear_backward_parts<T: Real>(
     }
     LinearPartsGrads {
         weight,
-        bias: column_sums(g, n, out_dim),
+        bias: profile::elementwise(
+            || "bias grad (column sums of G)".into(),
+            n,
+            out_dim,
+            || column_sums(g, n, out_dim),
+        ),
         input: grads,
     }
 }

@@ -123,8 +123,34 @@ pub fn matmul_parts_then<T: Real, S: Send, F>(
 where
     F: Fn(usize, &mut [T], &mut [S]) + Sync,
 {
+    matmul_from_parts_then(None, parts, side, side_w, epilogue)
+}
+
+/// [`matmul_parts_then`] with every sum starting from the matching element
+/// of `init` (`[m, n]`, any strides) instead of zero: `C = S + [A₁ | A₂ | …]
+/// · [B₁; B₂; …]`, each term fused onto the running sum in order. When `S`
+/// holds the sums of a product over earlier columns of `A` (read in place,
+/// for example a column block of a wider product), the result has the same
+/// bits as the product over all the columns.
+pub fn matmul_from_parts_then<T: Real, S: Send, F>(
+    init: Option<MatRef<'_, T>>,
+    parts: &[(MatRef<'_, T>, MatRef<'_, T>)],
+    side: &mut [S],
+    side_w: usize,
+    epilogue: F,
+) -> Vec<T>
+where
+    F: Fn(usize, &mut [T], &mut [S]) + Sync,
+{
     let (first_a, first_b) = parts.first().expect("matmul: at least one part");
     let (m, n) = (first_a.rows, first_b.cols);
+    if let Some(s) = init {
+        assert_eq!(
+            (s.rows, s.cols),
+            (m, n),
+            "matmul: initial sums differ in shape"
+        );
+    }
     for (a, b) in parts {
         assert_eq!(a.cols, b.rows, "matmul: inner dimensions differ");
         assert_eq!((a.rows, b.cols), (m, n), "matmul: parts differ in shape");
@@ -148,11 +174,28 @@ where
     let run = |blk: usize, cb: &mut [MaybeUninit<T>], sb: &mut [S]| {
         let r0 = blk * ROW_BLOCK;
         let rows = cb.len() / n;
-        for (i, ((a, _), pb)) in parts.iter().zip(&packed).enumerate() {
-            // The first part writes the block; the others continue its sums.
-            block_product(ASource::View(a.rows(r0, rows)), pb, a.cols, n, cb, i > 0);
+        if let Some(s) = init {
+            for (r, dst) in cb.chunks_exact_mut(n).enumerate() {
+                if s.col_stride == 1 {
+                    let o = (r0 + r) * s.row_stride;
+                    for (d, &v) in dst.iter_mut().zip(&s.data[o..o + n]) {
+                        d.write(v);
+                    }
+                } else {
+                    for (q, d) in dst.iter_mut().enumerate() {
+                        d.write(s.at(r0 + r, q));
+                    }
+                }
+            }
         }
-        // SAFETY: the first block_product call wrote every element of cb.
+        for (i, ((a, _), pb)) in parts.iter().zip(&packed).enumerate() {
+            // The first part writes the block (unless it starts from
+            // `init`); the others continue its sums.
+            let resume = i > 0 || init.is_some();
+            block_product(ASource::View(a.rows(r0, rows)), pb, a.cols, n, cb, resume);
+        }
+        // SAFETY: `init` or the first block_product call wrote every element
+        // of cb.
         let cb = unsafe { &mut *(cb as *mut [MaybeUninit<T>] as *mut [T]) };
         epilogue(r0, cb, sb);
     };
@@ -363,6 +406,7 @@ fn copy_short<T: Copy>(dst: &mut [T], src: &[T]) {
         4 => fixed::<T, 4>(dst, src),
         6 => fixed::<T, 6>(dst, src),
         8 => fixed::<T, 8>(dst, src),
+        12 => fixed::<T, 12>(dst, src),
         16 => fixed::<T, 16>(dst, src),
         32 => fixed::<T, 32>(dst, src),
         _ => dst.copy_from_slice(src),
@@ -1027,6 +1071,52 @@ mod tests {
                 "parts {m}x({k1}+{k2})x{n}"
             );
         }
+    }
+
+    /// Sums started from a column block of a wider product over the first
+    /// columns of `A` and continued over the rest give the same bits as
+    /// the product over all the columns (also with no further columns).
+    fn check_from<T: Real>() {
+        for &(m, k1, k2, n, wide) in &[
+            (7, 5, 3, 9, 20),
+            (130, 93, 128, 64, 512),
+            (97, 40, 0, 33, 40),
+            (13, KC + 44, 10, 40, 45),
+        ] {
+            let k = k1 + k2;
+            let a = random::<T>(10 + m as u64, m * k);
+            let b = random::<T>(11 + n as u64, k * n);
+            let (am, bm) = (MatRef::row_major(&a, m, k), MatRef::row_major(&b, k, n));
+            // A wider product over the first k1 columns: B's first k1 rows
+            // as columns 3..3+n of a [k1, wide] matrix.
+            let c0 = 3.min(wide - n);
+            let mut bw = random::<T>(12, k1 * wide);
+            for p in 0..k1 {
+                for q in 0..n {
+                    bw[p * wide + c0 + q] = b[p * n + q];
+                }
+            }
+            let first = matmul(am.cols(0, k1), MatRef::row_major(&bw, k1, wide));
+            let init = MatRef::row_major(&first, m, wide).cols(c0, n);
+            let got = matmul_from_parts_then::<T, T, _>(
+                Some(init),
+                &[(am.cols(k1, k2), bm.rows(k1, k2))],
+                &mut [],
+                0,
+                |_, _, _| {},
+            );
+            assert_eq!(
+                bits(&got),
+                bits(&matmul(am, bm)),
+                "from {m}x({k1}+{k2})x{n}"
+            );
+        }
+    }
+
+    #[test]
+    fn products_from_initial_sums_match_the_whole_product() {
+        on_every_path(check_from::<f32>);
+        on_every_path(check_from::<f64>);
     }
 
     #[test]

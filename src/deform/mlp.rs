@@ -15,6 +15,7 @@
 use super::activation::{relu_backward_from_output, Activation};
 use super::encoding::{encode, encoded_dim};
 use super::linear::InputGrad;
+use super::profile;
 use super::se3;
 use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
@@ -89,9 +90,14 @@ impl MlpNet {
 
     pub fn forward<T: Real>(&self, p: &[T], xyz: &[T], t: &[T]) -> (Deformation<T>, MlpCache<T>) {
         let n = t.len();
-        let x_emb = encode(xyz, 3, XYZ_LEVELS);
         let xd = encoded_dim(3, XYZ_LEVELS);
-        let (t_feat, time) = self.time.forward(p, t);
+        let x_emb = profile::elementwise(
+            || "γ(x) encoding".into(),
+            n,
+            xd,
+            || encode(xyz, 3, XYZ_LEVELS),
+        );
+        let (t_feat, time) = profile::layer(|| "timenet".into(), || self.time.forward(p, t));
         let td = self.in_dim - xd;
         let mut outputs: Vec<Vec<T>> = Vec::with_capacity(self.layers.len());
         let mut cur: Vec<T> = Vec::new();
@@ -112,11 +118,17 @@ impl MlpNet {
                 vec![(&cur, self.width)]
             };
             let out = if i == last {
-                let (out, y) = l.forward_parts_act_chain(p, &xs, n, Activation::Relu, &heads);
+                let (out, y) = profile::layer(
+                    || format!("linear.{i} + ReLU, heads in its epilogue"),
+                    || l.forward_parts_act_chain(p, &xs, n, Activation::Relu, &heads),
+                );
                 head_out = y;
                 out
             } else {
-                l.forward_parts_act(p, &xs, n, Activation::Relu)
+                profile::layer(
+                    || format!("linear.{i} + ReLU"),
+                    || l.forward_parts_act(p, &xs, n, Activation::Relu),
+                )
             };
             if i > 0 {
                 outputs.push(std::mem::replace(&mut cur, out));
@@ -179,41 +191,54 @@ impl MlpNet {
                 (gh, Some(gx))
             }
         };
-        let mut dh = Stacked(&self.heads)
-            .backward(p, &c.head_in, &g_head, n, InputGrad::From(0), gp)
-            .expect("input gradient requested");
+        let mut dh = profile::layer(
+            || "heads".into(),
+            || Stacked(&self.heads).backward(p, &c.head_in, &g_head, n, InputGrad::From(0), gp),
+        )
+        .expect("input gradient requested");
         let mut g_tfeat = vec![T::ZERO; n * td];
         for i in (0..self.layers.len()).rev() {
             // ReLU's vjp from the layer's output (see MlpCache::outputs).
             let out = c.outputs.get(i).unwrap_or(&c.head_in);
-            relu_backward_from_output(out, &mut dh);
-            if i == 0 || i == self.skip + 1 {
-                // Input [γ(x) | t_feat (| h)]: γ(x) is stop-gradient; the
-                // t_feat block's gradient is collected, h's flows on.
-                let h_prev = if i == 0 {
-                    None
+            let name = || format!("linear.{i}");
+            let next = profile::layer(name, || {
+                profile::elementwise(
+                    || "ReLU vjp".into(),
+                    n,
+                    self.width,
+                    || relu_backward_from_output(out, &mut dh),
+                );
+                if i == 0 || i == self.skip + 1 {
+                    // Input [γ(x) | t_feat (| h)]: γ(x) is stop-gradient; the
+                    // t_feat block's gradient is collected, h's flows on.
+                    let h_prev = if i == 0 {
+                        None
+                    } else {
+                        Some(&c.outputs[i - 1])
+                    };
+                    let mut xs = vec![(&c.x_emb[..], xd), (&c.t_feat[..], td)];
+                    xs.extend(h_prev.map(|h| (&h[..], self.width)));
+                    let mut gin =
+                        self.layers[i].backward_parts(p, &xs, &dh, n, InputGrad::From(xd), gp);
+                    let g_t = gin[1].take().expect("input gradient requested");
+                    for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
+                        *acc += v;
+                    }
+                    (i > 0).then(|| gin[2].take().expect("input gradient requested"))
                 } else {
-                    Some(&c.outputs[i - 1])
-                };
-                let mut xs = vec![(&c.x_emb[..], xd), (&c.t_feat[..], td)];
-                xs.extend(h_prev.map(|h| (&h[..], self.width)));
-                let mut gin =
-                    self.layers[i].backward_parts(p, &xs, &dh, n, InputGrad::From(xd), gp);
-                let g_t = gin[1].take().expect("input gradient requested");
-                for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
-                    *acc += v;
+                    self.layers[i].backward(p, &c.outputs[i - 1], &dh, n, InputGrad::From(0), gp)
                 }
-                if i == 0 {
-                    break;
-                }
-                dh = gin[2].take().expect("input gradient requested");
-            } else {
-                dh = self.layers[i]
-                    .backward(p, &c.outputs[i - 1], &dh, n, InputGrad::From(0), gp)
-                    .expect("input gradient requested");
+            });
+            match next {
+                Some(g) => dh = g,
+                None => break,
             }
         }
-        (self.time.backward(p, t, &c.time, &g_tfeat, gp), g_xyz)
+        let g_t = profile::layer(
+            || "timenet".into(),
+            || self.time.backward(p, t, &c.time, &g_tfeat, gp),
+        );
+        (g_t, g_xyz)
     }
 }
 

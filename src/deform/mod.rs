@@ -49,6 +49,7 @@ pub mod fastmath;
 pub mod linear;
 pub mod matmul;
 pub mod mlp;
+pub mod profile;
 pub mod se3;
 
 pub use activation::Activation;
@@ -683,8 +684,10 @@ impl TimeEmbedding {
                 // timenet.2 runs on each block of hidden rows as it leaves
                 // timenet.0 (bias, ReLU), while the block is in cache.
                 let xs = [(&enc[..], l0.shape.in_dim)];
-                let (hidden, feat) =
-                    l0.forward_parts_act_chain(p, &xs, n, Activation::Relu, &l1.packed(p));
+                let (hidden, feat) = profile::layer(
+                    || "timenet.0 + ReLU, timenet.2 in its epilogue".into(),
+                    || l0.forward_parts_act_chain(p, &xs, n, Activation::Relu, &l1.packed(p)),
+                );
                 (feat, TimeCache::Timenet { enc, hidden })
             }
             TimeEmbedding::Encoded => (encoding::encode(t, 1, T_LEVELS_REAL), TimeCache::Encoded),
@@ -703,13 +706,22 @@ impl TimeEmbedding {
         let n = t.len();
         match (self, cache) {
             (TimeEmbedding::Timenet { l0, l1 }, TimeCache::Timenet { enc, hidden }) => {
-                let mut gh = l1
-                    .backward(p, hidden, g_feat, n, InputGrad::From(0), grad)
-                    .expect("input gradient requested");
-                activation::relu_backward_from_output(hidden, &mut gh);
-                let genc = l0
-                    .backward(p, enc, &gh, n, InputGrad::From(0), grad)
-                    .expect("input gradient requested");
+                let mut gh = profile::layer(
+                    || "timenet.2".into(),
+                    || l1.backward(p, hidden, g_feat, n, InputGrad::From(0), grad),
+                )
+                .expect("input gradient requested");
+                profile::elementwise(
+                    || "timenet.0 / ReLU vjp".into(),
+                    n,
+                    TIMENET_HIDDEN,
+                    || activation::relu_backward_from_output(hidden, &mut gh),
+                );
+                let genc = profile::layer(
+                    || "timenet.0".into(),
+                    || l0.backward(p, enc, &gh, n, InputGrad::From(0), grad),
+                )
+                .expect("input gradient requested");
                 encoding::encode_vjp(t, &genc, 1, T_LEVELS_SYNTHETIC)
             }
             _ => encoding::encode_vjp(t, g_feat, 1, T_LEVELS_REAL),
