@@ -600,13 +600,13 @@ fn bench_deform<T: Real>(
 /// epilogue): `[N, K]·[K, M]` as in a forward or an input gradient, and
 /// `Gᵀ·X` (`[M, N]·[N, K]`) as in a weight gradient.
 fn kernel_shapes<T: Real>(n: usize, reps: usize) {
-    use liquid_splat::deform::matmul::{matmul, matmul_tn, MatRef};
+    use crate::deform::matmul::{matmul, matmul_tn, MatRef};
     let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
     println!();
     println!(
         "matrix kernels alone on the fields' shapes, {} threads, path {:?}, median of {} (fastest)",
         rayon::current_num_threads(),
-        liquid_splat::deform::matmul::kernel_path(),
+        crate::deform::matmul::kernel_path(),
         reps.max(1)
     );
     println!(
@@ -700,8 +700,8 @@ fn deform_profile<T: Real>(
     t: &[T],
     g: &Deformation<T>,
     reps: usize,
-) -> liquid_splat::Result<()> {
-    use liquid_splat::deform::profile;
+) -> crate::Result<()> {
+    use crate::deform::profile;
     let field = Field::<T>::new(config, 0)?;
     // Rows keyed by (label, shape), in first-seen order; per run, the time
     // summed over the calls with that key.
