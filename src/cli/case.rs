@@ -158,7 +158,7 @@ fn run_new(a: NewArgs) -> ExitCode {
             }
             Ok(())
         };
-        let gs = liquid_splat::oracle::gsplat::STAGES;
+        let gs = crate::oracle::gsplat::STAGES;
         let with_gs = |base: &[&'static str]| -> Vec<&'static str> {
             base.iter().copied().chain(gs).collect()
         };
@@ -191,13 +191,13 @@ fn run_new(a: NewArgs) -> ExitCode {
         spec.count = a.count.unwrap_or(spec.count);
         if let Some(g) = &a.gradient {
             if gs.contains(&a.stage.as_str()) {
-                spec.gsplat.gradient = liquid_splat::gsplat::GradientMode::from_name(g)?;
+                spec.gsplat.gradient = crate::gsplat::GradientMode::from_name(g)?;
             } else {
                 spec.gradient = GradientMode::from_name(g)?;
             }
         }
         if let Some(v) = &a.gsplat_version {
-            spec.gsplat.version = liquid_splat::gsplat::Version::from_name(v)?;
+            spec.gsplat.version = crate::gsplat::Version::from_name(v)?;
         }
         spec.gsplat.antialiased = a.antialiased;
         spec.gsplat.packed = !a.dense;
