@@ -9,6 +9,9 @@ same bits, whatever ``threads`` is.
 - :class:`DeformNetwork` (D-3DGS MLP, incl. 6-DoF) and :class:`CfCField` (the liquid field),
   built from a state_dict, with ``forward`` / ``vjp`` and parameter and MAC counts.
 - :func:`loss`, :func:`step`: the training loss and one whole training iteration.
+- :mod:`liquid_splat.gsplat`: gsplat's functions (``rasterization``, ``rasterize_to_pixels``,
+  ``fully_fused_projection``, ...) with gsplat's names and conventions, at gsplat 1.5.3 or
+  1.6, and their vjps.
 - :func:`run_case`: any stage from case-file tensors and metadata.
 - :func:`load` / :func:`save`: case files (safetensors) without other packages.
 - :mod:`liquid_splat.testing`: ``compare`` and ``assert_close`` (the ``case compare`` report).
@@ -44,6 +47,7 @@ __all__ = [
     "loss",
     "step",
     "cli",
+    "gsplat",
 ]
 
 STAGES: Tuple[str, ...] = tuple(_native.STAGES)
@@ -621,3 +625,6 @@ def step(
     if meta.setdefault("stage", "step") != "step":
         raise ValueError(f"step(): argument `metadata`: expected stage 'step', found {meta['stage']!r}")
     return _native.run_case(dict(tensors), meta, threads)
+
+
+from . import gsplat  # noqa: E402  (uses the helpers above)

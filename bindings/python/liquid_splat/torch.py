@@ -9,6 +9,9 @@
   field) as ``torch.nn.Module``s whose ``state_dict`` keys are upstream's, so a D-3DGS
   ``deform.pth`` loads as is.
 - :func:`loss`: ``(1 − λ)·L1 + λ·(1 − SSIM)``, differentiable w.r.t. the image.
+- :func:`rasterization` and :func:`rasterize_to_pixels`: gsplat's functions (gsplat's
+  arguments and outputs, :mod:`liquid_splat.gsplat`), differentiable w.r.t. the Gaussians'
+  tensors and ``backgrounds`` in the chosen ``gradient`` mode.
 
 Every forward and backward is the oracle's (the same bits as ``liquid-splat case run``),
 so ``torch.autograd.grad`` and ``torch.autograd.gradcheck`` (float64) work. Inputs are
@@ -27,6 +30,7 @@ from torch import nn
 from torch.autograd.function import once_differentiable
 
 from . import _native
+from . import gsplat as _gs
 from . import CfCField as _NpCfCField
 from . import DeformNetwork as _NpDeformNetwork
 from . import loss as _np_loss
@@ -40,6 +44,8 @@ __all__ = [
     "DeformNetwork",
     "CfCField",
     "loss",
+    "rasterization",
+    "rasterize_to_pixels",
 ]
 
 
@@ -366,3 +372,146 @@ def loss(image: torch.Tensor, gt: torch.Tensor, lambda_dssim: float = 0.2) -> to
     """D-3DGS's ``(1 − λ)·l1_loss(image, gt) + λ·(1 − ssim(image, gt))`` of [3,H,W]
     images, differentiable w.r.t. ``image``."""
     return _Loss.apply(image, gt, float(lambda_dssim))
+
+
+# ---------------------------------------------------------------------------
+# gsplat
+# ---------------------------------------------------------------------------
+
+_GS_RASTERIZATION_INPUTS = ("means", "quats", "scales", "covars", "opacities", "colors",
+                            "backgrounds")
+
+
+class _GsRasterization(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, holder, kw, means, quats, scales, covars, opacities, colors, backgrounds,
+                viewmats, Ks):
+        arrays = {n: _np(n, x) for n, x in zip(
+            _GS_RASTERIZATION_INPUTS + ("viewmats", "Ks"),
+            (means, quats, scales, covars, opacities, colors, backgrounds, viewmats, Ks))}
+        r = _gs.rasterization(**arrays, **kw)
+        holder.update(r.meta)
+        ctx.arrays, ctx.kw = arrays, kw
+        ctx.present = [arrays[n] is not None for n in _GS_RASTERIZATION_INPUTS]
+        return torch.from_numpy(r.render_colors), torch.from_numpy(r.render_alphas)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_render_colors, v_render_alphas):
+        g = _gs.rasterization_vjp(
+            **ctx.arrays, **ctx.kw,
+            v_render_colors=_np("v_render_colors", v_render_colors),
+            v_render_alphas=_np("v_render_alphas", v_render_alphas),
+        )
+        out = [_t(g.get(f"v_{n}")) if p else None
+               for n, p in zip(_GS_RASTERIZATION_INPUTS, ctx.present)]
+        return (None, None, *out, None, None)
+
+
+def rasterization(
+    means: torch.Tensor,
+    quats: Optional[torch.Tensor],
+    scales: Optional[torch.Tensor],
+    opacities: torch.Tensor,
+    colors: torch.Tensor,
+    viewmats: torch.Tensor,
+    Ks: torch.Tensor,
+    width: int,
+    height: int,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    radius_clip: float = 0.0,
+    eps2d: float = 0.3,
+    sh_degree: Optional[int] = None,
+    packed: bool = True,
+    tile_size: int = 16,
+    backgrounds: Optional[torch.Tensor] = None,
+    render_mode: str = "RGB",
+    sparse_grad: bool = False,
+    absgrad: bool = False,
+    rasterize_mode: str = "classic",
+    channel_chunk: int = 32,
+    distributed: bool = False,
+    camera_model: str = "pinhole",
+    segmented: bool = False,
+    covars: Optional[torch.Tensor] = None,
+    *,
+    version: str = "1.6",
+    gradient: str = "exact",
+    threads: Optional[int] = None,
+) -> Tuple[torch.Tensor, torch.Tensor, Dict[str, Any]]:
+    """gsplat's ``rasterization`` (same arguments, same order, same defaults):
+    ``(render_colors [C,H,W,D], render_alphas [C,H,W,1], meta)``, differentiable w.r.t.
+    ``means``, ``quats``, ``scales`` (or ``covars``), ``opacities``, ``colors`` and
+    ``backgrounds`` (``viewmats`` and ``Ks`` get no gradient). ``meta`` holds tensors
+    that carry no gradient; ``meta["means2d"]``'s gradient is ``v_means2d`` of
+    :func:`liquid_splat.gsplat.rasterization_vjp`."""
+    kw = dict(width=width, height=height, near_plane=near_plane, far_plane=far_plane,
+              radius_clip=radius_clip, eps2d=eps2d, sh_degree=sh_degree, packed=packed,
+              tile_size=tile_size, render_mode=render_mode, sparse_grad=sparse_grad,
+              absgrad=absgrad, rasterize_mode=rasterize_mode, channel_chunk=channel_chunk,
+              distributed=distributed, camera_model=camera_model, segmented=segmented,
+              version=version, gradient=gradient, threads=threads)
+    holder: Dict[str, Any] = {}
+    render_colors, render_alphas = _GsRasterization.apply(
+        holder, kw, means, quats, scales, covars, opacities, colors, backgrounds, viewmats, Ks)
+    meta = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v
+            for k, v in holder.items()}
+    return render_colors, render_alphas, meta
+
+
+_GS_R2P_INPUTS = ("means2d", "conics", "colors", "opacities", "backgrounds")
+
+
+class _GsRasterizeToPixels(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, kw, means2d, conics, colors, opacities, backgrounds, isect_offsets,
+                flatten_ids):
+        arrays = {n: _np(n, x) for n, x in zip(
+            _GS_R2P_INPUTS + ("isect_offsets", "flatten_ids"),
+            (means2d, conics, colors, opacities, backgrounds, isect_offsets, flatten_ids))}
+        rc, ra = _gs.rasterize_to_pixels(**arrays, **kw)
+        ctx.arrays, ctx.kw = arrays, kw
+        ctx.has_bg = backgrounds is not None
+        return torch.from_numpy(rc), torch.from_numpy(ra)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, v_render_colors, v_render_alphas):
+        g = _gs.rasterize_to_pixels_vjp(
+            **ctx.arrays, **ctx.kw,
+            v_render_colors=_np("v_render_colors", v_render_colors),
+            v_render_alphas=_np("v_render_alphas", v_render_alphas),
+        )
+        out = [_t(g.get(f"v_{n}")) for n in _GS_R2P_INPUTS[:4]]
+        return (None, *out, _t(g.get("v_backgrounds")) if ctx.has_bg else None, None, None)
+
+
+def rasterize_to_pixels(
+    means2d: torch.Tensor,
+    conics: torch.Tensor,
+    colors: torch.Tensor,
+    opacities: torch.Tensor,
+    image_width: int,
+    image_height: int,
+    tile_size: int,
+    isect_offsets: torch.Tensor,
+    flatten_ids: torch.Tensor,
+    backgrounds: Optional[torch.Tensor] = None,
+    masks: None = None,
+    packed: bool = False,
+    absgrad: bool = False,
+    *,
+    version: str = "1.6",
+    gradient: str = "exact",
+    threads: Optional[int] = None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """gsplat's ``rasterize_to_pixels`` (same arguments, same order): ``(render_colors,
+    render_alphas)``, differentiable w.r.t. ``means2d`` (pixels), ``conics``, ``colors``,
+    ``opacities`` and ``backgrounds``. ``isect_offsets`` and ``flatten_ids`` are int32
+    tensors (as gsplat's)."""
+    kw = dict(image_width=image_width, image_height=image_height, tile_size=tile_size,
+              masks=masks, packed=packed, absgrad=absgrad, version=version,
+              gradient=gradient, threads=threads)
+    return _GsRasterizeToPixels.apply(kw, means2d, conics, colors, opacities, backgrounds,
+                                      isect_offsets, flatten_ids)
