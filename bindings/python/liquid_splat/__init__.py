@@ -120,21 +120,11 @@ class _Args:
         self.dtype_from = ""
         self.dims: Dict[str, Tuple[int, str]] = {}
 
-    def array(self, name: str, x: Any, shape: Tuple[Union[int, str], ...]) -> np.ndarray:
-        where = f"{self.func}(): argument `{name}`"
-        if not isinstance(x, np.ndarray):
-            raise TypeError(
-                f"{where}: expected a numpy.ndarray of float32 or float64, found {type(x).__name__}"
-            )
-        if x.dtype not in _FLOATS:
-            raise TypeError(f"{where}: expected dtype float32 or float64, found dtype {x.dtype}")
-        if self.dtype is None:
-            self.dtype, self.dtype_from = x.dtype, f"`{name}`"
-        elif x.dtype != self.dtype:
-            raise TypeError(
-                f"{where}: expected dtype {self.dtype} (the dtype of {self.dtype_from}), "
-                f"found dtype {x.dtype}"
-            )
+    def check_shape(
+        self, where: str, name: str, x: np.ndarray, shape: Tuple[Union[int, str], ...]
+    ) -> None:
+        """Check ``x.shape`` against ``shape``; a named dimension seen for the first time is
+        bound to this array's size."""
         want = "[" + ",".join(str(d) for d in shape) + "]"
         if x.ndim != len(shape):
             raise ValueError(f"{where}: expected shape {want}, found shape {_shape(x.shape)}")
@@ -151,6 +141,23 @@ class _Args:
                 raise ValueError(
                     f"{where}: expected shape {want}{note}, found shape {_shape(x.shape)}"
                 )
+
+    def array(self, name: str, x: Any, shape: Tuple[Union[int, str], ...]) -> np.ndarray:
+        where = f"{self.func}(): argument `{name}`"
+        if not isinstance(x, np.ndarray):
+            raise TypeError(
+                f"{where}: expected a numpy.ndarray of float32 or float64, found {type(x).__name__}"
+            )
+        if x.dtype not in _FLOATS:
+            raise TypeError(f"{where}: expected dtype float32 or float64, found dtype {x.dtype}")
+        if self.dtype is None:
+            self.dtype, self.dtype_from = x.dtype, f"`{name}`"
+        elif x.dtype != self.dtype:
+            raise TypeError(
+                f"{where}: expected dtype {self.dtype} (the dtype of {self.dtype_from}), "
+                f"found dtype {x.dtype}"
+            )
+        self.check_shape(where, name, x, shape)
         if not x.flags.c_contiguous:
             raise ValueError(
                 f"{where}: expected a C-contiguous array (numpy.ascontiguousarray), "

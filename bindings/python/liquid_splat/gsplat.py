@@ -76,20 +76,7 @@ def _ints(a: _Args, name: str, x: Any, shape: Tuple[Union[int, str], ...]) -> np
         raise TypeError(f"{where}: expected a numpy.ndarray of integers, found {type(x).__name__}")
     if not np.issubdtype(x.dtype, np.integer):
         raise TypeError(f"{where}: expected an integer dtype (int32), found dtype {x.dtype}")
-    want = "[" + ",".join(str(d) for d in shape) + "]"
-    if x.ndim != len(shape):
-        raise ValueError(f"{where}: expected shape {want}, found shape {_shape(x.shape)}")
-    for d, n in zip(shape, x.shape):
-        if isinstance(d, int):
-            ok, note = (n == d), ""
-        elif d in a.dims:
-            size, src = a.dims[d]
-            ok, note = (n == size), f" with {d}={size} from `{src}`"
-        else:
-            a.dims[d] = (n, name)
-            ok, note = True, ""
-        if not ok:
-            raise ValueError(f"{where}: expected shape {want}{note}, found shape {_shape(x.shape)}")
+    a.check_shape(where, name, x, shape)
     if x.size and (x.min() < -(2**31) or x.max() >= 2**31):
         raise ValueError(f"{where}: expected values in int32's range, found {x.min()}..{x.max()}")
     return np.ascontiguousarray(x, dtype=np.int32)
