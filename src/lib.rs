@@ -44,6 +44,22 @@
 //! (`libm`; in f32 the fields' activations use [`deform::fastmath`], plain
 //! arithmetic with the same bits on every instruction set), and all
 //! randomness comes from explicit seeds.
+//!
+//! ## Naming of backward passes and saved state
+//! - A primitive (a free function) `f` has its backward `f_vjp`, defined
+//!   beside it (same module, or `f_vjp.rs` next to `f.rs`). `f_vjp` takes
+//!   what `f` took, or the state `f` saved, plus the cotangent of `f`'s
+//!   output, and returns the cotangents of `f`'s inputs.
+//! - A type with parameters (a layer, a field, a model) has the methods
+//!   `forward` and `backward`; `backward` takes the state `forward` saved and
+//!   the output cotangent and returns the parameters' gradients and the
+//!   inputs' cotangents.
+//! - State a forward saves for its backward is a type named `<Name>Saved`;
+//!   gradients of a type's parameters are a type named `<Name>Gradients`.
+
+#![warn(missing_docs)]
+#![warn(unsafe_op_in_unsafe_fn)]
+#![warn(clippy::undocumented_unsafe_blocks)]
 
 pub mod camera;
 pub mod cli;
