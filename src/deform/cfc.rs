@@ -34,14 +34,15 @@
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
-use super::fastmath::{self, multiversion};
 use super::linear::InputGrad;
-use super::matmul::{column_sums, matmul, matmul_from_parts_then, matmul_tn, MatRef};
 use super::profile;
 use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
     XYZ_LEVELS,
 };
+use crate::kernels::fastmath::{self, multiversion};
+use crate::kernels::matmul::{column_sums, matmul, matmul_from_parts_then, matmul_tn, MatRef};
+use crate::kernels::{par_blocks_written, vec_written_by};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -275,55 +276,56 @@ impl CfcNet {
             // written into `out` (which is never zeroed: every value is
             // written once).
             let units = lin.shape.out_dim;
-            let mut out: Vec<T> = Vec::with_capacity(n * units);
-            let ob = &mut out.spare_capacity_mut()[..n * units];
-            let pre = if j == 0 {
-                // The u sums continued over the state columns, then the
-                // bias and the activation.
-                let wt = MatRef::row_major(lin.weight(p), units, lin.shape.in_dim).t();
-                let k = if self.reads_state(l) { w } else { 0 };
-                let hm = MatRef::row_major(&h, n, k);
-                let bias = lin.bias(p);
-                profile::layer(
-                    || "backbone.0".into(),
-                    || {
-                        profile::product(
-                            || format!("(u sums) + h·Wₕᵀ + b, {} in the epilogue", self.act),
-                            n,
-                            k,
-                            units,
-                            || {
-                                matmul_from_parts_then(
-                                    Some(pu),
-                                    &[(hm, wt.rows(ud, k))],
-                                    ob,
-                                    units,
-                                    |_, blk, ob| {
-                                        for row in blk.chunks_exact_mut(units) {
-                                            for (v, &b) in row.iter_mut().zip(bias) {
-                                                *v += b;
+            let mut pre = Vec::new();
+            let out = vec_written_by(n * units, |ob| {
+                pre = if j == 0 {
+                    // The u sums continued over the state columns, then the
+                    // bias and the activation.
+                    let wt = MatRef::row_major(lin.weight(p), units, lin.shape.in_dim).t();
+                    let k = if self.reads_state(l) { w } else { 0 };
+                    let hm = MatRef::row_major(&h, n, k);
+                    let bias = lin.bias(p);
+                    profile::layer(
+                        || "backbone.0".into(),
+                        || {
+                            profile::product(
+                                || format!("(u sums) + h·Wₕᵀ + b, {} in the epilogue", self.act),
+                                n,
+                                k,
+                                units,
+                                || {
+                                    matmul_from_parts_then(
+                                        Some(pu),
+                                        &[(hm, wt.rows(ud, k))],
+                                        ob,
+                                        units,
+                                        |_, blk, ob| {
+                                            for row in blk.chunks_exact_mut(units) {
+                                                for (v, &b) in row.iter_mut().zip(bias) {
+                                                    *v += b;
+                                                }
                                             }
-                                        }
-                                        self.act.apply_block_uninit(blk, ob)
-                                    },
-                                )
-                            },
-                        )
-                    },
-                )
-            } else {
-                profile::layer(
-                    || format!("backbone.{j}, {} in the epilogue", self.act),
-                    || {
-                        lin.forward_then(p, &cur, n, ob, units, |_, blk, ob| {
-                            self.act.apply_block_uninit(blk, ob)
-                        })
-                    },
-                )
-            };
-            // SAFETY: the epilogue ran once on every block of rows and wrote
-            // every value of its rows of `out`.
-            unsafe { out.set_len(n * units) };
+                                            self.act.apply_block_uninit(blk, ob)
+                                        },
+                                    )
+                                },
+                            )
+                        },
+                    )
+                } else {
+                    profile::layer(
+                        || format!("backbone.{j}, {} in the epilogue", self.act),
+                        || {
+                            lin.forward_then(p, &cur, n, ob, units, |_, blk, ob| {
+                                self.act.apply_block_uninit(blk, ob)
+                            })
+                        },
+                    )
+                };
+                // SAFETY: the epilogue ran once on every block of rows and wrote
+                // every value of its rows of `ob`.
+                unsafe { &mut *(ob as *mut [MaybeUninit<T>] as *mut [T]) }
+            });
             let prev = std::mem::replace(&mut cur, out);
             if j > 0 {
                 inputs.push(prev);
@@ -334,19 +336,20 @@ impl CfcNet {
         // The four heads as one product 4W wide, then the fused cell pass on
         // each block of rows while it is in cache, writing the new state
         // (never zeroed).
-        let mut h_next: Vec<T> = Vec::with_capacity(n * w);
-        let hb = &mut h_next.spare_capacity_mut()[..n * w];
-        let gate = profile::layer(
-            || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
-            || {
-                Stacked(&cell.heads).forward_then(p, &z, n, hb, w, |r0, g, hb| {
-                    let rows = hb.len() / w;
-                    cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
-                })
-            },
-        );
-        // SAFETY: the cell pass wrote every value of every block of rows.
-        unsafe { h_next.set_len(n * w) };
+        let mut gate = Vec::new();
+        let h_next = vec_written_by(n * w, |hb| {
+            gate = profile::layer(
+                || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
+                || {
+                    Stacked(&cell.heads).forward_then(p, &z, n, hb, w, |r0, g, hb| {
+                        let rows = hb.len() / w;
+                        cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
+                    })
+                },
+            );
+            // SAFETY: the cell pass wrote every value of every block of rows.
+            unsafe { &mut *(hb as *mut [MaybeUninit<T>] as *mut [T]) }
+        });
         (
             CellCache {
                 h_in: h,
@@ -635,20 +638,18 @@ fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], t: &[T
 /// gradient with respect to τ (summed over j in order) to `dt`.
 fn cell_backward_fused<T: Real>(gate: &[T], dh: &[T], t: &[T], w: usize, dt: &mut [T]) -> Vec<T> {
     // Every value is written once below (never zeroed first).
-    let mut out: Vec<T> = Vec::with_capacity(gate.len());
-    out.spare_capacity_mut()[..gate.len()]
-        .par_chunks_mut(4 * w * ROWS_PER_TASK)
-        .zip(gate.par_chunks(4 * w * ROWS_PER_TASK))
-        .zip(dh.par_chunks(w * ROWS_PER_TASK))
-        .zip(t.par_chunks(ROWS_PER_TASK))
-        .zip(dt.par_chunks_mut(ROWS_PER_TASK))
-        .for_each(|((((o, g), dh), t), dt)| {
+    let rows = ROWS_PER_TASK;
+    vec_written_by(gate.len(), |out| {
+        par_blocks_written(out, 4 * w * rows, dt, rows, |i, o, dt| {
+            let g = &gate[i * 4 * w * rows..][..o.len()];
+            let dh = &dh[i * w * rows..][..dt.len() * w];
+            let t = &t[i * rows..][..dt.len()];
             let mut prod = vec![T::ZERO; w];
-            cell_backward_rows(o, g, dh, t, dt, &mut prod, w)
-        });
-    // SAFETY: cell_backward_rows wrote all 4W values of every row.
-    unsafe { out.set_len(gate.len()) };
-    out
+            cell_backward_rows(o, g, dh, t, dt, &mut prod, w);
+            // SAFETY: cell_backward_rows wrote all 4W values of every row.
+            unsafe { &mut *(o as *mut [MaybeUninit<T>] as *mut [T]) }
+        })
+    })
 }
 
 multiversion!(fn cell_backward_rows<T: Real>(o: &mut [MaybeUninit<T>], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);

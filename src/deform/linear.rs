@@ -4,10 +4,10 @@
 //! Each output is `(Σ_k x_k·W_jk, k ascending from zero) + b_j`: the bias is
 //! added after the dot product.
 
-use super::matmul::{
+use super::profile;
+use crate::kernels::matmul::{
     column_sums, matmul, matmul_block_into, matmul_parts_then, matmul_tn, pack, MatRef, Packed,
 };
-use super::profile;
 use crate::math::Real;
 use std::mem::MaybeUninit;
 

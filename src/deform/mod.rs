@@ -21,9 +21,9 @@
 //!   `d_scaling` `[N,3]`, applied as `xyz + d_xyz`, `normalize(q) + d_rotation`,
 //!   `exp(s) + d_scaling` by the caller.
 //! - Linear layers compute `(x·Wᵀ, summed over inputs in order) + b` with the
-//!   deterministic products of [`matmul`]: the same bits for any thread count.
+//!   deterministic products of [`crate::kernels::matmul`]: the same bits for any thread count.
 //! - In f32, every `exp`, `erf`, `tanh` and `sigmoid` of the fields (forward
-//!   and backward) is [`fastmath`]'s vectorisable plain-arithmetic version
+//!   and backward) is [`crate::kernels::fastmath`]'s vectorisable plain-arithmetic version
 //!   (≤ 2 ulp); f64 uses the pinned libm. Both are the same bits on every CPU
 //!   path (AVX-512, AVX2, baseline) and thread count.
 //!
@@ -45,9 +45,7 @@ pub mod activation;
 pub mod cfc;
 pub mod count;
 pub mod encoding;
-pub mod fastmath;
 pub mod linear;
-pub mod matmul;
 pub mod mlp;
 pub mod profile;
 pub mod se3;
@@ -56,12 +54,14 @@ pub use activation::Activation;
 
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
+use crate::kernels::vec_written_by;
 use crate::math::{Real, Rng};
 use linear::{
     linear_backward, linear_backward_parts, linear_forward, linear_forward_parts_then, InputGrad,
     LinearShape, PackedLinear,
 };
 use std::fmt;
+use std::mem::MaybeUninit;
 
 /// Which deformation network.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -376,19 +376,16 @@ impl LinearParams {
         next: &PackedLinear<T>,
     ) -> (Vec<T>, Vec<T>) {
         let nw = next.out_dim();
-        let mut y: Vec<T> = Vec::with_capacity(n * nw);
-        let h = self.forward_parts_act_then(
-            p,
-            xs,
-            n,
-            act,
-            &mut y.spare_capacity_mut()[..n * nw],
-            nw,
-            |_, blk, out| next.forward_block_into(blk, out.len() / nw.max(1), out),
-        );
-        // SAFETY: the epilogue wrote every row of `y` (each block of rows is
-        // visited once, and forward_block_into writes all of its output).
-        unsafe { y.set_len(n * nw) };
+        let mut h = Vec::new();
+        let y = vec_written_by(n * nw, |y| {
+            h = self.forward_parts_act_then(p, xs, n, act, y, nw, |_, blk, out| {
+                next.forward_block_into(blk, out.len() / nw.max(1), out)
+            });
+            // SAFETY: the epilogue wrote every row of `y` (each block of rows
+            // is visited once, and forward_block_into writes all of its
+            // output).
+            unsafe { &mut *(y as *mut [MaybeUninit<T>] as *mut [T]) }
+        });
         (h, y)
     }
 
