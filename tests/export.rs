@@ -91,7 +91,7 @@ fn differences<T: Real>() -> Vec<f64> {
     let mut errs: Vec<f64> = Vec::new();
     for (r, &time) in reports.iter().zip(&times) {
         assert_eq!(r.path, dir.join(export::file_name(time)));
-        assert_eq!(r.gaussians, t.gaussians.len());
+        assert_eq!(r.gaussians, t.model().gaussians.len());
         non_unit += r.non_unit_rotations;
         // The PLY round-trips to the exported values, bit for bit.
         let (g, _) = export::deformed_gaussians(&t, time).unwrap();
@@ -105,7 +105,7 @@ fn differences<T: Real>() -> Vec<f64> {
         assert_eq!(back.xyz, t.deformed(time).unwrap().means);
         for v in &test {
             let want = t.render(&v.camera, time).unwrap().color;
-            let got = render_static(&back, t.active_sh_degree, v, t.background);
+            let got = render_static(&back, t.model().active_sh_degree, v, t.model().background);
             for (a, b) in want.iter().zip(&got) {
                 let e = (a.to_f64() - b.to_f64()).abs();
                 worst = worst.max(e);

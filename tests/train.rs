@@ -88,7 +88,7 @@ fn train_in_pool<T: liquid_splat::math::Real>(
         )
         .unwrap();
         let (mut densified, mut resets) = (0, 0);
-        while t.iteration < iterations {
+        while t.iteration() < iterations {
             let r = t.step(&views).unwrap();
             assert!(
                 r.loss.is_finite(),
@@ -103,7 +103,7 @@ fn train_in_pool<T: liquid_splat::math::Real>(
             densified >= 5 && resets >= 1,
             "{densified} densifications, {resets} resets"
         );
-        assert!(t.field_optimizer.step > 0);
+        assert!(t.optimizer().field.step > 0);
         t
     })
 }
@@ -265,8 +265,8 @@ fn resumed_run_ends_bit_identical_to_the_uninterrupted_run() {
     assert_eq!(format!("{:016x}", t.state_hash()), full.state_hash);
     let ply = liquid_splat::gaussians::ply::read_gaussians::<f32>(&last.join(checkpoint::PLY_FILE))
         .unwrap();
-    assert_eq!(ply.xyz, t.gaussians.xyz);
-    assert_eq!(ply.opacity, t.gaussians.opacity);
+    assert_eq!(ply.xyz, t.model().gaussians.xyz);
+    assert_eq!(ply.opacity, t.model().gaussians.opacity);
 }
 
 #[test]

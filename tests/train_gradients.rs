@@ -1,4 +1,4 @@
-//! `Trainer::gradients`: the canonical means' gradient against central
+//! `Model::gradients`: the canonical means' gradient against central
 //! differences of the whole loss (field, rasterizer, L1 + SSIM), for every
 //! field: the additive MLP, the CfC field and the 6-DoF MLP.
 //!
@@ -13,12 +13,13 @@
 use liquid_splat::deform::{Activation, Field, FieldConfig, FieldKind, Variant};
 use liquid_splat::gaussians::Gaussians;
 use liquid_splat::loss::loss_and_grad;
+use liquid_splat::loss::LAMBDA_DSSIM;
 use liquid_splat::math::gradcheck::{compare, numeric_gradient};
 use liquid_splat::math::Rng;
 use liquid_splat::render::scene::{random_scene, SceneSpec};
 use liquid_splat::render::{rasterize, Colors, Covariances, RasterInput};
 use liquid_splat::train::deformed::deform_gaussians;
-use liquid_splat::train::{TrainConfig, Trainer, View};
+use liquid_splat::train::{Model, View};
 
 const TIME: f64 = 0.37;
 
@@ -42,9 +43,9 @@ fn cfc(variant: Variant) -> FieldConfig {
     c
 }
 
-/// A trainer on a small random scene (raw parameters of its Gaussians) with
+/// A model of a small random scene (raw parameters of its Gaussians) with
 /// the field seeded by `seed`, and a view with a random ground truth.
-fn setup(field: FieldConfig, seed: u64) -> (Trainer<f64>, View<f64>) {
+fn setup(field: FieldConfig, seed: u64) -> (Model<f64>, View<f64>) {
     let mut spec = SceneSpec::small(12, seed);
     spec.width = 24;
     spec.height = 20;
@@ -61,11 +62,12 @@ fn setup(field: FieldConfig, seed: u64) -> (Trainer<f64>, View<f64>) {
             .map(|&o| libm::log(o / (1.0 - o)))
             .collect(),
     };
-    let mut config = TrainConfig::new(1, 0, field);
-    config.max_sh_degree = 3;
-    let mut trainer = Trainer::new(config, gaussians, 1, 1.0, [0.2, 0.5, 0.9]).unwrap();
-    trainer.field = Field::new(field, seed).unwrap();
-    trainer.active_sh_degree = 2;
+    let model = Model {
+        gaussians,
+        field: Field::new(field, seed).unwrap(),
+        active_sh_degree: 2,
+        background: [0.2, 0.5, 0.9],
+    };
     let (h, w) = (spec.height, spec.width);
     let mut rng = Rng::new(seed ^ 0x5eed);
     let view = View {
@@ -76,21 +78,21 @@ fn setup(field: FieldConfig, seed: u64) -> (Trainer<f64>, View<f64>) {
         width: w,
         height: h,
     };
-    (trainer, view)
+    (model, view)
 }
 
 /// The loss with the field's outputs computed at the canonical means of
-/// `trainer` and the means the renderer uses built from `xyz`.
-fn loss_at(trainer: &Trainer<f64>, view: &View<f64>, xyz: &[f64]) -> f64 {
-    let g = &trainer.gaussians;
+/// `model` and the means the renderer uses built from `xyz`.
+fn loss_at(model: &Model<f64>, view: &View<f64>, xyz: &[f64]) -> f64 {
+    let g = &model.gaussians;
     let n = g.len();
-    let (offsets, cache) = trainer.field.forward(&g.xyz, &vec![TIME; n]).unwrap();
+    let (offsets, cache) = model.field.forward(&g.xyz, &vec![TIME; n]).unwrap();
     let moved = Gaussians {
         xyz: xyz.to_vec(),
         ..g.clone()
     };
     let mut d = deform_gaussians(&moved, Some(&offsets));
-    if let Some(m) = trainer.field.se3_transforms(&cache) {
+    if let Some(m) = model.field.se3_transforms(&cache) {
         // Upstream's renderer: from_homogenous(bmm(T, to_homogenous(x))).
         for i in 0..n {
             let (t, x) = (&m[16 * i..16 * i + 16], &xyz[3 * i..3 * i + 3]);
@@ -105,7 +107,7 @@ fn loss_at(trainer: &Trainer<f64>, view: &View<f64>, xyz: &[f64]) -> f64 {
         colors: Colors::Sh {
             coeffs: &g.sh,
             stride: g.coeffs(),
-            degree: trainer.active_sh_degree,
+            degree: model.active_sh_degree,
         },
         opacities: &d.opacities,
         covariances: Covariances::ScaleRotation {
@@ -114,10 +116,10 @@ fn loss_at(trainer: &Trainer<f64>, view: &View<f64>, xyz: &[f64]) -> f64 {
             scale_modifier: 1.0,
         },
         camera: &view.camera,
-        background: trainer.background,
+        background: model.background,
     };
     let (out, _) = rasterize(&input).unwrap();
-    let lambda = trainer.config.lambda_dssim;
+    let lambda = LAMBDA_DSSIM;
     loss_and_grad(&out.color, &view.image, view.height, view.width, lambda)
         .unwrap()
         .0
@@ -125,19 +127,19 @@ fn loss_at(trainer: &Trainer<f64>, view: &View<f64>, xyz: &[f64]) -> f64 {
 }
 
 fn check_xyz(field: FieldConfig, seed: u64) {
-    let (trainer, view) = setup(field, seed);
-    let (grads, _) = trainer.gradients(&view, TIME, true).unwrap();
-    let x0 = trainer.gaussians.xyz.clone();
-    // The reference forward is the trainer's forward (to rounding).
-    let l0 = loss_at(&trainer, &view, &x0);
+    let (model, view) = setup(field, seed);
+    let (grads, _) = model.gradients(&view, TIME, true, LAMBDA_DSSIM).unwrap();
+    let x0 = model.gaussians.xyz.clone();
+    // The reference forward is the model's forward (to rounding).
+    let l0 = loss_at(&model, &view, &x0);
     let l = grads.loss.loss;
     assert!((l0 - l).abs() <= 1e-14 * l.abs(), "{field:?}: {l0} vs {l}");
     if field.is_6dof {
         // The warp's rotations are far from the identity: the check tells
         // Rᵀ·g from g.
         let n = x0.len() / 3;
-        let (_, cache) = trainer.field.forward(&x0, &vec![TIME; n]).unwrap();
-        let m = trainer.field.se3_transforms(&cache).unwrap();
+        let (_, cache) = model.field.forward(&x0, &vec![TIME; n]).unwrap();
+        let m = model.field.se3_transforms(&cache).unwrap();
         let off = (0..n)
             .flat_map(|i| (0..3).flat_map(move |r| (0..3).map(move |c| (i, r, c))))
             .map(|(i, r, c)| (m[16 * i + 4 * r + c] - (r == c) as u8 as f64).abs())
@@ -157,6 +159,7 @@ fn check_xyz(field: FieldConfig, seed: u64) {
     );
     let floor = 1e-3
         * grads
+            .model
             .gaussians
             .xyz
             .iter()
@@ -167,9 +170,9 @@ fn check_xyz(field: FieldConfig, seed: u64) {
         let mut probe = vec![x0[k]];
         let num = numeric_gradient(&mut probe, 1e-6, |v| {
             x[k] = v[0];
-            loss_at(&trainer, &view, &x)
+            loss_at(&model, &view, &x)
         });
-        analytic.push(grads.gaussians.xyz[k]);
+        analytic.push(grads.model.gaussians.xyz[k]);
         numeric.push(num[0]);
     }
     let r = compare("xyz", &analytic, &numeric, floor);

@@ -376,7 +376,7 @@ fn bench_train<T: crate::math::Real>(spec: &super::train::RunSpec) -> crate::Res
     let (mut all, mut active) = (StageTimes::default(), StageTimes::default());
     let (mut n_active, mut gaussians) = (0u64, 0u64);
     let t0 = Instant::now();
-    while trainer.iteration < config.iterations {
+    while trainer.iteration() < config.iterations {
         let r = trainer.step(&views)?;
         all.add(&r.times);
         gaussians += r.gaussians as u64;

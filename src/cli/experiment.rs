@@ -205,7 +205,7 @@ pub fn experiment(a: ExperimentArgs) -> Result<ExitCode> {
         })?;
         let binding = checkpoint::DataBinding::of(&data, &s.data_name());
         let trainer = checkpoint::load::<f32>(&ckpt, &config, &binding)?;
-        let m = a.sweep_gaussians.min(trainer.gaussians.len());
+        let m = a.sweep_gaussians.min(trainer.model().gaussians.len());
         let smooth = report::temporal_smoothness(
             |t| match trainer.offsets(t) {
                 Ok(o) => o.d_xyz[..3 * m].iter().map(|&v| v as f64).collect(),

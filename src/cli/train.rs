@@ -621,7 +621,7 @@ fn export_as<T: Real>(a: &ExportArgs) -> Result<ExitCode> {
     eprintln!(
         "deformed Gaussians of {} ({} each):",
         ckpt.display(),
-        trainer.gaussians.len()
+        trainer.model().gaussians.len()
     );
     for r in &reports {
         println!("{}", r.path.display());

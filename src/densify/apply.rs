@@ -31,7 +31,7 @@
 use super::policy::{prune_mask, select_clone, select_split, DensifyConfig};
 use super::stats::DensifyStats;
 use crate::error::{Error, Result};
-use crate::gaussians::{normalize_norm, Gaussians};
+use crate::gaussians::{normalize_norm, Gaussians, Group};
 use crate::math::{Real, Rng};
 use crate::optim::GaussianOptimizer;
 
@@ -47,34 +47,13 @@ pub struct DensifyReport {
     pub after: usize,
 }
 
-/// Row widths of the parameter arrays, in the order xyz, sh, scaling, rotation, opacity.
-fn widths<T: Real>(g: &Gaussians<T>) -> [usize; 5] {
-    [3, 3 * g.coeffs(), 3, 4, 1]
-}
-
-fn arrays<T>(g: &mut Gaussians<T>) -> [&mut Vec<T>; 5] {
-    [
-        &mut g.xyz,
-        &mut g.sh,
-        &mut g.scaling,
-        &mut g.rotation,
-        &mut g.opacity,
-    ]
-}
-
 fn check_aligned<T: Real>(
     g: &Gaussians<T>,
     opt: &GaussianOptimizer<T>,
     stats: &DensifyStats<T>,
 ) -> Result<()> {
     g.validate()?;
-    let ok = opt.xyz.len() == g.xyz.len()
-        && opt.sh.len() == g.sh.len()
-        && opt.scaling.len() == g.scaling.len()
-        && opt.rotation.len() == g.rotation.len()
-        && opt.opacity.len() == g.opacity.len()
-        && stats.len() == g.len();
-    if ok {
+    if opt.fits(g) && stats.len() == g.len() {
         Ok(())
     } else {
         Err(Error::invalid(
@@ -91,36 +70,26 @@ fn check_aligned<T: Real>(
 
 /// Append copies of `rows` to the parameters and zero moments to the state.
 fn append_rows<T: Real>(g: &mut Gaussians<T>, opt: &mut GaussianOptimizer<T>, rows: &[usize]) {
-    let w = widths(g);
-    for (v, &wd) in arrays(g).into_iter().zip(&w) {
+    let k = g.coeffs();
+    for (group, v) in g.groups_mut() {
+        let w = group.width(k);
         for &r in rows {
-            v.extend_from_within(r * wd..(r + 1) * wd);
+            v.extend_from_within(r * w..(r + 1) * w);
         }
+        opt.state_mut(group).extend_zero(w, rows.len());
     }
-    extend_state(opt, &w, rows.len());
-}
-
-fn extend_state<T: Real>(opt: &mut GaussianOptimizer<T>, w: &[usize; 5], count: usize) {
-    opt.xyz.extend_zero(w[0], count);
-    opt.sh.extend_zero(w[1], count);
-    opt.scaling.extend_zero(w[2], count);
-    opt.rotation.extend_zero(w[3], count);
-    opt.opacity.extend_zero(w[4], count);
 }
 
 /// Keep only the Gaussians for which `remove` is false, in order, with their
 /// Adam moments.
 fn retain<T: Real>(g: &mut Gaussians<T>, opt: &mut GaussianOptimizer<T>, remove: &[bool]) {
     let keep: Vec<usize> = (0..remove.len()).filter(|&i| !remove[i]).collect();
-    let w = widths(g);
-    for (v, &wd) in arrays(g).into_iter().zip(&w) {
-        *v = crate::optim::adam::gather_rows(v, wd, &keep);
+    let k = g.coeffs();
+    for (group, v) in g.groups_mut() {
+        let w = group.width(k);
+        *v = crate::optim::adam::gather_rows(v, w, &keep);
+        opt.state_mut(group).select_rows(w, &keep);
     }
-    opt.xyz.select_rows(w[0], &keep);
-    opt.sh.select_rows(w[1], &keep);
-    opt.scaling.select_rows(w[2], &keep);
-    opt.rotation.select_rows(w[3], &keep);
-    opt.opacity.select_rows(w[4], &keep);
 }
 
 /// Rotation matrix (row-major) of a quaternion (w, x, y, z) after
@@ -149,7 +118,8 @@ fn rotation_matrix<T: Real>(q: &[T]) -> [[T; 3]; 3] {
     ]
 }
 
-/// Append the split children of `selected` (indices into the current set).
+/// Append the split children of `selected` (indices into the current set):
+/// copies of their rows, copy-major, then each child's mean and scale.
 fn append_split_children<T: Real>(
     g: &mut Gaussians<T>,
     opt: &mut GaussianOptimizer<T>,
@@ -167,40 +137,25 @@ fn append_split_children<T: Real>(
             (0..3 * copies).map(|_| rng.normal()).collect()
         })
         .collect();
-    let k3 = 3 * g.coeffs();
-    let count = copies * selected.len();
-    let (mut xyz, mut sh, mut scaling, mut rotation, mut opacity) = (
-        Vec::with_capacity(3 * count),
-        Vec::with_capacity(k3 * count),
-        Vec::with_capacity(3 * count),
-        Vec::with_capacity(4 * count),
-        Vec::with_capacity(count),
-    );
+    let first = g.len();
+    let rows: Vec<usize> = (0..copies).flat_map(|_| selected.iter().copied()).collect();
+    append_rows(g, opt, &rows);
     for c in 0..copies {
         for (s, &i) in selected.iter().enumerate() {
+            let child = first + c * selected.len() + s;
             let scale: [T; 3] = std::array::from_fn(|d| g.scaling[3 * i + d].exp());
             let sample: [T; 3] =
                 std::array::from_fn(|d| T::from_f64(normals[s][3 * c + d]) * scale[d]);
             let r = rotation_matrix(&g.rotation[4 * i..4 * i + 4]);
             for (row, rrow) in r.iter().enumerate() {
                 let v = rrow[0] * sample[0] + rrow[1] * sample[1] + rrow[2] * sample[2];
-                xyz.push(v + g.xyz[3 * i + row]);
+                g.xyz[3 * child + row] = v + g.xyz[3 * i + row];
             }
-            for sd in scale {
-                scaling.push((sd / div).ln());
+            for (d, sd) in scale.into_iter().enumerate() {
+                g.scaling[3 * child + d] = (sd / div).ln();
             }
-            sh.extend_from_slice(&g.sh[k3 * i..k3 * (i + 1)]);
-            rotation.extend_from_slice(&g.rotation[4 * i..4 * i + 4]);
-            opacity.push(g.opacity[i]);
         }
     }
-    g.xyz.extend(xyz);
-    g.sh.extend(sh);
-    g.scaling.extend(scaling);
-    g.rotation.extend(rotation);
-    g.opacity.extend(opacity);
-    let w = widths(g);
-    extend_state(opt, &w, count);
 }
 
 /// Clone, split and prune (upstream `densify_and_prune`), updating the
@@ -270,13 +225,14 @@ pub fn densify_and_prune<T: Real>(
 /// with `inverse_sigmoid(y) = ln(y / (1 − y))`; the opacity group's Adam
 /// moments are zeroed and its step counter kept.
 pub fn reset_opacity<T: Real>(g: &mut Gaussians<T>, opt: &mut GaussianOptimizer<T>) -> Result<()> {
-    if opt.opacity.len() != g.opacity.len() {
+    let state = opt.state_mut(Group::Opacity);
+    if state.len() != g.opacity.len() {
         return Err(Error::invalid(
             "opacity reset",
             format!(
                 "{} opacities but optimizer state for {}",
                 g.opacity.len(),
-                opt.opacity.len()
+                state.len()
             ),
         ));
     }
@@ -285,6 +241,6 @@ pub fn reset_opacity<T: Real>(g: &mut Gaussians<T>, opt: &mut GaussianOptimizer<
         let a = o.sigmoid().min(cap);
         *o = (a / (T::ONE - a)).ln();
     }
-    opt.opacity.zero_moments();
+    state.zero_moments();
     Ok(())
 }

@@ -2,7 +2,7 @@
 //! determinism of the split sampling.
 
 use super::*;
-use crate::gaussians::Gaussians;
+use crate::gaussians::{Gaussians, Group};
 use crate::math::Rng;
 use crate::optim::GaussianOptimizer;
 
@@ -53,16 +53,8 @@ fn scene() -> (Gaussians<f64>, DensifyStats<f64>) {
 fn traced_optimizer(g: &Gaussians<f64>) -> GaussianOptimizer<f64> {
     let mut opt = GaussianOptimizer::new(g);
     let n = g.len() as f64;
-    for (k, st) in [
-        &mut opt.xyz,
-        &mut opt.sh,
-        &mut opt.scaling,
-        &mut opt.rotation,
-        &mut opt.opacity,
-    ]
-    .into_iter()
-    .enumerate()
-    {
+    for (k, group) in Group::ALL.into_iter().enumerate() {
+        let st = opt.state_mut(group);
         let width = st.len() as f64 / n;
         for (e, (m, v)) in st.m.iter_mut().zip(st.v.iter_mut()).enumerate() {
             let row = (e as f64 / width).floor();
@@ -160,14 +152,14 @@ fn adam_moments_follow_their_gaussians() {
         SEED,
     )
     .unwrap();
-    let pairs = [
-        (&opt.xyz, &before.xyz, 3),
-        (&opt.sh, &before.sh, 12),
-        (&opt.scaling, &before.scaling, 3),
-        (&opt.rotation, &before.rotation, 4),
-        (&opt.opacity, &before.opacity, 1),
-    ];
-    for (after, old, w) in pairs {
+    for (group, w) in [
+        (Group::Xyz, 3),
+        (Group::Sh, 12),
+        (Group::Scaling, 3),
+        (Group::Rotation, 4),
+        (Group::Opacity, 1),
+    ] {
+        let (after, old) = (opt.state(group), before.state(group));
         assert_eq!(after.len(), 6 * w);
         assert_eq!(after.step, old.step, "step counters are unchanged");
         for (f, o) in [(0usize, 0usize), (1, 2), (2, 4)] {
@@ -278,12 +270,8 @@ fn opacity_reset_caps_at_one_percent() {
             assert!((o - orig).abs() < 1e-9, "{i}: {o} vs {orig}");
         }
     }
-    assert!(opt
-        .opacity
-        .m
-        .iter()
-        .chain(&opt.opacity.v)
-        .all(|&x| x == 0.0));
-    assert_eq!(opt.opacity.step, 11);
-    assert_ne!(opt.xyz.m[0], 0.0, "other groups untouched");
+    let state = opt.state(Group::Opacity);
+    assert!(state.m.iter().chain(&state.v).all(|&x| x == 0.0));
+    assert_eq!(state.step, 11);
+    assert_ne!(opt.state(Group::Xyz).m[0], 0.0, "other groups untouched");
 }

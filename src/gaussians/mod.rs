@@ -7,9 +7,14 @@
 //! |------------|-----------------|------------------------------------------------------|
 //! | `xyz`      | `[N, 3]`        | canonical mean                                       |
 //! | `sh`       | `[N, K, 3]`     | SH coefficients, K = (max_degree+1)², coefficient 0 is the DC term (`f_dc`), 1.. are `f_rest`; element (i,k,c) at `(i*K + k)*3 + c` |
+//! | `opacity`  | `[N]`           | opacity logit (`[N, 1]` in files)                    |
 //! | `scaling`  | `[N, 3]`        | log of the standard deviations                       |
 //! | `rotation` | `[N, 4]`        | raw quaternion (w, x, y, z), not normalised          |
-//! | `opacity`  | `[N]`           | opacity logit                                        |
+//!
+//! These five arrays are the parameter groups ([`Group`]): one table gives
+//! each group's name and row width, and everything that handles the groups
+//! one by one (the optimizer, densification, checkpoints and case files,
+//! the state hash, PLY files) iterates [`Group::ALL`].
 //!
 //! Activations (done before the rasterizer, as upstream): `scale = exp(scaling)`,
 //! `opacity = sigmoid(opacity)`, `rotation = q / max(|q|, 1e-12)`.
@@ -24,16 +29,87 @@ use crate::math::Real;
 /// `torch.nn.functional.normalize`'s epsilon.
 pub const NORMALIZE_EPS: f64 = 1e-12;
 
-/// Canonical Gaussians with raw parameters.
+/// One of the five per-Gaussian parameter groups (one raw parameter array
+/// each, one Adam state each).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Group {
+    /// Canonical means, 3 per Gaussian.
+    Xyz,
+    /// SH coefficients, `K × 3` per Gaussian (upstream's `f_dc` and `f_rest`).
+    Sh,
+    /// Opacity logits, 1 per Gaussian.
+    Opacity,
+    /// Log standard deviations, 3 per Gaussian.
+    Scaling,
+    /// Raw quaternions, 4 per Gaussian.
+    Rotation,
+}
+
+/// The table of groups, in [`Group::ALL`]'s order: name (of the tensor in
+/// case files and checkpoints, and of the Adam group), values per row, and
+/// whether the row holds that many values per SH coefficient (`[K, 3]`).
+const GROUP_TABLE: [(&str, usize, bool); 5] = [
+    ("xyz", 3, false),
+    ("sh", 3, true),
+    ("opacity", 1, false),
+    ("scaling", 3, false),
+    ("rotation", 4, false),
+];
+
+impl Group {
+    /// Every group, in upstream's order (the param groups of
+    /// `GaussianModel.training_setup` and the PLY properties of
+    /// `construct_list_of_attributes`, with `f_dc` and `f_rest` as one).
+    pub const ALL: [Group; 5] = [
+        Group::Xyz,
+        Group::Sh,
+        Group::Opacity,
+        Group::Scaling,
+        Group::Rotation,
+    ];
+
+    /// The group's name: `xyz`, `sh`, `opacity`, `scaling` or `rotation`.
+    pub fn name(self) -> &'static str {
+        GROUP_TABLE[self as usize].0
+    }
+
+    /// Values per Gaussian with `coeffs` SH coefficients (K).
+    pub fn width(self, coeffs: usize) -> usize {
+        let (_, w, per_coeff) = GROUP_TABLE[self as usize];
+        if per_coeff {
+            w * coeffs
+        } else {
+            w
+        }
+    }
+
+    /// The shape of one Gaussian's row in files: `[3]`, `[K, 3]`, `[1]`,
+    /// `[3]`, `[4]`.
+    pub fn row_shape(self, coeffs: usize) -> Vec<usize> {
+        let (_, w, per_coeff) = GROUP_TABLE[self as usize];
+        if per_coeff {
+            vec![coeffs, w]
+        } else {
+            vec![w]
+        }
+    }
+}
+
+/// Canonical Gaussians with raw parameters (one array per [`Group`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Gaussians<T> {
     /// Highest SH degree stored (K = (max_sh_degree + 1)² coefficients).
     pub max_sh_degree: usize,
+    /// Canonical means `[N, 3]`.
     pub xyz: Vec<T>,
+    /// SH coefficients `[N, K, 3]`, coefficient-major per Gaussian.
     pub sh: Vec<T>,
-    pub scaling: Vec<T>,
-    pub rotation: Vec<T>,
+    /// Opacity logits `[N]`.
     pub opacity: Vec<T>,
+    /// Log standard deviations `[N, 3]`.
+    pub scaling: Vec<T>,
+    /// Raw quaternions (w, x, y, z) `[N, 4]`.
+    pub rotation: Vec<T>,
 }
 
 impl<T: Real> Gaussians<T> {
@@ -54,10 +130,12 @@ impl<T: Real> Gaussians<T> {
         }
     }
 
+    /// Number of Gaussians (N, the length of `opacity`).
     pub fn len(&self) -> usize {
         self.opacity.len()
     }
 
+    /// True when there are no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.opacity.is_empty()
     }
@@ -67,19 +145,60 @@ impl<T: Real> Gaussians<T> {
         Self::coeffs_for_degree(self.max_sh_degree)
     }
 
+    /// The array of `group`.
+    pub fn group(&self, group: Group) -> &Vec<T> {
+        match group {
+            Group::Xyz => &self.xyz,
+            Group::Sh => &self.sh,
+            Group::Opacity => &self.opacity,
+            Group::Scaling => &self.scaling,
+            Group::Rotation => &self.rotation,
+        }
+    }
+
+    /// The array of `group`, mutable.
+    pub fn group_mut(&mut self, group: Group) -> &mut Vec<T> {
+        match group {
+            Group::Xyz => &mut self.xyz,
+            Group::Sh => &mut self.sh,
+            Group::Opacity => &mut self.opacity,
+            Group::Scaling => &mut self.scaling,
+            Group::Rotation => &mut self.rotation,
+        }
+    }
+
+    /// Every array with its group, in [`Group::ALL`]'s order, mutable.
+    pub fn groups_mut(&mut self) -> [(Group, &mut Vec<T>); 5] {
+        [
+            (Group::Xyz, &mut self.xyz),
+            (Group::Sh, &mut self.sh),
+            (Group::Opacity, &mut self.opacity),
+            (Group::Scaling, &mut self.scaling),
+            (Group::Rotation, &mut self.rotation),
+        ]
+    }
+
+    /// Values per Gaussian of `group` ([`Group::width`] at this SH degree).
+    pub fn width(&self, group: Group) -> usize {
+        group.width(self.coeffs())
+    }
+
+    /// The file shape of `group`'s array: `[N]` followed by its
+    /// [`row_shape`](Group::row_shape).
+    pub fn shape(&self, group: Group) -> Vec<usize> {
+        let mut s = vec![self.len()];
+        s.extend(group.row_shape(self.coeffs()));
+        s
+    }
+
     /// Check that every array has the length its shape requires.
     pub fn validate(&self) -> Result<()> {
         let n = self.len();
-        let k = self.coeffs();
-        for (name, len, want) in [
-            ("xyz", self.xyz.len(), 3 * n),
-            ("sh", self.sh.len(), 3 * k * n),
-            ("scaling", self.scaling.len(), 3 * n),
-            ("rotation", self.rotation.len(), 4 * n),
-        ] {
+        for group in Group::ALL {
+            let (len, want) = (self.group(group).len(), self.width(group) * n);
             if len != want {
                 return Err(Error::invalid(
-                    format!("Gaussians.{name}"),
+                    format!("Gaussians.{}", group.name()),
                     format!("{len} values for {n} Gaussians, expected {want}"),
                 ));
             }

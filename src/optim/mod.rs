@@ -18,21 +18,17 @@ pub mod adam;
 pub mod schedule;
 
 pub use adam::{AdamConfig, AdamState};
-pub use schedule::{GroupLrs, LearningRates};
+pub use schedule::{GroupLrs, LearningRates, StepRates};
 
 use crate::error::{Error, Result};
-use crate::gaussians::Gaussians;
+use crate::gaussians::{Gaussians, Group};
 use crate::math::Real;
 
-/// The Adam states of the canonical Gaussians, one per parameter array.
+/// The Adam states of the canonical Gaussians, one per [`Group`].
 #[derive(Clone, Debug, PartialEq)]
 pub struct GaussianOptimizer<T> {
-    pub xyz: AdamState<T>,
-    /// f_dc and f_rest together, `[N, K, 3]`.
-    pub sh: AdamState<T>,
-    pub opacity: AdamState<T>,
-    pub scaling: AdamState<T>,
-    pub rotation: AdamState<T>,
+    /// Indexed by `Group as usize` ([`Group::ALL`]'s order).
+    states: [AdamState<T>; 5],
 }
 
 /// Which groups an optimizer step updates.
@@ -51,25 +47,51 @@ pub enum StepGroups {
     None,
 }
 
+impl StepGroups {
+    /// Whether `group` steps.
+    pub fn includes(self, group: Group) -> bool {
+        match self {
+            StepGroups::All => true,
+            StepGroups::AllButOpacity => group != Group::Opacity,
+            StepGroups::None => false,
+        }
+    }
+}
+
 impl<T: Real> GaussianOptimizer<T> {
     /// Zero state for `gaussians` (their sizes), default hyper-parameters.
     pub fn new(gaussians: &Gaussians<T>) -> Self {
         GaussianOptimizer {
-            xyz: AdamState::new(gaussians.xyz.len()),
-            sh: AdamState::new(gaussians.sh.len()),
-            opacity: AdamState::new(gaussians.opacity.len()),
-            scaling: AdamState::new(gaussians.scaling.len()),
-            rotation: AdamState::new(gaussians.rotation.len()),
+            states: Group::ALL.map(|g| AdamState::new(gaussians.group(g).len())),
         }
+    }
+
+    /// The state of `group` (f_dc and f_rest together for [`Group::Sh`],
+    /// `[N, K, 3]`).
+    pub fn state(&self, group: Group) -> &AdamState<T> {
+        &self.states[group as usize]
+    }
+
+    /// The state of `group`, mutable.
+    pub fn state_mut(&mut self, group: Group) -> &mut AdamState<T> {
+        &mut self.states[group as usize]
     }
 
     /// Number of Gaussians the state is sized for.
     pub fn len(&self) -> usize {
-        self.opacity.len()
+        self.state(Group::Opacity).len()
     }
 
+    /// True when the state is sized for no Gaussians.
     pub fn is_empty(&self) -> bool {
-        self.opacity.is_empty()
+        self.len() == 0
+    }
+
+    /// Whether every group's state has the length of its array in `g`.
+    pub fn fits(&self, g: &Gaussians<T>) -> bool {
+        Group::ALL
+            .iter()
+            .all(|&group| self.state(group).len() == g.group(group).len())
     }
 
     /// One step of the selected groups. `grads` holds `dL/d(raw parameter)`
@@ -86,8 +108,7 @@ impl<T: Real> GaussianOptimizer<T> {
         grads.validate()?;
         if grads.len() != params.len()
             || grads.max_sh_degree != params.max_sh_degree
-            || self.len() != params.len()
-            || self.sh.len() != params.sh.len()
+            || !self.fits(params)
         {
             return Err(Error::invalid(
                 "Gaussian optimizer step",
@@ -101,22 +122,13 @@ impl<T: Real> GaussianOptimizer<T> {
                 ),
             ));
         }
-        if groups == StepGroups::None {
-            return Ok(());
-        }
         let k = params.coeffs();
-        let mut sh_lrs = vec![lrs.f_rest; 3 * k];
-        sh_lrs[..3].fill(lrs.f_dc);
-        self.xyz.step(&mut params.xyz, &grads.xyz, lrs.xyz)?;
-        self.sh.step_periodic(&mut params.sh, &grads.sh, &sh_lrs)?;
-        if groups == StepGroups::All {
-            self.opacity
-                .step(&mut params.opacity, &grads.opacity, lrs.opacity)?;
+        for (group, p) in params.groups_mut() {
+            if groups.includes(group) {
+                let rates = lrs.periodic(group, k);
+                self.states[group as usize].step_periodic(p, grads.group(group), &rates)?;
+            }
         }
-        self.scaling
-            .step(&mut params.scaling, &grads.scaling, lrs.scaling)?;
-        self.rotation
-            .step(&mut params.rotation, &grads.rotation, lrs.rotation)?;
         Ok(())
     }
 }
@@ -140,13 +152,7 @@ mod tests {
     fn groups_use_their_rates() {
         let mut p = two_gaussians();
         let mut g = two_gaussians();
-        for v in [
-            &mut g.xyz,
-            &mut g.sh,
-            &mut g.scaling,
-            &mut g.rotation,
-            &mut g.opacity,
-        ] {
+        for (_, v) in g.groups_mut() {
             v.fill(1.0);
         }
         let mut opt = GaussianOptimizer::new(&p);
@@ -162,7 +168,11 @@ mod tests {
         assert!(close(p.scaling[5], -lrs.scaling));
         assert!(close(p.rotation[4], 1.0 - lrs.rotation));
         assert_eq!(p.opacity, vec![0.0, 0.0]);
-        assert_eq!((opt.xyz.step, opt.sh.step, opt.opacity.step), (1, 1, 0));
+        let step = |g| opt.state(g).step;
+        assert_eq!(
+            (step(Group::Xyz), step(Group::Sh), step(Group::Opacity)),
+            (1, 1, 0)
+        );
         let before = p.clone();
         opt.step(&mut p, &g, &lrs, StepGroups::None).unwrap();
         assert_eq!(p, before);

@@ -4,6 +4,8 @@
 //! The transcendental functions are the pinned `libm`'s, not numpy's, so a
 //! value may differ from upstream in the last bit of an f64.
 
+use crate::gaussians::Group;
+
 /// `get_expon_lr_func` with `lr_delay_steps = 0` (so the delay factor is 1):
 /// 0 for `step < 0` (or when both rates are 0), otherwise
 /// `exp(ln(lr_init)·(1 − t) + ln(lr_final)·t)` with `t = clip(step / max_steps, 0, 1)`.
@@ -29,15 +31,84 @@ fn clip01(t: f64) -> f64 {
     t.clamp(0.0, 1.0)
 }
 
-/// Learning rates of one Gaussian optimizer step, one per group.
+/// Learning rates of one Gaussian optimizer step, one per upstream param
+/// group (the [`Sh`](Group::Sh) group has two: `f_dc` and `f_rest`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GroupLrs {
+    /// Canonical means.
     pub xyz: f64,
+    /// SH coefficient 0.
     pub f_dc: f64,
+    /// SH coefficients 1..K.
     pub f_rest: f64,
+    /// Opacity logits.
     pub opacity: f64,
+    /// Log scales.
     pub scaling: f64,
+    /// Raw quaternions.
     pub rotation: f64,
+}
+
+impl GroupLrs {
+    /// The rates of `group`'s elements as [`AdamState::step_periodic`]
+    /// takes them, with `coeffs` SH coefficients: one rate, or for
+    /// [`Group::Sh`] one row `[K, 3]` (`f_dc` for coefficient 0, `f_rest`
+    /// for the others).
+    ///
+    /// [`AdamState::step_periodic`]: super::AdamState::step_periodic
+    pub fn periodic(&self, group: Group, coeffs: usize) -> Vec<f64> {
+        match group {
+            Group::Xyz => vec![self.xyz],
+            Group::Sh => {
+                let mut rates = vec![self.f_rest; 3 * coeffs];
+                rates[..3].fill(self.f_dc);
+                rates
+            }
+            Group::Opacity => vec![self.opacity],
+            Group::Scaling => vec![self.scaling],
+            Group::Rotation => vec![self.rotation],
+        }
+    }
+}
+
+/// Learning rates of one optimizer step of a whole model: the Gaussian
+/// groups' and the field weights'.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct StepRates {
+    /// The Gaussian groups' rates.
+    pub gaussians: GroupLrs,
+    /// The field weights' rate.
+    pub field: f64,
+}
+
+impl StepRates {
+    /// The names of the seven rates, in [`to_array`](Self::to_array)'s order.
+    pub const NAMES: [&'static str; 7] = [
+        "xyz", "f_dc", "f_rest", "opacity", "scaling", "rotation", "field",
+    ];
+
+    /// The rates in [`NAMES`](Self::NAMES)' order.
+    pub fn to_array(&self) -> [f64; 7] {
+        let g = &self.gaussians;
+        [
+            g.xyz, g.f_dc, g.f_rest, g.opacity, g.scaling, g.rotation, self.field,
+        ]
+    }
+
+    /// The rates from values in [`NAMES`](Self::NAMES)' order.
+    pub fn from_array(v: [f64; 7]) -> Self {
+        StepRates {
+            gaussians: GroupLrs {
+                xyz: v[0],
+                f_dc: v[1],
+                f_rest: v[2],
+                opacity: v[3],
+                scaling: v[4],
+                rotation: v[5],
+            },
+            field: v[6],
+        }
+    }
 }
 
 /// Every learning rate and schedule of D-3DGS training, with the upstream
@@ -96,6 +167,27 @@ impl Default for LearningRates {
 }
 
 impl LearningRates {
+    /// The rates of every group before any step: the initial rates of the
+    /// xyz and field schedules (not evaluated through `exp`/`ln`).
+    pub fn initial(&self) -> StepRates {
+        StepRates {
+            gaussians: GroupLrs {
+                xyz: self.xyz_init,
+                ..self.gaussian(0)
+            },
+            field: self.deform_init,
+        }
+    }
+
+    /// The rates of the optimizer step at `step` (iteration `step + 1`):
+    /// [`gaussian`](Self::gaussian) and [`deform`](Self::deform) at `step`.
+    pub fn at(&self, step: i64) -> StepRates {
+        StepRates {
+            gaussians: self.gaussian(step),
+            field: self.deform(step),
+        }
+    }
+
     /// The same schedules compressed (or stretched) for a run of `iterations`
     /// steps instead of `reference` (normally [`REFERENCE_ITERATIONS`]): every
     /// step count (`xyz_max_steps`, `deform_max_steps`, `ast_max_steps`) is

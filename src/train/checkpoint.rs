@@ -25,18 +25,22 @@
 
 use super::cameras::CameraSampler;
 use super::config::TrainConfig;
-use super::trainer::{Fnv, Trainer};
+use super::model::Model;
+use super::state::{self, Source};
+use super::trainer::{Fnv, Progress, Trainer};
 use crate::deform::Field;
-use crate::densify::DensifyStats;
 use crate::error::{Error, Result};
-use crate::gaussians::{ply, Gaussians};
+use crate::gaussians::ply;
 use crate::io::TensorFile;
 use crate::math::{Real, Rng};
-use crate::optim::{AdamState, GaussianOptimizer};
 use std::path::{Path, PathBuf};
 
+/// The training state's file in a checkpoint folder ([`super::state`]'s
+/// layout, plus the sampler, generators and hashes).
 pub const STATE_FILE: &str = "state.safetensors";
+/// The field weights' file in a checkpoint folder.
 pub const FIELD_FILE: &str = "deform.safetensors";
+/// The canonical Gaussians as an Inria PLY in a checkpoint folder.
 pub const PLY_FILE: &str = "point_cloud.ply";
 
 /// What a run is trained on, recorded in its checkpoints and compared on
@@ -127,7 +131,7 @@ pub fn save<T: Real>(
     binding: &DataBinding,
     extra: &[(&str, &[u8])],
 ) -> Result<PathBuf> {
-    let name = checkpoint_name(trainer.iteration);
+    let name = checkpoint_name(trainer.iteration());
     let final_dir = dir.join(&name);
     let partial = dir.join(format!("{name}.partial"));
     let mkdir = |p: &Path| std::fs::create_dir_all(p).map_err(|e| Error::io(p, e));
@@ -136,42 +140,28 @@ pub fn save<T: Real>(
     }
     mkdir(&partial)?;
 
-    let g = &trainer.gaussians;
-    let n = g.len();
+    let model = trainer.model();
+    let g = &model.gaussians;
     let mut f = TensorFile::new(partial.join(STATE_FILE));
-    f.insert_real("xyz", vec![n, 3], &g.xyz);
-    f.insert_real("sh", vec![n, g.coeffs(), 3], &g.sh);
-    f.insert_real("scaling", vec![n, 3], &g.scaling);
-    f.insert_real("rotation", vec![n, 4], &g.rotation);
-    f.insert_real("opacity", vec![n, 1], &g.opacity);
-    for (group, a) in adam_groups(&trainer.optimizer, &trainer.field_optimizer) {
-        f.insert_real(&format!("adam.{group}.m"), vec![a.m.len()], &a.m);
-        f.insert_real(&format!("adam.{group}.v"), vec![a.v.len()], &a.v);
-        f.set_meta(&format!("adam.{group}.step"), a.step);
-    }
-    let s = &trainer.stats;
-    f.insert_real("stats.accum", vec![n], &s.accum);
-    f.insert_i32(
-        "stats.denom",
-        vec![n],
-        to_i32("stats.denom", s.denom.iter().map(|&d| d as u64))?,
-    );
-    f.insert_i32("stats.max_radii", vec![n], s.max_radii.clone());
-    let stack = trainer.sampler.stack();
+    state::write_gaussians(&mut f, "", g);
+    state::write_optimizer(&mut f, "", trainer.optimizer(), g);
+    state::write_stats(&mut f, "", trainer.stats())?;
+    let sampler = trainer.sampler();
+    let stack = sampler.stack();
     f.insert_i32(
         "sampler.stack",
         vec![stack.len()],
         to_i32("sampler.stack", stack.iter().map(|&i| i as u64))?,
     );
-    f.set_meta("iteration", trainer.iteration);
-    f.set_meta("active_sh_degree", trainer.active_sh_degree);
+    f.set_meta("iteration", trainer.iteration());
+    f.set_meta("active_sh_degree", model.active_sh_degree);
     f.set_meta("max_sh_degree", g.max_sh_degree);
-    f.set_meta("sampler.views", trainer.sampler.count());
-    f.set_meta("sampler.rng", trainer.sampler.rng_state());
-    f.set_meta("ast.rng", trainer.ast_rng.state());
-    f.set_meta("extent", format!("{:?}", trainer.extent));
-    f.set_meta("background", format!("{:?}", trainer.background));
-    f.set_meta("config", trainer.config.fingerprint());
+    f.set_meta("sampler.views", sampler.count());
+    f.set_meta("sampler.rng", sampler.rng_state());
+    f.set_meta("ast.rng", trainer.ast_rng().state());
+    f.set_meta("extent", format!("{:?}", trainer.extent()));
+    f.set_meta("background", format!("{:?}", model.background));
+    f.set_meta("config", trainer.config().fingerprint());
     let state_hash = trainer.state_hash();
     f.set_meta("state_hash", format!("{state_hash:016x}"));
     f.set_meta("data.source", &binding.source);
@@ -180,19 +170,14 @@ pub fn save<T: Real>(
         format!("{}x{}", binding.resolution.0, binding.resolution.1),
     );
     f.set_meta("data.hash", format!("{:016x}", binding.data_hash));
-    f.set_meta(
-        "checkpoint_hash",
-        format!(
-            "{:016x}",
-            checkpoint_hash(state_hash, trainer.extent, trainer.background, binding)
-        ),
-    );
+    let hash = checkpoint_hash(state_hash, trainer.extent(), model.background, binding);
+    f.set_meta("checkpoint_hash", format!("{hash:016x}"));
     f.set_meta("crate_version", env!("CARGO_PKG_VERSION"));
-    trainer
+    model
         .field
         .to_tensor_file()
         .save(&partial.join(FIELD_FILE))?;
-    f.set_meta("field_hash", format!("{:016x}", field_hash(&trainer.field)));
+    f.set_meta("field_hash", format!("{:016x}", field_hash(&model.field)));
     let ply_path = partial.join(PLY_FILE);
     ply::write_gaussians(&ply_path, g)?;
     f.set_meta("ply_hash", format!("{:016x}", file_hash(&ply_path)?));
@@ -207,20 +192,6 @@ pub fn save<T: Real>(
     }
     std::fs::rename(&partial, &final_dir).map_err(|e| Error::io(&final_dir, e))?;
     Ok(final_dir)
-}
-
-fn adam_groups<'a, T>(
-    o: &'a GaussianOptimizer<T>,
-    field: &'a AdamState<T>,
-) -> [(&'static str, &'a AdamState<T>); 6] {
-    [
-        ("xyz", &o.xyz),
-        ("sh", &o.sh),
-        ("opacity", &o.opacity),
-        ("scaling", &o.scaling),
-        ("rotation", &o.rotation),
-        ("field", field),
-    ]
 }
 
 /// The newest complete checkpoint in `dir` (`.partial` folders are ignored).
@@ -278,18 +249,15 @@ fn load_checked<T: Real>(
             ),
         ));
     }
+    let gaussians = state::read_gaussians::<T>(&f, "")?;
     let deg: usize = f.meta_parse("max_sh_degree")?;
-    let n = f.shape("xyz")?.first().copied().unwrap_or(0);
-    let k = Gaussians::<T>::coeffs_for_degree(deg);
-    let gaussians = Gaussians {
-        max_sh_degree: deg,
-        xyz: f.get_real("xyz", &[n, 3])?,
-        sh: f.get_real("sh", &[n, k, 3])?,
-        scaling: f.get_real("scaling", &[n, 3])?,
-        rotation: f.get_real("rotation", &[n, 4])?,
-        opacity: f.get_real("opacity", &[n, 1])?,
-    };
-    gaussians.validate()?;
+    if deg != gaussians.max_sh_degree {
+        return Err(Error::field(
+            &path,
+            "__metadata__.max_sh_degree",
+            format!("{deg}, but `sh` holds degree {}", gaussians.max_sh_degree),
+        ));
+    }
     let field_path = ckpt.join(FIELD_FILE);
     let field_file = TensorFile::load(&field_path)?;
     let field = Field::<T>::from_tensor_file(config.field, &field_file)?;
@@ -322,24 +290,12 @@ fn load_checked<T: Real>(
             ),
         ));
     }
-    let adam = |group: &str, len: usize| -> Result<AdamState<T>> {
-        let mut a = AdamState::new(len);
-        a.m = f.get_real(&format!("adam.{group}.m"), &[len])?;
-        a.v = f.get_real(&format!("adam.{group}.v"), &[len])?;
-        a.step = f.meta_parse(&format!("adam.{group}.step"))?;
-        Ok(a)
-    };
-    let optimizer = GaussianOptimizer {
-        xyz: adam("xyz", gaussians.xyz.len())?,
-        sh: adam("sh", gaussians.sh.len())?,
-        opacity: adam("opacity", n)?,
-        scaling: adam("scaling", gaussians.scaling.len())?,
-        rotation: adam("rotation", gaussians.rotation.len())?,
-    };
-    let field_optimizer = adam("field", field.param_count())?;
-    let i32s = |name: &str, len: Option<usize>| -> Result<Vec<i32>> {
+    let optimizer =
+        state::read_optimizer(&f, "", &gaussians, field.param_count(), Source::Checkpoint)?;
+    let stats = state::read_stats(&f, "", gaussians.len(), Source::Checkpoint)?;
+    let i32s = |name: &str| -> Result<Vec<i32>> {
         let (shape, v) = f.get_i32(name)?;
-        if shape.len() != 1 || len.is_some_and(|l| shape[0] != l) || v.iter().any(|&x| x < 0) {
+        if shape.len() != 1 || v.iter().any(|&x| x < 0) {
             return Err(Error::field(
                 &path,
                 name,
@@ -348,16 +304,8 @@ fn load_checked<T: Real>(
         }
         Ok(v)
     };
-    let stats = DensifyStats {
-        accum: f.get_real("stats.accum", &[n])?,
-        denom: i32s("stats.denom", Some(n))?
-            .into_iter()
-            .map(|d| d as u32)
-            .collect(),
-        max_radii: i32s("stats.max_radii", Some(n))?,
-    };
     let views: usize = f.meta_parse("sampler.views")?;
-    let stack: Vec<usize> = i32s("sampler.stack", None)?
+    let stack: Vec<usize> = i32s("sampler.stack")?
         .into_iter()
         .map(|i| i as usize)
         .collect();
@@ -383,20 +331,18 @@ fn load_checked<T: Real>(
         background,
         data_hash: hex("data.hash")?,
     };
-    let trainer = Trainer {
-        config: config.clone(),
-        iteration: f.meta_parse("iteration")?,
-        active_sh_degree: f.meta_parse("active_sh_degree")?,
+    let model = Model {
         gaussians,
         field,
-        optimizer,
-        field_optimizer,
-        stats,
-        sampler: CameraSampler::from_state(views, stack, f.meta_parse("sampler.rng")?),
-        ast_rng: Rng::new(f.meta_parse("ast.rng")?),
-        extent,
+        active_sh_degree: f.meta_parse("active_sh_degree")?,
         background,
     };
+    let progress = Progress {
+        iteration: f.meta_parse("iteration")?,
+        sampler: CameraSampler::from_state(views, stack, f.meta_parse("sampler.rng")?),
+        ast_rng: Rng::new(f.meta_parse("ast.rng")?),
+    };
+    let trainer = Trainer::restore(config.clone(), model, optimizer, stats, progress, extent)?;
     let want = f.meta("state_hash")?;
     let state_hash = trainer.state_hash();
     let got = format!("{state_hash:016x}");

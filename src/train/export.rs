@@ -63,7 +63,7 @@ pub fn deformed_gaussians<T: Real>(
         ));
     }
     let d = trainer.deformed(time)?;
-    let g = &trainer.gaussians;
+    let g = &trainer.model().gaussians;
     let n = g.len();
     let mut scaling = Vec::with_capacity(3 * n);
     let mut rotation = Vec::with_capacity(4 * n);

@@ -189,30 +189,30 @@ pub fn run<T: Real>(
     let (mut trainer, mut curve) = match existing.filter(|_| opts.resume) {
         Some(dir) => {
             let t = checkpoint::load::<T>(&dir, config, &binding)?;
-            if t.sampler.count() != train.len() {
+            if t.sampler().count() != train.len() {
                 return Err(Error::invalid(
                     "resume",
                     format!(
                         "{} was trained on {} views, the dataset has {}",
                         dir.display(),
-                        t.sampler.count(),
+                        t.sampler().count(),
                         train.len()
                     ),
                 ));
             }
             on_event(Event::Resumed {
-                iteration: t.iteration,
+                iteration: t.iteration(),
             });
             (t, read_curve(&dir)?)
         }
         None => (new_trainer(config, data)?, Vec::new()),
     };
 
-    let start = trainer.iteration;
+    let start = trainer.iteration();
     let clock = Instant::now();
     let (mut loss_sum, mut loss_n) = (0.0, 0u64);
     let curve_every = (config.iterations / 100).max(1);
-    while trainer.iteration < config.iterations {
+    while trainer.iteration() < config.iterations {
         let r = trainer.step(&train)?;
         on_event(Event::Step(&r));
         loss_sum += r.loss;
@@ -262,15 +262,15 @@ pub fn run<T: Real>(
     let (psnr, ssim) = mean_metrics(&per_view)?;
     write_metrics(&opts.out, &per_view, lpips.map(|m| m.info()).as_ref())?;
     Ok(RunSummary {
-        iterations: trainer.iteration,
-        gaussians: trainer.gaussians.len(),
+        iterations: trainer.iteration(),
+        gaussians: trainer.model().gaussians.len(),
         psnr,
         ssim,
         lpips: mean_lpips(&per_view),
         per_view,
         state_hash: format!("{:016x}", trainer.state_hash()),
         train_seconds,
-        iterations_run: trainer.iteration - start,
+        iterations_run: trainer.iteration() - start,
         curve,
     })
 }

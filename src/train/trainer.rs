@@ -13,18 +13,17 @@
 
 use super::cameras::CameraSampler;
 use super::config::TrainConfig;
-use super::deformed::{deform_gaussians, deform_gaussians_vjp, Offsets};
+use super::deformed::{Deformed, Offsets};
+use super::model::{Model, ModelOptimizer};
 use crate::camera::{Camera, RasterCamera};
-use crate::deform::{Field, FieldCache};
+use crate::deform::Field;
 use crate::densify::{densify_and_prune, reset_opacity, DensifyReport, DensifyStats};
 use crate::error::{Error, Result};
-use crate::gaussians::Gaussians;
-use crate::loss::{loss_and_grad, metrics, LossOutput};
+use crate::gaussians::{Gaussians, Group};
+use crate::loss::metrics;
 use crate::math::{Real, Rng};
-use crate::optim::{AdamState, GaussianOptimizer, StepGroups};
-use crate::render::{
-    rasterize, rasterize_backward, Colors, Covariances, GradientMode, RasterInput, RasterOutput,
-};
+use crate::optim::{AdamState, StepGroups};
+use crate::render::RasterOutput;
 use std::time::Instant;
 
 /// Stream indices of the run seed's generators.
@@ -35,16 +34,22 @@ const STREAM_SPLIT: u64 = 3;
 /// A training view: camera, time and ground truth in the run's precision.
 #[derive(Clone, Debug)]
 pub struct View<T> {
+    /// The frame's name (its file path in the dataset).
     pub name: String,
+    /// The camera in the rasterizer's form.
     pub camera: RasterCamera<T>,
+    /// Normalised time of the frame.
     pub time: f64,
-    /// `[3, H, W]`.
+    /// Ground truth `[3, H, W]`.
     pub image: Vec<T>,
+    /// Image width W in pixels.
     pub width: usize,
+    /// Image height H in pixels.
     pub height: usize,
 }
 
 impl<T: Real> View<T> {
+    /// The view of `camera` at `time` with ground truth `image` (`[3, H, W]`).
     pub fn new(name: &str, camera: &Camera, time: f64, image: &[f32]) -> Self {
         View {
             name: name.to_string(),
@@ -60,14 +65,21 @@ impl<T: Real> View<T> {
 /// What one iteration did.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StepReport {
+    /// The iteration (1-based) this report is of.
     pub iteration: u64,
+    /// The training loss.
     pub loss: f64,
+    /// The L1 part of the loss.
     pub l1: f64,
     /// PSNR of the unclamped render against the view (logging only).
     pub psnr: f64,
+    /// Index of the training view used.
     pub view: usize,
+    /// Number of Gaussians after the iteration.
     pub gaussians: usize,
+    /// What densification did, on a densification iteration.
     pub densify: Option<DensifyReport>,
+    /// Whether the opacities were reset.
     pub opacity_reset: bool,
     /// Wall-clock time of each stage (measurement only, not state).
     pub times: StageTimes,
@@ -76,17 +88,24 @@ pub struct StepReport {
 /// Seconds spent in each stage of one iteration.
 #[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize)]
 pub struct StageTimes {
+    /// The field's forward and the deformation.
     pub field_forward: f64,
+    /// The rasterizer's forward.
     pub raster_forward: f64,
+    /// The loss and its gradient.
     pub loss: f64,
+    /// The rasterizer's backward.
     pub raster_backward: f64,
     /// The field's backward and the activations' chain rule.
     pub field_backward: f64,
+    /// Statistics, densification and opacity reset.
     pub densify: f64,
+    /// The Adam steps.
     pub optimizer: f64,
 }
 
 impl StageTimes {
+    /// Names of the stages, in [`values`](Self::values)' order.
     pub const NAMES: [&'static str; 7] = [
         "field forward",
         "raster forward",
@@ -96,6 +115,7 @@ impl StageTimes {
         "densify",
         "optimizer",
     ];
+    /// The seconds of each stage, in [`NAMES`](Self::NAMES)' order.
     pub fn values(&self) -> [f64; 7] {
         [
             self.field_forward,
@@ -107,6 +127,7 @@ impl StageTimes {
             self.optimizer,
         ]
     }
+    /// Add `o`'s seconds stage by stage.
     pub fn add(&mut self, o: &StageTimes) {
         self.field_forward += o.field_forward;
         self.raster_forward += o.raster_forward;
@@ -119,10 +140,10 @@ impl StageTimes {
 }
 
 /// Seconds since the last lap.
-struct Lap(Instant);
+pub(super) struct Lap(pub(super) Instant);
 
 impl Lap {
-    fn lap(&mut self) -> f64 {
+    pub(super) fn lap(&mut self) -> f64 {
         let now = Instant::now();
         let d = now.duration_since(self.0).as_secs_f64();
         self.0 = now;
@@ -134,60 +155,55 @@ impl Lap {
 /// quantised, as upstream's metrics).
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct ViewMetrics {
+    /// The view's name.
     pub name: String,
+    /// PSNR in dB.
     pub psnr: f64,
+    /// SSIM.
     pub ssim: f64,
     /// Absent when no LPIPS weights were given (never a placeholder number).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub lpips: Option<f64>,
 }
 
-/// The complete state of a run: everything a checkpoint stores.
+/// The complete state of a run, everything a checkpoint stores: the model,
+/// its optimizer, the densification statistics, the view sampler and AST
+/// generator, and the schedules (in the configuration).
 #[derive(Clone, Debug)]
 pub struct Trainer<T> {
-    pub config: TrainConfig,
+    config: TrainConfig,
+    /// Completed iterations.
+    iteration: u64,
+    model: Model<T>,
+    optimizer: ModelOptimizer<T>,
+    stats: DensifyStats<T>,
+    sampler: CameraSampler,
+    ast_rng: Rng,
+    /// Scene extent for densification (`cameras_extent`).
+    extent: f64,
+}
+
+/// Where a run stands besides its model, optimizer and statistics (what a
+/// checkpoint restores).
+pub(super) struct Progress {
     /// Completed iterations.
     pub iteration: u64,
-    pub active_sh_degree: usize,
-    pub gaussians: Gaussians<T>,
-    pub field: Field<T>,
-    pub optimizer: GaussianOptimizer<T>,
-    pub field_optimizer: AdamState<T>,
-    pub stats: DensifyStats<T>,
+    /// The view sampler's state.
     pub sampler: CameraSampler,
+    /// The AST noise generator's state.
     pub ast_rng: Rng,
-    /// Scene extent for densification (`cameras_extent`).
-    pub extent: f64,
-    pub background: [f64; 3],
 }
 
-/// Loss and gradients of one view ([`Trainer::gradients`]).
-#[derive(Clone, Debug)]
-pub struct Gradients<T> {
-    pub loss: LossOutput<T>,
-    /// The render `[3, H, W]`.
-    pub image: Vec<T>,
-    pub radii: Vec<i32>,
-    /// `[N, 3]` NDC means2D gradient (densification statistic).
-    pub grad_means2d: Vec<T>,
-    /// Gradients of the canonical raw parameters (same layout). The means'
-    /// is upstream's: the field reads them stop-gradient, so it is the
-    /// rasterizer's means gradient `g` for the additive fields and `Rᵀ·g`
-    /// for the 6-DoF MLP (whose warp moves the non-detached mean to
-    /// `R·x + p`); with the field on it is not the total derivative of the loss.
-    pub gaussians: Gaussians<T>,
-    /// Gradient of the field weights; `None` with the field off.
-    pub field: Option<Vec<T>>,
-}
-
-/// The forward pass of one view, kept for the backward.
-struct Forward<T> {
-    offsets: Option<(Offsets<T>, FieldCache<T>)>,
-    scales: Vec<T>,
-    rotations: Vec<T>,
-    means: Vec<T>,
-    opacities: Vec<T>,
-}
+/// The order in which [`Trainer::state_hash`] hashes the Gaussian
+/// parameters (the Adam states follow [`Group::ALL`]): part of the hashes
+/// recorded in `fixtures/training/record.json`.
+const HASH_PARAMETER_ORDER: [Group; 5] = [
+    Group::Xyz,
+    Group::Sh,
+    Group::Scaling,
+    Group::Rotation,
+    Group::Opacity,
+];
 
 impl<T: Real> Trainer<T> {
     /// A fresh run from initial Gaussians, for `views` training cameras.
@@ -216,20 +232,101 @@ impl<T: Real> Trainer<T> {
             config.field,
             Rng::stream(config.seed, STREAM_FIELD_INIT).next_u64(),
         )?;
+        let model = Model {
+            gaussians,
+            field,
+            active_sh_degree: 0,
+            background,
+        };
         Ok(Trainer {
             iteration: 0,
-            active_sh_degree: 0,
-            optimizer: GaussianOptimizer::new(&gaussians),
-            field_optimizer: AdamState::new(field.param_count()),
-            stats: DensifyStats::new(gaussians.len()),
+            optimizer: ModelOptimizer::new(&model),
+            stats: DensifyStats::new(model.gaussians.len()),
             sampler: CameraSampler::new(views, config.seed),
             ast_rng: Rng::stream(config.seed, STREAM_AST),
             config,
-            gaussians,
-            field,
+            model,
             extent,
-            background,
         })
+    }
+
+    /// A run restored from its parts (a checkpoint): errors if they are not
+    /// sized for the same Gaussians and field.
+    pub(super) fn restore(
+        config: TrainConfig,
+        model: Model<T>,
+        optimizer: ModelOptimizer<T>,
+        stats: DensifyStats<T>,
+        progress: Progress,
+        extent: f64,
+    ) -> Result<Self> {
+        model.validate()?;
+        let n = model.gaussians.len();
+        if !optimizer.gaussians.fits(&model.gaussians)
+            || optimizer.field.len() != model.field.param_count()
+            || stats.len() != n
+        {
+            return Err(Error::invalid(
+                "training state",
+                format!(
+                    "{n} Gaussians and {} field weights, optimizer state for {} and {}, statistics for {}",
+                    model.field.param_count(),
+                    optimizer.gaussians.len(),
+                    optimizer.field.len(),
+                    stats.len()
+                ),
+            ));
+        }
+        Ok(Trainer {
+            config,
+            iteration: progress.iteration,
+            model,
+            optimizer,
+            stats,
+            sampler: progress.sampler,
+            ast_rng: progress.ast_rng,
+            extent,
+        })
+    }
+
+    /// The run's configuration (schedules included).
+    pub fn config(&self) -> &TrainConfig {
+        &self.config
+    }
+
+    /// Completed iterations.
+    pub fn iteration(&self) -> u64 {
+        self.iteration
+    }
+
+    /// The model being trained.
+    pub fn model(&self) -> &Model<T> {
+        &self.model
+    }
+
+    /// The Adam states of the model's parameters.
+    pub fn optimizer(&self) -> &ModelOptimizer<T> {
+        &self.optimizer
+    }
+
+    /// The densification statistics.
+    pub fn stats(&self) -> &DensifyStats<T> {
+        &self.stats
+    }
+
+    /// The training-view sampler.
+    pub fn sampler(&self) -> &CameraSampler {
+        &self.sampler
+    }
+
+    /// The generator of the AST time noise.
+    pub(super) fn ast_rng(&self) -> &Rng {
+        &self.ast_rng
+    }
+
+    /// Scene extent for densification (`cameras_extent`).
+    pub fn extent(&self) -> f64 {
+        self.extent
     }
 
     /// Whether the field is used at iteration `it` (1-based).
@@ -243,9 +340,9 @@ impl<T: Real> Trainer<T> {
         let it = self.iteration + 1;
         let cfg = &self.config;
         if it.is_multiple_of(cfg.schedule.sh_degree_interval)
-            && self.active_sh_degree < cfg.max_sh_degree
+            && self.model.active_sh_degree < cfg.max_sh_degree
         {
-            self.active_sh_degree += 1;
+            self.model.active_sh_degree += 1;
         }
         let pick = self.sampler.next();
         let view = views.get(pick.index).ok_or_else(|| {
@@ -254,30 +351,24 @@ impl<T: Real> Trainer<T> {
                 format!("{} views, sampler picked {}", views.len(), pick.index),
             )
         })?;
+        let field_on = self.field_active(it);
         let mut time = view.time;
-        if cfg.ast && self.field_active(it) {
-            let noise =
-                self.ast_rng.normal() / pick.remaining as f64 * cfg.lr.ast_smooth(it as i64);
-            time += noise;
+        if cfg.ast && field_on {
+            time += self.ast_rng.normal() / pick.remaining as f64 * cfg.lr.ast_smooth(it as i64);
         }
 
-        let (g, mut times) = self.gradients(view, time, self.field_active(it))?;
+        let (g, mut times) = self
+            .model
+            .gradients(view, time, field_on, cfg.lambda_dssim)?;
         let mut clock = Lap(Instant::now());
 
         // Densification, then Adam with the rates of iteration it − 1.
-        let (densify, reset, groups) = self.densify(it, &g.radii, &g.grad_means2d)?;
+        let (densify, reset, groups) = self.densify(it, &g.radii, &g.model.means2d)?;
         times.densify = clock.lap();
         if it < self.config.iterations {
-            let step = it as i64 - 1;
-            if groups != StepGroups::None {
-                let lrs = self.config.lr.gaussian(step);
-                self.optimizer
-                    .step(&mut self.gaussians, &g.gaussians, &lrs, groups)?;
-            }
-            if let Some(fg) = &g.field {
-                let lr = self.config.lr.deform(step);
-                self.field_optimizer.step(self.field.params_mut(), fg, lr)?;
-            }
+            let rates = self.config.lr.at(it as i64 - 1);
+            self.optimizer
+                .step(&mut self.model, &g.model, &rates, groups)?;
         }
         times.optimizer = clock.lap();
         self.iteration = it;
@@ -287,100 +378,11 @@ impl<T: Real> Trainer<T> {
             l1: g.loss.l1.to_f64(),
             psnr: metrics::psnr_raw(&g.image, &view.image).to_f64(),
             view: pick.index,
-            gaussians: self.gaussians.len(),
+            gaussians: self.model.gaussians.len(),
             densify,
             opacity_reset: reset,
             times,
         })
-    }
-
-    /// Loss and the gradient of every canonical parameter and field weight
-    /// for one view at `time` (exact gradient mode), changing nothing: the
-    /// forward and backward half of [`step`](Self::step).
-    pub fn gradients(
-        &self,
-        view: &View<T>,
-        time: f64,
-        field_on: bool,
-    ) -> Result<(Gradients<T>, StageTimes)> {
-        let mut times = StageTimes::default();
-        let mut clock = Lap(Instant::now());
-        let fwd = self.forward(time, field_on)?;
-        times.field_forward = clock.lap();
-        let input = self.raster_input(&fwd, &view.camera);
-        let (out, state) = rasterize(&input)?;
-        times.raster_forward = clock.lap();
-        let (loss, grad_image) = loss_and_grad(
-            &out.color,
-            &view.image,
-            view.height,
-            view.width,
-            self.config.lambda_dssim,
-        )?;
-        times.loss = clock.lap();
-
-        // Backward, stage by stage in reverse. The field's backward runs
-        // inside the activations' ([`deform_gaussians_vjp`]), which adds its
-        // gradient of the canonical means to the identity path.
-        let rg = rasterize_backward(&input, &state, &grad_image, None, GradientMode::Exact)?;
-        times.raster_backward = clock.lap();
-        let field = fwd.offsets.as_ref().map(|(_, cache)| (&self.field, cache));
-        let (gaussians, field) = deform_gaussians_vjp(&self.gaussians, field, &rg)?;
-        let field = field.map(|f| f.params);
-        times.field_backward = clock.lap();
-        Ok((
-            Gradients {
-                loss,
-                image: out.color,
-                radii: out.radii,
-                grad_means2d: rg.means2d,
-                gaussians,
-                field,
-            },
-            times,
-        ))
-    }
-
-    /// Field (if `active`) and the rasterizer's inputs at `time`.
-    fn forward(&self, time: f64, active: bool) -> Result<Forward<T>> {
-        let g = &self.gaussians;
-        let offsets = if active {
-            let t = vec![T::from_f64(time); g.len()];
-            Some(self.field.forward(&g.xyz, &t)?)
-        } else {
-            None
-        };
-        let d = deform_gaussians(g, offsets.as_ref().map(|(o, _)| o));
-        Ok(Forward {
-            offsets,
-            means: d.means,
-            scales: d.scales,
-            rotations: d.rotations,
-            opacities: d.opacities,
-        })
-    }
-
-    fn raster_input<'a>(
-        &'a self,
-        f: &'a Forward<T>,
-        camera: &'a RasterCamera<T>,
-    ) -> RasterInput<'a, T> {
-        RasterInput {
-            means3d: &f.means,
-            colors: Colors::Sh {
-                coeffs: &self.gaussians.sh,
-                stride: self.gaussians.coeffs(),
-                degree: self.active_sh_degree,
-            },
-            opacities: &f.opacities,
-            covariances: Covariances::ScaleRotation {
-                scales: &f.scales,
-                rotations: &f.rotations,
-                scale_modifier: T::ONE,
-            },
-            camera,
-            background: self.background.map(T::from_f64),
-        }
     }
 
     /// Statistics, densify/prune and opacity reset for iteration `it`
@@ -396,12 +398,13 @@ impl<T: Real> Trainer<T> {
             return Ok((None, false, StepGroups::All));
         }
         self.stats.update(radii, grad_means2d)?;
+        let (gaussians, optimizer) = (&mut self.model.gaussians, &mut self.optimizer.gaussians);
         let mut report = None;
         if it > s.densify_from && it.is_multiple_of(s.densification_interval) {
             let seed = Rng::stream(self.config.seed ^ STREAM_SPLIT, it).next_u64();
             report = Some(densify_and_prune(
-                &mut self.gaussians,
-                &mut self.optimizer,
+                gaussians,
+                optimizer,
                 &mut self.stats,
                 self.extent,
                 it,
@@ -409,10 +412,10 @@ impl<T: Real> Trainer<T> {
                 seed,
             )?);
         }
-        let white = self.background == [1.0; 3];
+        let white = self.model.background == [1.0; 3];
         let reset = it.is_multiple_of(s.opacity_reset_interval) || (white && it == s.densify_from);
         if reset {
-            reset_opacity(&mut self.gaussians, &mut self.optimizer)?;
+            reset_opacity(gaussians, optimizer)?;
         }
         let groups = match (report.is_some(), reset) {
             (true, _) => StepGroups::None,
@@ -422,36 +425,27 @@ impl<T: Real> Trainer<T> {
         Ok((report, reset, groups))
     }
 
+    /// Whether the field is on for renders of the current state: once
+    /// warm-up is over, as in upstream's render.py.
+    fn field_on_now(&self) -> bool {
+        self.field_active(self.iteration.max(1))
+    }
+
     /// Render the current model from `camera` at `time` (no AST noise; the
     /// field is used once warm-up is over, as in upstream's render.py).
     pub fn render(&self, camera: &RasterCamera<T>, time: f64) -> Result<RasterOutput<T>> {
-        let active = self.field_active(self.iteration.max(1));
-        let fwd = self.forward(time, active)?;
-        Ok(rasterize(&self.raster_input(&fwd, camera))?.0)
+        self.model.render(camera, time, self.field_on_now())
     }
 
     /// The deformed, activated Gaussians the renderer receives at `time`
-    /// (means, scales, rotations, opacities; the SH are `self.gaussians.sh`).
-    pub fn deformed(&self, time: f64) -> Result<super::deformed::Deformed<T>> {
-        let f = self.forward(time, self.field_active(self.iteration.max(1)))?;
-        Ok(super::deformed::Deformed {
-            means: f.means,
-            scales: f.scales,
-            rotations: f.rotations,
-            opacities: f.opacities,
-        })
+    /// (means, scales, rotations, opacities; the SH are the model's).
+    pub fn deformed(&self, time: f64) -> Result<Deformed<T>> {
+        self.model.deformed(time, self.field_on_now())
     }
 
     /// The field's offsets at `time` for every Gaussian (zeros during warm-up).
     pub fn offsets(&self, time: f64) -> Result<Offsets<T>> {
-        let n = self.gaussians.len();
-        if !self.field_active(self.iteration.max(1)) {
-            return Ok(Offsets::zeros(n));
-        }
-        Ok(self
-            .field
-            .forward(&self.gaussians.xyz, &vec![T::from_f64(time); n])?
-            .0)
+        self.model.offsets(time, self.field_on_now())
     }
 
     /// PSNR and SSIM of each view on 8-bit quantised renders.
@@ -479,24 +473,15 @@ impl<T: Real> Trainer<T> {
     pub fn state_hash(&self) -> u64 {
         let mut h = Fnv::new();
         h.u64(self.iteration);
-        h.u64(self.active_sh_degree as u64);
-        let g = &self.gaussians;
-        for v in [&g.xyz, &g.sh, &g.scaling, &g.rotation, &g.opacity] {
-            h.reals(v);
+        h.u64(self.model.active_sh_degree as u64);
+        for group in HASH_PARAMETER_ORDER {
+            h.reals(self.model.gaussians.group(group));
         }
-        h.reals(self.field.params());
+        h.reals(self.model.field.params());
         let o = &self.optimizer;
-        for a in [
-            &o.xyz,
-            &o.sh,
-            &o.opacity,
-            &o.scaling,
-            &o.rotation,
-            &self.field_optimizer,
-        ] {
-            h.reals(&a.m);
-            h.reals(&a.v);
-            h.u64(a.step);
+        let adam = Group::ALL.iter().map(|&g| o.gaussians.state(g));
+        for a in adam.chain([&o.field]) {
+            hash_adam(&mut h, a);
         }
         h.reals(&self.stats.accum);
         for &d in &self.stats.denom {
@@ -512,6 +497,13 @@ impl<T: Real> Trainer<T> {
         h.u64(self.ast_rng.state());
         h.0
     }
+}
+
+/// Moments and step counter of one Adam state, into `h`.
+fn hash_adam<T: Real>(h: &mut Fnv, a: &AdamState<T>) {
+    h.reals(&a.m);
+    h.reals(&a.v);
+    h.u64(a.step);
 }
 
 /// PSNR and SSIM of `render` against `gt` (`[3, h, w]`) after both are
@@ -544,11 +536,11 @@ pub fn view_metrics_with<T: Real>(
     })
 }
 
-/// 64-bit FNV-1a.
 /// 64-bit FNV-1a, the hash of the state and of checkpoint files.
 pub(crate) struct Fnv(pub u64);
 
 impl Fnv {
+    /// The FNV-1a offset basis.
     pub fn new() -> Self {
         Fnv(0xcbf2_9ce4_8422_2325)
     }
@@ -559,14 +551,17 @@ impl Fnv {
             self.0 = (self.0 ^ x).wrapping_mul(0x0000_0100_0000_01b3);
         }
     }
+    /// FNV-1a over bytes.
     pub fn bytes(&mut self, b: &[u8]) {
         for &x in b {
             self.0 = (self.0 ^ x as u64).wrapping_mul(0x0000_0100_0000_01b3);
         }
     }
+    /// The eight little-endian bytes of `v`.
     pub fn u64(&mut self, v: u64) {
         self.bytes(&v.to_le_bytes());
     }
+    /// The length of `v`, then the bits of each value.
     pub fn reals<T: Real>(&mut self, v: &[T]) {
         self.u64(v.len() as u64);
         for x in v {

@@ -1,0 +1,263 @@
+//! The training state as named tensors: one layout, read and written here,
+//! for checkpoints ([`super::checkpoint`]) and the oracle's `step` stage.
+//!
+//! With a name prefix `p` (empty, or `new.` for the `step` stage's updated
+//! parameters and moments), in the run's precision unless stated:
+//!
+//! | tensor | shape | meaning |
+//! |---|---|---|
+//! | `p` + group name (`xyz`, `sh`, `opacity`, `scaling`, `rotation`) | `[N]` + [`Group::row_shape`]: `[N,3]`, `[N,K,3]`, `[N,1]`, `[N,3]`, `[N,4]` | raw parameters |
+//! | `p` + `adam.<group>.m`, `adam.<group>.v` | the group's shape; `field`: `[P]` | Adam moments |
+//! | `p` + `stats.accum` | `[N]` | summed NDC gradient norms |
+//! | `p` + `stats.denom`, `stats.max_radii` | `[N]` I32 | visible-view counts, largest radii |
+//!
+//! and the metadata `p` + `adam.<group>.step` (the step counter). The Adam
+//! groups are the Gaussian groups in [`Group::ALL`]'s order, then `field`
+//! (the field weights' moments, concatenated in `state_dict` order).
+//!
+//! The readers check shapes, that second moments are ≥ 0 and not NaN, that
+//! counts are ≥ 0 and that a step counter can advance. What may be absent
+//! depends on the [`Source`].
+
+use super::model::ModelOptimizer;
+use crate::densify::DensifyStats;
+use crate::error::{Error, Result};
+use crate::gaussians::{Gaussians, Group};
+use crate::io::TensorFile;
+use crate::math::Real;
+use crate::optim::{AdamState, GaussianOptimizer};
+
+/// The name of the field weights' Adam group.
+pub const FIELD_GROUP: &str = "field";
+
+/// The Adam groups, in file order: the Gaussian groups, then the field.
+pub fn adam_groups() -> [&'static str; 6] {
+    let g = Group::ALL.map(Group::name);
+    [g[0], g[1], g[2], g[3], g[4], FIELD_GROUP]
+}
+
+/// What a file may leave out.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Source {
+    /// A `step` case: a group's moments (both or neither) and each
+    /// statistic may be absent (zeros), a step counter too (0).
+    Case,
+    /// A checkpoint: everything is required. Moments are also accepted
+    /// flat (`[len]`), as checkpoints of version 0.1.0 and earlier wrote them.
+    Checkpoint,
+}
+
+fn tensor_error(f: &TensorFile, name: &str, expected: impl Into<String>, found: String) -> Error {
+    Error::Tensor {
+        context: f.path.display().to_string(),
+        name: name.into(),
+        expected: expected.into(),
+        found,
+    }
+}
+
+/// Write the raw parameters of `g` as `prefix` + group name.
+pub fn write_gaussians<T: Real>(f: &mut TensorFile, prefix: &str, g: &Gaussians<T>) {
+    for group in Group::ALL {
+        let name = format!("{prefix}{}", group.name());
+        f.insert_real(&name, g.shape(group), g.group(group));
+    }
+}
+
+/// Read the raw parameters written by [`write_gaussians`]: N from `xyz`
+/// (`[N,3]`), the SH degree from `sh` (`[N,K,3]`, K = 1, 4, 9 or 16).
+pub fn read_gaussians<T: Real>(f: &TensorFile, prefix: &str) -> Result<Gaussians<T>> {
+    let xyz_name = format!("{prefix}xyz");
+    let (shape, xyz) = f.get_real_any::<T>(&xyz_name)?;
+    let n = match shape.as_slice() {
+        [n, 3] => *n,
+        _ => {
+            let found = format!("shape {shape:?}");
+            return Err(tensor_error(f, &xyz_name, "shape [N,3]", found));
+        }
+    };
+    let sh_name = format!("{prefix}sh");
+    let shape = f.shape(&sh_name)?;
+    let degree = match shape {
+        [m, k, 3] if *m == n => (0..=3).find(|&d| Gaussians::<T>::coeffs_for_degree(d) == *k),
+        _ => None,
+    };
+    let max_sh_degree = degree.ok_or_else(|| {
+        let expected = format!("shape [{n},K,3], K = 1, 4, 9 or 16");
+        tensor_error(f, &sh_name, expected, format!("shape {shape:?}"))
+    })?;
+    let mut g = Gaussians::empty(max_sh_degree);
+    g.xyz = xyz;
+    for (group, v) in g.groups_mut() {
+        if group != Group::Xyz {
+            let mut shape = vec![n];
+            shape.extend(group.row_shape(Gaussians::<T>::coeffs_for_degree(max_sh_degree)));
+            *v = f.get_real::<T>(&format!("{prefix}{}", group.name()), &shape)?;
+        }
+    }
+    g.validate()?;
+    Ok(g)
+}
+
+/// Write the Adam states of `opt` (sized for `g`) as `prefix` +
+/// `adam.<group>.*`.
+pub fn write_optimizer<T: Real>(
+    f: &mut TensorFile,
+    prefix: &str,
+    opt: &ModelOptimizer<T>,
+    g: &Gaussians<T>,
+) {
+    let states = Group::ALL.map(|group| (g.shape(group), opt.gaussians.state(group)));
+    let field = (vec![opt.field.len()], &opt.field);
+    for (name, (shape, state)) in adam_groups()
+        .into_iter()
+        .zip(states.into_iter().chain([field]))
+    {
+        let key = format!("{prefix}adam.{name}");
+        f.insert_real(&format!("{key}.m"), shape.clone(), &state.m);
+        f.insert_real(&format!("{key}.v"), shape, &state.v);
+        f.set_meta(&format!("{key}.step"), state.step);
+    }
+}
+
+/// Read the Adam states written by [`write_optimizer`] for the Gaussians
+/// `g` and a field of `field_params` weights.
+pub fn read_optimizer<T: Real>(
+    f: &TensorFile,
+    prefix: &str,
+    g: &Gaussians<T>,
+    field_params: usize,
+    source: Source,
+) -> Result<ModelOptimizer<T>> {
+    let mut gaussians = GaussianOptimizer::new(g);
+    for group in Group::ALL {
+        let key = format!("{prefix}adam.{}", group.name());
+        *gaussians.state_mut(group) = read_adam(f, &key, &g.shape(group), source)?;
+    }
+    let key = format!("{prefix}adam.{FIELD_GROUP}");
+    let field = read_adam(f, &key, &[field_params], source)?;
+    Ok(ModelOptimizer { gaussians, field })
+}
+
+/// One Adam state: `key.m`, `key.v` of `shape` and the counter `key.step`.
+fn read_adam<T: Real>(
+    f: &TensorFile,
+    key: &str,
+    shape: &[usize],
+    source: Source,
+) -> Result<AdamState<T>> {
+    let mut state = AdamState::<T>::new(shape.iter().product());
+    let (m, v) = (format!("{key}.m"), format!("{key}.v"));
+    match (f.contains(&m), f.contains(&v), source) {
+        (false, false, Source::Case) => {}
+        (true, true, _) => {
+            state.m = read_moment(f, &m, shape, source)?;
+            state.v = read_moment(f, &v, shape, source)?;
+            if let Some(i) = state.v.iter().position(|x| x.is_nan() || *x < T::ZERO) {
+                let found = format!("{} at flat index {i}", state.v[i].to_f64());
+                return Err(tensor_error(f, &v, "second moments ≥ 0", found));
+            }
+        }
+        (has_m, has_v, _) => {
+            let path = f.path.display();
+            let (context, missing) = match (has_m, has_v) {
+                (true, _) => (format!("{path} (`{m}` is given)"), v),
+                (_, true) => (format!("{path} (`{v}` is given)"), m),
+                _ => (path.to_string(), m),
+            };
+            return Err(Error::MissingTensor {
+                context,
+                name: missing,
+            });
+        }
+    }
+    let step_key = format!("{key}.step");
+    state.step = match source {
+        Source::Case => f.meta_or(&step_key, 0u64)?,
+        Source::Checkpoint => f.meta_parse(&step_key)?,
+    };
+    if state.step == u64::MAX {
+        return Err(Error::field(
+            &f.path,
+            format!("__metadata__.{step_key}"),
+            format!("{} (the step counter cannot advance)", state.step),
+        ));
+    }
+    Ok(state)
+}
+
+/// A moment tensor of `shape` (or, from a checkpoint, flat).
+fn read_moment<T: Real>(
+    f: &TensorFile,
+    name: &str,
+    shape: &[usize],
+    source: Source,
+) -> Result<Vec<T>> {
+    let len: usize = shape.iter().product();
+    if source == Source::Checkpoint && f.shape(name)? == [len] {
+        return f.get_real::<T>(name, &[len]);
+    }
+    f.get_real::<T>(name, shape)
+}
+
+/// Write the densification statistics as `prefix` + `stats.*`.
+pub fn write_stats<T: Real>(
+    f: &mut TensorFile,
+    prefix: &str,
+    stats: &DensifyStats<T>,
+) -> Result<()> {
+    let n = stats.len();
+    let denom = stats
+        .denom
+        .iter()
+        .map(|&d| {
+            i32::try_from(d)
+                .map_err(|_| Error::invalid("stats.denom", format!("{d} does not fit in i32")))
+        })
+        .collect::<Result<Vec<i32>>>()?;
+    f.insert_real(&format!("{prefix}stats.accum"), vec![n], &stats.accum);
+    f.insert_i32(&format!("{prefix}stats.denom"), vec![n], denom);
+    f.insert_i32(
+        &format!("{prefix}stats.max_radii"),
+        vec![n],
+        stats.max_radii.clone(),
+    );
+    Ok(())
+}
+
+/// Read the statistics written by [`write_stats`] for `n` Gaussians.
+pub fn read_stats<T: Real>(
+    f: &TensorFile,
+    prefix: &str,
+    n: usize,
+    source: Source,
+) -> Result<DensifyStats<T>> {
+    let mut stats = DensifyStats::new(n);
+    let present = |name: &str| source == Source::Checkpoint || f.contains(name);
+    let accum = format!("{prefix}stats.accum");
+    if present(&accum) {
+        stats.accum = f.get_real::<T>(&accum, &[n])?;
+    }
+    let counts = |name: String| -> Result<Option<Vec<i32>>> {
+        if !present(&name) {
+            return Ok(None);
+        }
+        let (shape, v) = f.get_i32(&name)?;
+        if shape != [n] {
+            let expected = format!("shape [{n}]");
+            return Err(tensor_error(f, &name, expected, format!("shape {shape:?}")));
+        }
+        if let Some(i) = v.iter().position(|&x| x < 0) {
+            let found = format!("{} at index {i}", v[i]);
+            return Err(tensor_error(f, &name, "values ≥ 0", found));
+        }
+        Ok(Some(v))
+    };
+    if let Some(d) = counts(format!("{prefix}stats.denom"))? {
+        stats.denom = d.into_iter().map(|x| x as u32).collect();
+    }
+    if let Some(r) = counts(format!("{prefix}stats.max_radii"))? {
+        stats.max_radii = r;
+    }
+    Ok(stats)
+}
