@@ -173,6 +173,7 @@ impl RunArgs {
     }
 }
 
+/// Arguments of `train`.
 #[derive(Args)]
 pub struct TrainArgs {
     /// The run.
@@ -348,6 +349,7 @@ impl Progress {
     }
 }
 
+/// Arguments of `render`.
 #[derive(Args)]
 pub struct RenderArgs {
     /// Output folder of a `train` run.
@@ -435,6 +437,7 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
     Ok(Outcome::Success)
 }
 
+/// Arguments of `export`.
 #[derive(Args)]
 pub struct ExportArgs {
     /// Output folder of a `train` run.
@@ -488,6 +491,7 @@ fn export_as<T: Real>(a: &ExportArgs) -> Result<Outcome> {
     Ok(Outcome::Success)
 }
 
+/// Arguments of `eval`.
 #[derive(Args)]
 pub struct EvalArgs {
     /// Output folder holding test/renders and test/gt (PNG).

@@ -79,7 +79,7 @@ pub struct PlannedRun {
 
 /// What an experiment reports while it runs.
 pub enum ExperimentEvent<'a> {
-    /// The plan: `runs` runs of `iterations` iterations each.
+    /// The plan is made: `runs` runs, before any is trained.
     Planned {
         /// Number of runs.
         runs: usize,
