@@ -3,12 +3,12 @@
 //! multiply-adds on 24 accumulators, enough to cover the FMA latency.
 //! `cargo bench --bench fma_peak` prints GFLOP/s (2 FLOPs per lane per FMA)
 //! for 1 thread and for every core. The kernel is
-//! `liquid_splat::cli::bench::fma_peak`, which `bench raster` also uses.
+//! `liquid_splat::bench::harness::fma_peak`, which `bench raster` also uses.
 
 fn main() {
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let cores = liquid_splat::bench::harness::available_cores();
     for threads in [1, cores] {
-        match liquid_splat::cli::bench::fma_peak(threads, 50_000_000) {
+        match liquid_splat::bench::harness::fma_peak(threads, 50_000_000) {
             Some((name, gflops)) => {
                 println!("{name} f32 FMA peak, {threads} thread(s): {gflops:.1} GFLOP/s")
             }

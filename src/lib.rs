@@ -34,8 +34,13 @@
 //! - [`oracle`]: case files for every stage and the comparison report.
 //! - [`cli`]: the command-line tool as a library function (the binary and
 //!   the Python package run it).
+//! - [`experiment`]: a training run's persisted description
+//!   ([`experiment::RunSpec`], `run.json`) and the experiment driver (plan,
+//!   resume rule, smoothness sweep, run records).
 //! - [`report`]: per-run records and the experiment report (Markdown, CSV,
 //!   PNG plots, temporal smoothness of a learned deformation).
+//! - [`bench`]: throughput measurements and their harness (`bench`
+//!   subcommand, `cargo bench`).
 //!
 //! ## Determinism
 //! The same inputs give the same bits whatever the thread count, run or CPU:
@@ -61,12 +66,14 @@
 #![warn(unsafe_op_in_unsafe_fn)]
 #![warn(clippy::undocumented_unsafe_blocks)]
 
+pub mod bench;
 pub mod camera;
 pub mod cli;
 pub mod dataset;
 pub mod deform;
 pub mod densify;
 pub mod error;
+pub mod experiment;
 pub mod fuzz;
 pub mod gaussians;
 pub mod gsplat;

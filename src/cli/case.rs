@@ -1,6 +1,7 @@
 //! `liquid-splat case ...`: work with oracle case files.
 
 use crate::deform::{FieldKind, Variant};
+use crate::error::Outcome;
 use crate::io::TensorFile;
 use crate::math::Precision;
 use crate::oracle::new::{golden_files, new_case, CaseSpec};
@@ -9,7 +10,6 @@ use crate::render::GradientMode;
 use crate::Error;
 use clap::{Args, Subcommand};
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 
 /// The most Gaussians or points `case new --count` writes.
 pub const MAX_COUNT: usize = 1 << 22;
@@ -119,8 +119,9 @@ pub struct CompareArgs {
     pub report: Option<PathBuf>,
 }
 
-/// Run a `case` subcommand and return the process exit code.
-pub fn run(cmd: CaseCommand) -> ExitCode {
+/// Run a `case` subcommand (`compare`: [`Outcome::CheckFailed`] when a
+/// tensor is out of tolerance).
+pub fn run(cmd: CaseCommand) -> crate::Result<Outcome> {
     match cmd {
         CaseCommand::Run { input, output } => run_case(&input, &output),
         CaseCommand::New(args) => run_new(args),
@@ -129,174 +130,142 @@ pub fn run(cmd: CaseCommand) -> ExitCode {
     }
 }
 
-fn exit_code(outcome: crate::Result<()>) -> ExitCode {
-    match outcome {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            ExitCode::from(2)
-        }
-    }
-}
-
-fn run_new(a: NewArgs) -> ExitCode {
-    exit_code((|| -> crate::Result<()> {
-        let mut spec = CaseSpec::new(&a.stage);
-        spec.precision = match a.dtype.as_str() {
-            "f32" => Precision::F32,
-            "f64" => Precision::F64,
-            other => return Err(Error::invalid("--dtype", format!("`{other}` (f32 or f64)"))),
-        };
-        spec.seed = a.seed;
-        let uses = |flag: &str, given: bool, stages: &[&str]| -> crate::Result<()> {
-            if given && !stages.contains(&a.stage.as_str()) {
-                return Err(Error::invalid(
-                    flag,
-                    format!(
-                        "not used by stage `{}` (only {})",
-                        a.stage,
-                        stages.join(", ")
-                    ),
-                ));
-            }
-            Ok(())
-        };
-        let gs = crate::oracle::gsplat::STAGES;
-        let with_gs = |base: &[&'static str]| -> Vec<&'static str> {
-            base.iter().copied().chain(gs).collect()
-        };
-        uses(
-            "--width",
-            a.width.is_some(),
-            &with_gs(&["rasterize", "loss", "step"]),
-        )?;
-        uses(
-            "--height",
-            a.height.is_some(),
-            &with_gs(&["rasterize", "loss", "step"]),
-        )?;
-        uses(
-            "--count",
-            a.count.is_some(),
-            &with_gs(&["rasterize", "deform", "step"]),
-        )?;
-        uses("--gradient", a.gradient.is_some(), &with_gs(&["rasterize"]))?;
-        uses("--gsplat-version", a.gsplat_version.is_some(), &gs)?;
-        uses("--antialiased", a.antialiased, &gs)?;
-        uses("--dense", a.dense, &gs)?;
-        uses("--field", a.field.is_some(), &["deform", "step"])?;
-        uses("--depth", a.depth.is_some(), &["deform", "step"])?;
-        uses("--hidden", a.hidden.is_some(), &["deform", "step"])?;
-        uses("--variant", a.variant.is_some(), &["deform", "step"])?;
-        uses("--6dof", a.six_dof, &["deform", "step"])?;
-        spec.width = a.width.unwrap_or(spec.width);
-        spec.height = a.height.unwrap_or(spec.height);
-        spec.count = a.count.unwrap_or(spec.count);
-        if spec.width.saturating_mul(spec.height) > crate::render::MAX_PIXELS {
+fn run_new(a: NewArgs) -> crate::Result<Outcome> {
+    let mut spec = CaseSpec::new(&a.stage);
+    spec.precision = match a.dtype.as_str() {
+        "f32" => Precision::F32,
+        "f64" => Precision::F64,
+        other => return Err(Error::invalid("--dtype", format!("`{other}` (f32 or f64)"))),
+    };
+    spec.seed = a.seed;
+    let uses = |flag: &str, given: bool, stages: &[&str]| -> crate::Result<()> {
+        if given && !stages.contains(&a.stage.as_str()) {
             return Err(Error::invalid(
-                "--width/--height",
+                flag,
                 format!(
-                    "{}x{} pixels, more than the limit {}",
-                    spec.width,
-                    spec.height,
-                    crate::render::MAX_PIXELS
+                    "not used by stage `{}` (only {})",
+                    a.stage,
+                    stages.join(", ")
                 ),
             ));
         }
-        if spec.count > MAX_COUNT {
-            return Err(Error::invalid(
-                "--count",
-                format!("{} is above the limit {MAX_COUNT}", spec.count),
-            ));
-        }
-        if let Some(g) = &a.gradient {
-            if gs.contains(&a.stage.as_str()) {
-                spec.gsplat.gradient = crate::gsplat::GradientMode::from_name(g)?;
-            } else {
-                spec.gradient = GradientMode::from_name(g)?;
-            }
-        }
-        if let Some(v) = &a.gsplat_version {
-            spec.gsplat.version = crate::gsplat::Version::from_name(v)?;
-        }
-        spec.gsplat.antialiased = a.antialiased;
-        spec.gsplat.packed = !a.dense;
-        if let Some(f) = &a.field {
-            spec.field = FieldKind::parse(f)?;
-        }
-        spec.depth = a.depth;
-        spec.hidden = a.hidden;
-        if let Some(v) = &a.variant {
-            spec.variant = Some(Variant::parse(v)?);
-        }
-        spec.is_6dof = a.six_dof;
-        let mut case = new_case(&spec)?;
-        case.path = a.output.clone();
-        case.save(&a.output)
-    })())
-}
-
-fn regen_golden(dir: &Path) -> ExitCode {
-    exit_code((|| -> crate::Result<()> {
-        std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
-        for (name, bytes) in golden_files()? {
-            let path = dir.join(&name);
-            crate::io::write_atomic(&path, &bytes)?;
-            println!("{} ({} bytes)", path.display(), bytes.len());
-        }
         Ok(())
-    })())
-}
-
-fn run_case(input: &std::path::Path, output: &std::path::Path) -> ExitCode {
-    let outcome = (|| -> crate::Result<()> {
-        let case = TensorFile::load(input)?;
-        let mut out = crate::oracle::run_case(&case)?;
-        out.path = output.to_path_buf();
-        out.save(output)
-    })();
-    match outcome {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            ExitCode::from(2)
+    };
+    let gs = crate::oracle::gsplat::STAGES;
+    let with_gs =
+        |base: &[&'static str]| -> Vec<&'static str> { base.iter().copied().chain(gs).collect() };
+    uses(
+        "--width",
+        a.width.is_some(),
+        &with_gs(&["rasterize", "loss", "step"]),
+    )?;
+    uses(
+        "--height",
+        a.height.is_some(),
+        &with_gs(&["rasterize", "loss", "step"]),
+    )?;
+    uses(
+        "--count",
+        a.count.is_some(),
+        &with_gs(&["rasterize", "deform", "step"]),
+    )?;
+    uses("--gradient", a.gradient.is_some(), &with_gs(&["rasterize"]))?;
+    uses("--gsplat-version", a.gsplat_version.is_some(), &gs)?;
+    uses("--antialiased", a.antialiased, &gs)?;
+    uses("--dense", a.dense, &gs)?;
+    uses("--field", a.field.is_some(), &["deform", "step"])?;
+    uses("--depth", a.depth.is_some(), &["deform", "step"])?;
+    uses("--hidden", a.hidden.is_some(), &["deform", "step"])?;
+    uses("--variant", a.variant.is_some(), &["deform", "step"])?;
+    uses("--6dof", a.six_dof, &["deform", "step"])?;
+    spec.width = a.width.unwrap_or(spec.width);
+    spec.height = a.height.unwrap_or(spec.height);
+    spec.count = a.count.unwrap_or(spec.count);
+    if spec.width.saturating_mul(spec.height) > crate::render::MAX_PIXELS {
+        return Err(Error::invalid(
+            "--width/--height",
+            format!(
+                "{}x{} pixels, more than the limit {}",
+                spec.width,
+                spec.height,
+                crate::render::MAX_PIXELS
+            ),
+        ));
+    }
+    if spec.count > MAX_COUNT {
+        return Err(Error::invalid(
+            "--count",
+            format!("{} is above the limit {MAX_COUNT}", spec.count),
+        ));
+    }
+    if let Some(g) = &a.gradient {
+        if gs.contains(&a.stage.as_str()) {
+            spec.gsplat.gradient = crate::gsplat::GradientMode::from_name(g)?;
+        } else {
+            spec.gradient = GradientMode::from_name(g)?;
         }
     }
+    if let Some(v) = &a.gsplat_version {
+        spec.gsplat.version = crate::gsplat::Version::from_name(v)?;
+    }
+    spec.gsplat.antialiased = a.antialiased;
+    spec.gsplat.packed = !a.dense;
+    if let Some(f) = &a.field {
+        spec.field = FieldKind::parse(f)?;
+    }
+    spec.depth = a.depth;
+    spec.hidden = a.hidden;
+    if let Some(v) = &a.variant {
+        spec.variant = Some(Variant::parse(v)?);
+    }
+    spec.is_6dof = a.six_dof;
+    let mut case = new_case(&spec)?;
+    case.path = a.output.clone();
+    case.save(&a.output)?;
+    Ok(Outcome::Success)
 }
 
-fn run_compare(args: CompareArgs) -> ExitCode {
-    let outcome = (|| -> crate::Result<bool> {
-        let mut tol = match &args.tolerances {
-            Some(p) => Tolerances::load(p)?,
-            None => Tolerances::default(),
-        };
-        if args.atol.is_some() {
-            tol.default.atol = args.atol;
-        }
-        if args.rtol.is_some() {
-            tol.default.rtol = args.rtol;
-        }
-        if args.max_mismatch_fraction.is_some() {
-            tol.default.max_mismatch_fraction = args.max_mismatch_fraction;
-        }
-        if args.equal_nan {
-            tol.default.equal_nan = Some(true);
-        }
-        let expected = TensorFile::load(&args.expected)?;
-        let actual = TensorFile::load(&args.actual)?;
-        let report = compare(&expected, &actual, &tol)?;
-        println!("{report}");
-        if let Some(p) = &args.report {
-            crate::io::write_atomic(p, report.to_json().as_bytes())?;
-        }
-        Ok(report.passed)
-    })();
-    match outcome {
-        Ok(true) => ExitCode::SUCCESS,
-        Ok(false) => ExitCode::from(1),
-        Err(e) => {
-            eprintln!("error: {e}");
-            ExitCode::from(2)
-        }
+fn regen_golden(dir: &Path) -> crate::Result<Outcome> {
+    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    for (name, bytes) in golden_files()? {
+        let path = dir.join(&name);
+        crate::io::write_atomic(&path, &bytes)?;
+        println!("{} ({} bytes)", path.display(), bytes.len());
     }
+    Ok(Outcome::Success)
+}
+
+fn run_case(input: &Path, output: &Path) -> crate::Result<Outcome> {
+    let case = TensorFile::load(input)?;
+    let mut out = crate::oracle::run_case(&case)?;
+    out.path = output.to_path_buf();
+    out.save(output)?;
+    Ok(Outcome::Success)
+}
+
+fn run_compare(args: CompareArgs) -> crate::Result<Outcome> {
+    let mut tol = match &args.tolerances {
+        Some(p) => Tolerances::load(p)?,
+        None => Tolerances::default(),
+    };
+    if args.atol.is_some() {
+        tol.default.atol = args.atol;
+    }
+    if args.rtol.is_some() {
+        tol.default.rtol = args.rtol;
+    }
+    if args.max_mismatch_fraction.is_some() {
+        tol.default.max_mismatch_fraction = args.max_mismatch_fraction;
+    }
+    if args.equal_nan {
+        tol.default.equal_nan = Some(true);
+    }
+    let expected = TensorFile::load(&args.expected)?;
+    let actual = TensorFile::load(&args.actual)?;
+    let report = compare(&expected, &actual, &tol)?;
+    println!("{report}");
+    if let Some(p) = &args.report {
+        crate::io::write_atomic(p, report.to_json().as_bytes())?;
+    }
+    Ok(Outcome::of_check(report.passed))
 }

@@ -4,14 +4,15 @@
 
 use crate::deform::count::{macs_per_gaussian, param_count, MacConvention};
 use crate::deform::{FieldConfig, FieldKind, Variant};
+use crate::error::Outcome;
 use crate::report::tables::thousands;
 use crate::Error;
 use clap::Args;
-use std::process::ExitCode;
 
 /// Arguments of `count`.
 #[derive(Args)]
 pub struct CountArgs {
+    /// The field to count.
     #[command(flatten)]
     pub field: super::train::FieldArgs,
     /// Number of Gaussians for the totals.
@@ -23,7 +24,7 @@ pub struct CountArgs {
 }
 
 fn config(a: &CountArgs) -> crate::Result<FieldConfig> {
-    a.field.config(Variant::Synthetic)
+    a.field.spec().config(Variant::Synthetic)
 }
 
 fn convention_key(c: MacConvention) -> &'static str {
@@ -35,7 +36,7 @@ fn convention_key(c: MacConvention) -> &'static str {
 }
 
 /// Run `count`.
-pub fn run(a: CountArgs) -> crate::Result<ExitCode> {
+pub fn run(a: CountArgs) -> crate::Result<Outcome> {
     let c = config(&a)?;
     let params = param_count(&c)? as u64;
     let n = a.gaussians;
@@ -92,7 +93,7 @@ pub fn run(a: CountArgs) -> crate::Result<ExitCode> {
             "{}",
             serde_json::to_string_pretty(&v).expect("JSON of plain values")
         );
-        return Ok(ExitCode::SUCCESS);
+        return Ok(Outcome::Success);
     }
     println!("field: {arch}");
     println!(
@@ -122,5 +123,5 @@ pub fn run(a: CountArgs) -> crate::Result<ExitCode> {
             thousands(*total)
         );
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(Outcome::Success)
 }

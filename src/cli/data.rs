@@ -1,9 +1,9 @@
 //! `liquid-splat inspect` and `liquid-splat synth`: datasets on disk.
 
 use crate::dataset::{self, synth, Background, LoadOptions};
+use crate::error::Outcome;
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
-use std::process::ExitCode;
 
 /// Arguments of `inspect`.
 #[derive(Args)]
@@ -51,18 +51,25 @@ pub struct SynthArgs {
     pub white_background: bool,
 }
 
+/// Camera placement of `synth`.
 #[derive(Clone, Copy, ValueEnum)]
 pub enum OrbitArg {
+    /// Cameras spread over the upper hemisphere.
     Hemisphere,
+    /// Cameras on a horizontal circle.
     Circle,
 }
 
+/// On-disk layout of `synth`.
 #[derive(Clone, Copy, ValueEnum)]
 pub enum LayoutArg {
+    /// D-NeRF: transforms_{train,val,test}.json.
     Dnerf,
+    /// Nerfies / NeRF-DS: dataset.json, metadata.json, camera/.
     Nerfies,
 }
 
+/// White or black background.
 pub fn background(white: bool) -> Background {
     if white {
         Background::White
@@ -72,7 +79,7 @@ pub fn background(white: bool) -> Background {
 }
 
 /// `inspect DIR`: print the dataset's JSON summary.
-pub fn inspect(a: InspectArgs) -> crate::Result<ExitCode> {
+pub fn inspect(a: InspectArgs) -> crate::Result<Outcome> {
     let opts = LoadOptions {
         background: background(a.white_background),
         downscale: a.downscale,
@@ -80,11 +87,11 @@ pub fn inspect(a: InspectArgs) -> crate::Result<ExitCode> {
     };
     let ds = dataset::load(&a.dir, &opts)?;
     println!("{:#}", dataset::summary(&ds));
-    Ok(ExitCode::SUCCESS)
+    Ok(Outcome::Success)
 }
 
 /// `synth NAME OUT_DIR`: write a built-in scene to disk.
-pub fn synth(a: SynthArgs) -> crate::Result<ExitCode> {
+pub fn synth(a: SynthArgs) -> crate::Result<Outcome> {
     let opts = synth::SynthOptions {
         resolution: a.resolution,
         frames: a.frames,
@@ -103,5 +110,5 @@ pub fn synth(a: SynthArgs) -> crate::Result<ExitCode> {
         LayoutArg::Nerfies => synth::Layout::Nerfies,
     };
     synth::write(&a.name, &a.out_dir, &opts, layout)?;
-    Ok(ExitCode::SUCCESS)
+    Ok(Outcome::Success)
 }

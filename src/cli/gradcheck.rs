@@ -1,27 +1,29 @@
 //! `liquid-splat gradcheck ...`: central-difference gradient checks in f64.
 
+use crate::error::Outcome;
 use crate::render::check;
 use clap::Subcommand;
-use std::process::ExitCode;
 
+/// Subcommands of `gradcheck`.
 #[derive(Subcommand)]
 pub enum GradcheckWhat {
     /// The rasterizer's gradients on built-in random scenes (exit 1 if any
     /// relative error exceeds 1e-6).
     Raster {
+        /// Seed of the built-in random scenes.
         #[arg(long, default_value_t = 7)]
         seed: u64,
     },
 }
 
 /// Run a `gradcheck` subcommand.
-pub fn run(what: GradcheckWhat) -> crate::Result<ExitCode> {
+pub fn run(what: GradcheckWhat) -> crate::Result<Outcome> {
     match what {
         GradcheckWhat::Raster { seed } => gradcheck_raster(seed),
     }
 }
 
-fn gradcheck_raster(seed: u64) -> crate::Result<ExitCode> {
+fn gradcheck_raster(seed: u64) -> crate::Result<Outcome> {
     let mut ok = true;
     println!(
         "{:<22} {:<16} {:>6} {:>11} {:>11}",
@@ -58,9 +60,5 @@ fn gradcheck_raster(seed: u64) -> crate::Result<ExitCode> {
         check::REL_TOL,
         if ok { "all passed" } else { "FAILED" }
     );
-    Ok(if ok {
-        ExitCode::SUCCESS
-    } else {
-        ExitCode::from(1)
-    })
+    Ok(Outcome::of_check(ok))
 }

@@ -1,12 +1,15 @@
 //! The `liquid-splat` command-line tool as a library function, [`run`], so
 //! that the binary and the Python package (`python -m liquid_splat`) run the
-//! same tool. Argument parsing and messages only; the work is done by the
-//! library. This is the only place errors become messages and exit codes.
+//! same tool. Argument parsing, progress and messages only; the work is done
+//! by the library ([`crate::experiment`] for training runs and experiments,
+//! [`crate::bench`] for the measurements). Every subcommand returns a
+//! [`crate::Result`]`<`[`Outcome`]`>`; [`run`] prints an error as one line and
+//! maps the result to an exit code with [`crate::error::exit_code`].
 //!
 //! Exit codes: 0 success; 1 a check or comparison failed; 2 unusable input
 //! (bad arguments, missing or malformed files).
 
-pub mod bench;
+pub mod benchmark;
 pub mod case;
 pub mod count;
 pub mod data;
@@ -14,9 +17,10 @@ pub mod experiment;
 pub mod gradcheck;
 pub mod train;
 
+use crate::error::{exit_code, Outcome, EXIT_SUCCESS, EXIT_UNUSABLE_INPUT};
+use crate::Error;
 use clap::{Parser, Subcommand};
 use std::ffi::OsString;
-use std::process::ExitCode;
 
 #[derive(Parser)]
 #[command(
@@ -63,7 +67,7 @@ enum Command {
     /// Throughput measurements.
     Bench {
         #[command(subcommand)]
-        what: bench::BenchWhat,
+        what: benchmark::BenchWhat,
     },
 }
 
@@ -71,15 +75,13 @@ enum Command {
 /// the tool is run on; each thread is an OS thread with its own stack).
 pub const MAX_THREADS: usize = 1024;
 
-/// Print a library error as one line and map it to exit code 2.
-fn report(result: crate::Result<ExitCode>) -> ExitCode {
-    match result {
-        Ok(code) => code,
-        Err(e) => {
-            eprintln!("error: {e}");
-            ExitCode::from(2)
-        }
+/// The exit code of a subcommand's result, after printing its error (if
+/// any) as one line on stderr.
+fn finish(result: crate::Result<Outcome>) -> u8 {
+    if let Err(e) = &result {
+        eprintln!("error: {e}");
     }
+    exit_code(&result)
 }
 
 /// Run the command-line tool on `args` (the first item is the program
@@ -95,51 +97,45 @@ where
     let cli = match Cli::try_parse_from(args) {
         Ok(cli) => cli,
         Err(e) => {
+            // Help and version requests are successes; usage errors are
+            // unusable input. clap prints both itself.
             let code = e.exit_code();
             let _ = e.print();
-            return if code == 0 { 0 } else { 2 };
+            return if code == 0 {
+                EXIT_SUCCESS
+            } else {
+                EXIT_UNUSABLE_INPUT
+            };
         }
     };
-    let code = match cli.threads {
+    finish(match cli.threads {
         None => dispatch(cli.command),
-        Some(n) if !(1..=MAX_THREADS).contains(&n) => {
-            eprintln!("error: invalid --threads: {n} (expected 1 to {MAX_THREADS})");
-            ExitCode::from(2)
-        }
+        Some(n) if !(1..=MAX_THREADS).contains(&n) => Err(Error::invalid(
+            "--threads",
+            format!("{n} (expected 1 to {MAX_THREADS})"),
+        )),
         Some(n) => match rayon::ThreadPoolBuilder::new().num_threads(n).build() {
             Ok(pool) => pool.install(|| dispatch(cli.command)),
-            Err(e) => {
-                eprintln!("error: cannot start {n} threads: {e}");
-                ExitCode::from(2)
-            }
+            Err(e) => Err(Error::invalid(
+                "--threads",
+                format!("{n}: cannot start {n} threads: {e}"),
+            )),
         },
-    };
-    exit_code_number(code)
+    })
 }
 
-fn dispatch(command: Command) -> ExitCode {
+fn dispatch(command: Command) -> crate::Result<Outcome> {
     match command {
         Command::Case { command } => case::run(command),
-        Command::Gradcheck { what } => report(gradcheck::run(what)),
-        Command::Train(a) => report(train::train(a)),
-        Command::Render(a) => report(train::render(a)),
-        Command::Eval(a) => report(train::eval(a)),
-        Command::Export(a) => report(train::export(a)),
-        Command::Experiment(a) => report(experiment::experiment(a)),
-        Command::Bench { what } => report(bench::run(what)),
-        Command::Count(a) => report(count::run(a)),
-        Command::Inspect(a) => report(data::inspect(a)),
-        Command::Synth(a) => report(data::synth(a)),
-    }
-}
-
-/// The number behind an [`ExitCode`] (the tool only ever uses 0, 1 and 2).
-fn exit_code_number(code: ExitCode) -> u8 {
-    if code == ExitCode::SUCCESS {
-        0
-    } else if code == ExitCode::from(1) {
-        1
-    } else {
-        2
+        Command::Gradcheck { what } => gradcheck::run(what),
+        Command::Train(a) => train::train(a),
+        Command::Render(a) => train::render(a),
+        Command::Eval(a) => train::eval(a),
+        Command::Export(a) => train::export(a),
+        Command::Experiment(a) => experiment::experiment(a),
+        Command::Bench { what } => benchmark::run(what),
+        Command::Count(a) => count::run(a),
+        Command::Inspect(a) => data::inspect(a),
+        Command::Synth(a) => data::synth(a),
     }
 }

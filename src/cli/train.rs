@@ -1,51 +1,30 @@
-//! `liquid-splat train`, `render` and `eval`.
+//! `liquid-splat train`, `render`, `eval` and `export`: arguments, progress
+//! output and messages around [`crate::experiment`].
 //!
-//! `train` records its arguments in `OUT/run.json`; `render OUT` and
-//! `eval OUT` read them back, so they need only the output folder.
+//! `train` records its arguments in `OUT/run.json` ([`RunSpec`]); `render OUT`,
+//! `eval OUT` and `export OUT` read them back, so they need only the output
+//! folder.
 
-use crate::dataset::{self, synth, Dataset, DatasetKind, LoadOptions};
-use crate::deform::{Activation, FieldConfig, FieldKind, Variant};
-use crate::error::{Error, Result};
+use crate::dataset;
+use crate::error::{Error, Outcome, Result};
+use crate::experiment::{
+    self, FieldChoice, FieldSpec, OpenedRun, PrecisionChoice, RunSpec, VariantChoice,
+};
 use crate::lpips;
 use crate::math::Real;
-use crate::train::{
-    self, checkpoint, run::file_stem, Event, RunOptions, TrainConfig, View, ViewMetrics,
-};
-use clap::{Args, ValueEnum};
-use serde::{Deserialize, Serialize};
+use crate::train::{self, run::file_stem, Event, RunOptions, View, ViewMetrics};
+use clap::Args;
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
-use std::process::ExitCode;
 use std::time::Instant;
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum FieldArg {
-    Cfc,
-    Mlp,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum VariantArg {
-    Synthetic,
-    Real,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum PrecisionArg {
-    F32,
-    F64,
-}
 
 /// The deformation field's architecture (defaults per kind: MLP D8 W256;
 /// CfC D6 W128 GELU, backbone 2×64).
-#[derive(Args, Clone, Debug, Serialize, Deserialize)]
+#[derive(Args, Clone, Debug)]
 pub struct FieldArgs {
     /// Deformation field.
-    #[arg(long, value_enum, default_value_t = FieldArg::Cfc)]
-    pub field: FieldArg,
+    #[arg(long, value_enum, default_value_t = FieldChoice::Cfc)]
+    pub field: FieldChoice,
     /// MLP layers / CfC cells.
     #[arg(long)]
     pub depth: Option<usize>,
@@ -63,42 +42,25 @@ pub struct FieldArgs {
     pub backbone_layers: Option<usize>,
     /// The MLP's 6-DoF (SE(3)) variant.
     #[arg(long = "6dof")]
-    #[serde(default)]
     pub six_dof: bool,
     /// Time input: synthetic (D-NeRF timenet) or real (NeRF-DS); default from the dataset.
     #[arg(long, value_enum)]
-    pub variant: Option<VariantArg>,
+    pub variant: Option<VariantChoice>,
 }
 
 impl FieldArgs {
-    pub fn config(&self, default_variant: Variant) -> Result<FieldConfig> {
-        let mut c = FieldConfig::new(match self.field {
-            FieldArg::Cfc => FieldKind::Cfc,
-            FieldArg::Mlp => FieldKind::Mlp,
-        });
-        c.variant = match self.variant {
-            Some(VariantArg::Synthetic) => Variant::Synthetic,
-            Some(VariantArg::Real) => Variant::Real,
-            None => default_variant,
-        };
-        if let Some(d) = self.depth {
-            c.depth = d;
+    /// The library's description of the field.
+    pub fn spec(&self) -> FieldSpec {
+        FieldSpec {
+            field: self.field,
+            depth: self.depth,
+            width: self.width,
+            activation: self.activation.clone(),
+            backbone_units: self.backbone_units,
+            backbone_layers: self.backbone_layers,
+            six_dof: self.six_dof,
+            variant: self.variant,
         }
-        if let Some(w) = self.width {
-            c.width = w;
-        }
-        if let Some(a) = &self.activation {
-            c.activation = Activation::parse(a)?;
-        }
-        if let Some(u) = self.backbone_units {
-            c.backbone_units = u;
-        }
-        if let Some(l) = self.backbone_layers {
-            c.backbone_layers = l;
-        }
-        c.is_6dof = self.six_dof;
-        c.validate()?;
-        Ok(c)
     }
 }
 
@@ -153,10 +115,9 @@ impl LpipsArgs {
     }
 }
 
-/// Where the frames come from and how a run is set up: everything that
-/// determines its result. Saved as `OUT/run.json`.
-#[derive(Args, Clone, Debug, Serialize, Deserialize)]
-pub struct RunSpec {
+/// The arguments that make up a [`RunSpec`] (`train`, `bench train`).
+#[derive(Args, Clone, Debug)]
+pub struct RunArgs {
     /// Dataset folder (D-NeRF or NeRF-DS/nerfies layout). Give this or --scene.
     #[arg(required_unless_present = "scene", conflicts_with = "scene")]
     pub data: Option<PathBuf>,
@@ -179,8 +140,8 @@ pub struct RunSpec {
     /// Composite RGBA on white and train with a white background.
     #[arg(long)]
     pub white_background: bool,
+    /// The deformation field.
     #[command(flatten)]
-    #[serde(flatten)]
     pub field: FieldArgs,
     /// Training iterations; every schedule scales with this (see docs).
     #[arg(long, default_value_t = 2000)]
@@ -189,86 +150,35 @@ pub struct RunSpec {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Floating-point precision of the whole run.
-    #[arg(long, value_enum, default_value_t = PrecisionArg::F32)]
-    pub precision: PrecisionArg,
+    #[arg(long, value_enum, default_value_t = PrecisionChoice::F32)]
+    pub precision: PrecisionChoice,
 }
 
-impl RunSpec {
-    pub fn load_dataset(&self) -> Result<Dataset> {
-        let background = super::data::background(self.white_background);
-        match (&self.data, &self.scene) {
-            (Some(dir), _) => dataset::load(
-                dir,
-                &LoadOptions {
-                    background,
-                    downscale: self.downscale,
-                    init_points: self.init_points,
-                    ..Default::default()
-                },
-            ),
-            (None, Some(name)) => synth::builtin(
-                name,
-                &synth::SynthOptions {
-                    resolution: self.resolution,
-                    frames: self.frames,
-                    background,
-                    init_points: self.init_points,
-                    ..Default::default()
-                },
-            ),
-            (None, None) => Err(Error::invalid(
-                "dataset",
-                "give a dataset folder or --scene NAME",
-            )),
-        }
-    }
-
-    pub fn train_config(&self, data: &Dataset) -> Result<TrainConfig> {
-        let variant = match data.kind {
-            DatasetKind::Nerfies => Variant::Real,
-            DatasetKind::DNerf | DatasetKind::Synthetic => Variant::Synthetic,
-        };
-        Ok(TrainConfig::new(
-            self.iterations,
-            self.seed,
-            self.field.config(variant)?,
-        ))
-    }
-
-    /// Refuse data with no views to evaluate before any work is done
-    /// (a nerfies-layout folder whose split rule picks no test views).
-    pub fn check_eval_split(&self, data: &Dataset) -> Result<()> {
-        if !train::run::eval_frames(data).is_empty() {
-            return Ok(());
-        }
-        match (&self.data, data.kind) {
-            (Some(dir), DatasetKind::Nerfies) => Err(Error::field(
-                dir.join("dataset.json"),
-                "ids",
-                "the split rule for this folder (its parent folder's name is not vrig*, NeRF* or interp*: every fourth id trains, none is a test view) picks no test views, so nothing could be evaluated",
-            )),
-            (Some(dir), _) => Err(Error::format(dir, "no test or val views to evaluate")),
-            (None, _) => Err(Error::invalid(
-                "--scene",
-                "no test views to evaluate",
-            )),
-        }
-    }
-
-    /// A short name of the data for messages.
-    pub fn data_name(&self) -> String {
-        match (&self.data, &self.scene) {
-            (Some(d), _) => d.display().to_string(),
-            (None, Some(s)) => format!("built-in scene {s} ({0}x{0})", self.resolution),
-            _ => String::new(),
+impl RunArgs {
+    /// The library's description of the run.
+    pub fn spec(&self) -> RunSpec {
+        RunSpec {
+            data: self.data.clone(),
+            scene: self.scene.clone(),
+            resolution: self.resolution,
+            frames: self.frames,
+            init_points: self.init_points,
+            downscale: self.downscale,
+            white_background: self.white_background,
+            field: self.field.spec(),
+            iterations: self.iterations,
+            seed: self.seed,
+            precision: self.precision,
         }
     }
 }
 
+/// Arguments of `train`.
 #[derive(Args)]
 pub struct TrainArgs {
+    /// The run.
     #[command(flatten)]
-    pub spec: RunSpec,
+    pub run: RunArgs,
     /// Output folder (checkpoints, renders, metrics).
     #[arg(long, short)]
     pub out: PathBuf,
@@ -284,53 +194,26 @@ pub struct TrainArgs {
     /// No progress output.
     #[arg(long, short)]
     pub quiet: bool,
+    /// LPIPS weights for every evaluation.
     #[command(flatten)]
     pub lpips: LpipsArgs,
 }
 
-fn mkdir(p: &Path) -> Result<()> {
-    std::fs::create_dir_all(p).map_err(|e| Error::io(p, e))
-}
-
-pub fn train(a: TrainArgs) -> Result<ExitCode> {
-    let data = a.spec.load_dataset()?;
+/// `train`: set up the run folder ([`experiment::prepare_run`]), train
+/// with progress output, print the final metrics.
+pub fn train(a: TrainArgs) -> Result<Outcome> {
+    let spec = a.run.spec();
+    let data = spec.load_dataset()?;
     for w in &data.warnings {
         eprintln!("warning: {w}");
     }
-    let config = a.spec.train_config(&data)?;
-    a.spec.check_eval_split(&data)?;
-    mkdir(&a.out)?;
-    let spec_path = a.out.join("run.json");
-    let ckpt_dir = a.out.join("checkpoints");
-    if let (false, Some(dir)) = (a.resume, checkpoint::latest(&ckpt_dir)?) {
-        return Err(Error::invalid(
-            "--out",
-            format!(
-                "{} holds a checkpoint of an earlier run ({}); continue it with --resume, or train into another folder (nothing was written)",
-                ckpt_dir.display(),
-                dir.display()
-            ),
-        ));
-    }
-    if a.resume && spec_path.exists() {
-        let old = read_spec(&a.out)?;
-        if serde_json::to_value(&old).ok() != serde_json::to_value(&a.spec).ok() {
-            return Err(Error::invalid(
-                "--resume",
-                format!(
-                    "{} records different run arguments; resume with the same ones",
-                    spec_path.display()
-                ),
-            ));
-        }
-    }
-    train::run::write_json(&spec_path, &a.spec)?;
+    let config = experiment::prepare_run(&spec, &data, &a.out, a.resume)?;
     if !a.quiet {
         eprintln!(
             "training {} field ({} parameters) on {}: {} train / {} test views, {} initial Gaussians, {} iterations, {} threads",
             crate::report::field_label(&config.field),
             crate::deform::count::param_count(&config.field)?,
-            a.spec.data_name(),
+            spec.data_name(),
             data.train.len(),
             train::run::eval_frames(&data).len(),
             data.init.len(),
@@ -343,14 +226,11 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
         checkpoint_every: a.checkpoint_every,
         eval_every: a.eval_every,
         resume: a.resume,
-        data_name: a.spec.data_name(),
+        data_name: spec.data_name(),
         lpips: a.lpips.metric()?,
     };
     let mut progress = Progress::new(config.iterations, a.quiet);
-    let summary = match a.spec.precision {
-        PrecisionArg::F32 => train::run::<f32>(&config, &data, &opts, &mut |e| progress.event(e))?,
-        PrecisionArg::F64 => train::run::<f64>(&config, &data, &opts, &mut |e| progress.event(e))?,
-    };
+    let summary = experiment::train_run(&spec, &config, &data, &opts, &mut |e| progress.event(e))?;
     progress.finish();
     println!(
         "test PSNR {:.3} dB  SSIM {:.4}  {}({} views, {} Gaussians, {} iterations, {:.1} ms/iteration)",
@@ -368,7 +248,7 @@ pub fn train(a: TrainArgs) -> Result<ExitCode> {
         a.out.join("test").display(),
         a.out.join("results.json").display()
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(Outcome::Success)
 }
 
 /// Progress: a one-line bar on a terminal, plain log lines otherwise.
@@ -469,12 +349,7 @@ impl Progress {
     }
 }
 
-fn read_spec(out: &Path) -> Result<RunSpec> {
-    let path = out.join("run.json");
-    let bytes = crate::io::read(&path)?;
-    serde_json::from_slice(&bytes).map_err(|e| Error::format(&path, e.to_string()))
-}
-
+/// Arguments of `render`.
 #[derive(Args)]
 pub struct RenderArgs {
     /// Output folder of a `train` run.
@@ -491,49 +366,22 @@ pub struct RenderArgs {
     pub times: Vec<f64>,
 }
 
-/// The newest checkpoint of a `train` run folder, loaded, with its dataset.
-fn load_run<T: Real>(out: &Path) -> Result<(RunSpec, Dataset, PathBuf, train::Trainer<T>)> {
-    let spec = read_spec(out)?;
-    let data = spec.load_dataset()?;
-    let config = spec.train_config(&data)?;
-    let ckpt_dir = out.join("checkpoints");
-    let ckpt = checkpoint::latest(&ckpt_dir)?.ok_or_else(|| {
-        Error::invalid(
-            "run folder",
-            format!("no checkpoint in {}", ckpt_dir.display()),
-        )
-    })?;
-    let binding = checkpoint::DataBinding::of(&data, &spec.data_name());
-    let trainer = checkpoint::load::<T>(&ckpt, &config, &binding).map_err(|e| match e {
-        Error::Field { path, field, what }
-            if field.starts_with("__metadata__.data") || field == "__metadata__.background" =>
-        {
-            Error::Field {
-                path,
-                field,
-                what: format!(
-                    "{what}; {} records the arguments the data was loaded with",
-                    out.join("run.json").display()
-                ),
-            }
-        }
-        e => e,
-    })?;
-    Ok((spec, data, ckpt, trainer))
-}
-
 /// `render OUT`: test views to `OUT/test/`, a time sweep to `OUT/sweep/`,
 /// `--times` to `OUT/times/`.
-pub fn render(a: RenderArgs) -> Result<ExitCode> {
-    let spec = read_spec(&a.out)?;
-    match spec.precision {
-        PrecisionArg::F32 => render_as::<f32>(&a),
-        PrecisionArg::F64 => render_as::<f64>(&a),
+pub fn render(a: RenderArgs) -> Result<Outcome> {
+    match RunSpec::read(&a.out)?.precision {
+        PrecisionChoice::F32 => render_as::<f32>(&a),
+        PrecisionChoice::F64 => render_as::<f64>(&a),
     }
 }
 
-fn render_as<T: Real>(a: &RenderArgs) -> Result<ExitCode> {
-    let (_, data, ckpt, trainer) = load_run::<T>(&a.out)?;
+fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
+    let OpenedRun {
+        data,
+        checkpoint: ckpt,
+        trainer,
+        ..
+    } = experiment::open_run::<T>(&a.out)?;
     let test: Vec<View<T>> = train::run::views(train::run::eval_frames(&data));
     // The sweep view before any rendering: a bad index fails at once.
     let sweep_view = if a.sweep_frames == 0 && a.times.is_empty() {
@@ -554,7 +402,7 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<ExitCode> {
         a.out.join("test").display()
     );
     let Some(v) = sweep_view else {
-        return Ok(ExitCode::SUCCESS);
+        return Ok(Outcome::Success);
     };
     if a.sweep_frames > 0 {
         let dir = a.out.join("sweep");
@@ -586,9 +434,10 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<ExitCode> {
             println!("{}", f.display());
         }
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(Outcome::Success)
 }
 
+/// Arguments of `export`.
 #[derive(Args)]
 pub struct ExportArgs {
     /// Output folder of a `train` run.
@@ -607,15 +456,19 @@ pub struct ExportArgs {
 }
 
 /// `export OUT --times ...`: the deformed Gaussians at each time as an Inria PLY.
-pub fn export(a: ExportArgs) -> Result<ExitCode> {
-    match read_spec(&a.out)?.precision {
-        PrecisionArg::F32 => export_as::<f32>(&a),
-        PrecisionArg::F64 => export_as::<f64>(&a),
+pub fn export(a: ExportArgs) -> Result<Outcome> {
+    match RunSpec::read(&a.out)?.precision {
+        PrecisionChoice::F32 => export_as::<f32>(&a),
+        PrecisionChoice::F64 => export_as::<f64>(&a),
     }
 }
 
-fn export_as<T: Real>(a: &ExportArgs) -> Result<ExitCode> {
-    let (_, _, ckpt, trainer) = load_run::<T>(&a.out)?;
+fn export_as<T: Real>(a: &ExportArgs) -> Result<Outcome> {
+    let OpenedRun {
+        checkpoint: ckpt,
+        trainer,
+        ..
+    } = experiment::open_run::<T>(&a.out)?;
     let dir = a.dir.clone().unwrap_or_else(|| a.out.join("export"));
     let reports = train::export::export_times(&trainer, &a.times, &dir)?;
     eprintln!(
@@ -635,13 +488,15 @@ fn export_as<T: Real>(a: &ExportArgs) -> Result<ExitCode> {
             );
         }
     }
-    Ok(ExitCode::SUCCESS)
+    Ok(Outcome::Success)
 }
 
+/// Arguments of `eval`.
 #[derive(Args)]
 pub struct EvalArgs {
     /// Output folder holding test/renders and test/gt (PNG).
     pub out: PathBuf,
+    /// LPIPS weights.
     #[command(flatten)]
     pub lpips: LpipsArgs,
 }
@@ -649,7 +504,7 @@ pub struct EvalArgs {
 /// `eval OUT`: PSNR, SSIM (and LPIPS with weights) of `OUT/test/renders/*.png`
 /// against `OUT/test/gt/*.png` (8-bit images, as upstream's metrics.py),
 /// written to `OUT/results.json` and `OUT/per_view.json`.
-pub fn eval(a: EvalArgs) -> Result<ExitCode> {
+pub fn eval(a: EvalArgs) -> Result<Outcome> {
     let metric = a.lpips.metric()?;
     let renders = a.out.join("test").join("renders");
     let gt_dir = a.out.join("test").join("gt");
@@ -689,7 +544,7 @@ pub fn eval(a: EvalArgs) -> Result<ExitCode> {
     let info = metric.as_ref().map(|m| m.info());
     train::run::write_metrics(&a.out, &per_view, info.as_ref())?;
     print_metrics(&per_view)?;
-    Ok(ExitCode::SUCCESS)
+    Ok(Outcome::Success)
 }
 
 /// A PNG as `[3, H, W]` values `u8 / 255`.

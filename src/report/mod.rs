@@ -34,6 +34,7 @@ use tables::{
 /// One logged point of a training curve.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CurvePoint {
+    /// The training iteration (from 1).
     pub iteration: usize,
     /// Training loss at this iteration (as logged by the trainer).
     pub loss: f64,
@@ -42,6 +43,7 @@ pub struct CurvePoint {
     /// Test-set SSIM and LPIPS of the same evaluation (LPIPS only with weights).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub test_ssim: Option<f64>,
+    /// Test-set LPIPS of the same evaluation, with LPIPS weights only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub test_lpips: Option<f64>,
 }
@@ -50,7 +52,9 @@ pub struct CurvePoint {
 /// the iteration it was evaluated at (the first such iteration on ties).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BestValue {
+    /// The metric's best value.
     pub value: f64,
+    /// The iteration it was evaluated at.
     pub iteration: usize,
 }
 
@@ -62,8 +66,11 @@ pub struct BestValue {
 pub struct BestOfEvaluations {
     /// Number of evaluations the best was chosen from (the last iteration included).
     pub evaluations: usize,
+    /// Highest test PSNR (dB).
     pub psnr: BestValue,
+    /// Highest test SSIM, when evaluated.
     pub ssim: Option<BestValue>,
+    /// Lowest test LPIPS, when evaluated (with weights only).
     pub lpips: Option<BestValue>,
 }
 
@@ -102,6 +109,7 @@ pub fn best_of_evaluations(curve: &[CurvePoint]) -> Option<BestOfEvaluations> {
 /// Everything measured in one training run (one scene, field, seed).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct RunRecord {
+    /// The scene's name (built-in scene or dataset folder name).
     pub scene: String,
     /// Field label, `<kind>-d<depth>-w<width>-<activation>` (see [`field_label`]).
     pub field: String,
@@ -109,21 +117,29 @@ pub struct RunRecord {
     pub kind: String,
     /// `synthetic` (timenet time input) or `real`.
     pub variant: String,
+    /// MLP layers / CfC cells.
     pub depth: usize,
+    /// MLP width / CfC hidden size.
     pub width: usize,
+    /// The CfC backbone's activation by name (the MLP's: `relu`).
     pub activation: String,
+    /// The run's seed.
     pub seed: u64,
+    /// Training iterations.
     pub iterations: usize,
     /// Training image size `[width, height]` in pixels.
     pub resolution: [usize; 2],
     /// Worker threads the run used.
     pub threads: usize,
+    /// Trainable parameters of the field.
     pub params: usize,
     /// MACs per Gaussian, ptflops aten convention (linear layers only).
     pub macs_per_gaussian: u64,
+    /// Gaussians after the last iteration.
     pub final_gaussians: usize,
-    /// Metrics of the final model (after the last iteration).
+    /// Test PSNR (dB) of the final model (after the last iteration).
     pub test_psnr: f64,
+    /// Test SSIM of the final model.
     pub test_ssim: f64,
     /// Final test LPIPS; absent when the run had no LPIPS weights.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -141,7 +157,10 @@ pub struct RunRecord {
     pub stage_ms: BTreeMap<String, f64>,
     /// [`temporal_smoothness`] of the learned field, when measured.
     pub temporal_smoothness: Option<f64>,
+    /// The training curve: loss, and test metrics where evaluated.
     pub curves: Vec<CurvePoint>,
+    /// Wall-clock seconds of the run in the process that finished it
+    /// (training, final evaluation and smoothness sweep).
     pub wall_seconds: f64,
 }
 
@@ -280,12 +299,17 @@ pub struct MachineInfo {
     pub logical_cpus: usize,
     /// Threads of the rayon pool the runs used.
     pub threads: usize,
+    /// Operating system and architecture, e.g. `linux x86_64`.
     pub os: String,
+    /// This crate's version.
     pub crate_version: String,
+    /// The pinned math library ([`crate::math::MATH_LIBRARY`]).
     pub math_library: String,
 }
 
 impl MachineInfo {
+    /// The machine this process runs on, with the current rayon pool's
+    /// thread count.
     pub fn detect() -> Self {
         let cpu_model = std::fs::read_to_string("/proc/cpuinfo").ok().and_then(|s| {
             s.lines()
@@ -312,7 +336,9 @@ pub struct ReportMeta {
     /// Settings shared by the runs (name, value), in the order to print them;
     /// should say how the smoothness sweep was taken (times, which offsets).
     pub settings: Vec<(String, String)>,
+    /// The machine the runs were measured on.
     pub machine: MachineInfo,
+    /// The configuration the ablation tables vary one setting of.
     pub ablation_base: AblationBase,
 }
 

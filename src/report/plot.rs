@@ -10,8 +10,11 @@ use image::ImageEncoder;
 /// order. Non-finite points break the line.
 #[derive(Clone, Debug)]
 pub struct Series {
+    /// The legend's label.
     pub label: String,
+    /// Line colour, RGB.
     pub color: [u8; 3],
+    /// The points `(x, y)` in drawing order.
     pub points: Vec<(f64, f64)>,
 }
 
@@ -29,7 +32,9 @@ pub const PALETTE: [[u8; 3]; 10] = [
     [23, 190, 207],
 ];
 
+/// Plot width in pixels.
 pub const WIDTH: u32 = 800;
+/// Plot height in pixels.
 pub const HEIGHT: u32 = 480;
 const LEFT: i64 = 70;
 const RIGHT: i64 = 230; // legend column

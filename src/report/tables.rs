@@ -12,8 +12,11 @@ use std::collections::BTreeMap;
 /// One table cell.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Cell {
+    /// As shown in Markdown (rounded).
     pub md: String,
+    /// As written to CSV (full precision; empty when missing).
     pub csv: String,
+    /// Shown in bold in Markdown (the best value of its column).
     pub bold: bool,
 }
 
@@ -25,6 +28,7 @@ impl Cell {
             bold: false,
         }
     }
+    /// A text cell, the same in Markdown and CSV.
     pub fn text(s: impl Into<String>) -> Self {
         let s = s.into();
         Cell::new(s.clone(), s)
@@ -42,6 +46,7 @@ impl Cell {
     pub fn count(v: u64) -> Self {
         Cell::new(thousands(v), v.to_string())
     }
+    /// A missing value: a dash in Markdown, empty in CSV.
     pub fn missing() -> Self {
         Cell::new("–".into(), String::new())
     }
@@ -63,19 +68,25 @@ pub fn thousands(v: u64) -> String {
 /// A table: the first `left` columns are labels (left-aligned), the rest numbers.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Table {
+    /// Column headers.
     pub headers: Vec<String>,
+    /// Number of leading label columns.
     pub left: usize,
+    /// The rows, one cell per header.
     pub rows: Vec<Vec<Cell>>,
 }
 
 /// Which end of a column is best.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Better {
+    /// Higher values are better (PSNR, SSIM).
     Higher,
+    /// Lower values are better (LPIPS, time, smoothness).
     Lower,
 }
 
 impl Table {
+    /// The table in Markdown, best values in bold.
     pub fn to_markdown(&self) -> String {
         let mut s = format!("| {} |\n|", self.headers.join(" | "));
         for i in 0..self.headers.len() {
@@ -95,6 +106,7 @@ impl Table {
         s
     }
 
+    /// The table as CSV at full precision, no markup.
     pub fn to_csv(&self) -> String {
         let mut s = csv_line(self.headers.iter().map(String::as_str));
         for row in &self.rows {
@@ -138,54 +150,66 @@ pub fn csv_line<'a>(fields: impl Iterator<Item = &'a str>) -> String {
 
 /// A per-run quantity shown in a scene-by-row matrix.
 pub struct Metric {
+    /// The column header.
     pub name: &'static str,
+    /// The metric's value in a record, when it has one.
     pub get: fn(&RunRecord) -> Option<f64>,
+    /// How a value is shown.
     pub cell: fn(f64) -> Cell,
+    /// Which end is best.
     pub better: Better,
 }
 
+/// Final test PSNR (dB).
 pub const PSNR: Metric = Metric {
     name: "PSNR",
     get: |r| Some(r.test_psnr),
     cell: |v| Cell::num(v, 2),
     better: Better::Higher,
 };
+/// Final test SSIM.
 pub const SSIM: Metric = Metric {
     name: "SSIM",
     get: |r| Some(r.test_ssim),
     cell: |v| Cell::num(v, 4),
     better: Better::Higher,
 };
+/// Final test LPIPS (with weights only).
 pub const LPIPS: Metric = Metric {
     name: "LPIPS",
     get: |r| r.test_lpips,
     cell: |v| Cell::num(v, 4),
     better: Better::Lower,
 };
+/// Best periodic test PSNR (dB).
 pub const BEST_PSNR: Metric = Metric {
     name: "best PSNR",
     get: |r| r.best.as_ref().map(|b| b.psnr.value),
     cell: |v| Cell::num(v, 2),
     better: Better::Higher,
 };
+/// Best periodic test SSIM.
 pub const BEST_SSIM: Metric = Metric {
     name: "best SSIM",
     get: |r| r.best.as_ref().and_then(|b| b.ssim).map(|b| b.value),
     cell: |v| Cell::num(v, 4),
     better: Better::Higher,
 };
+/// Best periodic test LPIPS.
 pub const BEST_LPIPS: Metric = Metric {
     name: "best LPIPS",
     get: |r| r.best.as_ref().and_then(|b| b.lpips).map(|b| b.value),
     cell: |v| Cell::num(v, 4),
     better: Better::Lower,
 };
+/// Mean wall-clock milliseconds per training iteration.
 pub const MS_PER_ITER: Metric = Metric {
     name: "ms/iter",
     get: |r| Some(r.ms_per_iteration),
     cell: |v| Cell::num(v, 1),
     better: Better::Lower,
 };
+/// Temporal smoothness of the learned deformation (lower is smoother).
 pub const SMOOTHNESS: Metric = Metric {
     name: "smoothness",
     get: |r| r.temporal_smoothness,
@@ -397,8 +421,11 @@ pub fn by_field(records: &[RunRecord]) -> Vec<(String, Vec<&RunRecord>)> {
 /// The configuration the ablations vary one setting of.
 #[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct AblationBase {
+    /// CfC cells of the base configuration.
     pub depth: usize,
+    /// CfC hidden size of the base configuration.
     pub width: usize,
+    /// Backbone activation of the base configuration.
     pub activation: String,
 }
 

@@ -1,103 +1,28 @@
-//! `liquid-splat bench ...`: throughput measurements (never asserted in tests).
+//! Throughput measurements (never asserted in tests), run by
+//! `liquid-splat bench ...` and by `cargo bench` (`benches/`): what each
+//! benchmark measures lives here, how it is timed, described and printed
+//! in [`harness`].
+//!
+//! - [`raster`]: the rasterizer's forward and backward at three sizes, on 1
+//!   thread and all cores, against the machine's FMA peak.
+//! - [`deform`]: the deformation fields' forward and forward+backward, their
+//!   per-operation profiles and the matrix kernels alone.
+//! - [`lpips`]: LPIPS (VGG16) of one image pair.
+//! - [`train`]: milliseconds per training iteration by stage.
 
+pub mod harness;
+
+use self::harness::{median, process_cpu_seconds, Table};
 use crate::deform::count::{macs_per_gaussian, MacConvention};
 use crate::deform::{Deformation, Field, FieldConfig, FieldKind};
+use crate::experiment::{PrecisionChoice, RunSpec};
 use crate::lpips;
 use crate::math::{gradcheck::cotangent, Real, Rng};
 use crate::render::{self, scene};
-use clap::Subcommand;
-use std::process::ExitCode;
 use std::time::Instant;
 
-#[derive(Subcommand)]
-pub enum BenchWhat {
-    /// Rasterizer forward and backward at 800x800/50k, 400x400/20k and 64x64/2.6k Gaussians,
-    /// on 1 thread and all cores: ms, pairs evaluated, pairs/s and % of the FMA peak.
-    Raster {
-        /// Repetitions per measurement (the minimum is reported).
-        #[arg(long, default_value_t = 3)]
-        reps: usize,
-    },
-    /// Milliseconds per training iteration split by stage, on a dataset or built-in scene.
-    Train {
-        #[command(flatten)]
-        spec: super::train::RunSpec,
-    },
-    /// Deformation fields forward and forward+backward (MLP D8 W256, CfC D6 W128), f32.
-    Deform {
-        /// Number of Gaussians.
-        #[arg(long, default_value_t = 20_000)]
-        n: usize,
-        /// Repetitions per measurement (the median is reported).
-        #[arg(long, default_value_t = 5)]
-        reps: usize,
-        /// Run in f64 instead of f32.
-        #[arg(long)]
-        f64: bool,
-        /// Only this field (mlp or cfc); both by default.
-        #[arg(long)]
-        field: Option<String>,
-    },
-    /// LPIPS (VGG16) of one image pair: milliseconds per pair and the convolutions' GFLOP/s.
-    Lpips {
-        /// Image width and height.
-        #[arg(long, default_value_t = 800)]
-        size: usize,
-        /// Repetitions (the median is reported).
-        #[arg(long, default_value_t = 3)]
-        reps: usize,
-        /// Run in f64 instead of f32.
-        #[arg(long)]
-        f64: bool,
-        /// torchvision's vgg16-397923af.pth and the lpips package's vgg.pth; without them,
-        /// random weights of the same shapes (the time does not depend on the values).
-        #[arg(long, num_args = 2, value_names = ["VGG16_PTH", "LIN_PTH"])]
-        weights: Option<Vec<std::path::PathBuf>>,
-    },
-}
-
-/// Run a `bench` subcommand.
-pub fn run(what: BenchWhat) -> crate::Result<ExitCode> {
-    match what {
-        BenchWhat::Raster { reps } => bench_raster(reps),
-        BenchWhat::Train { spec } => match spec.precision {
-            super::train::PrecisionArg::F32 => bench_train::<f32>(&spec),
-            super::train::PrecisionArg::F64 => bench_train::<f64>(&spec),
-        },
-        BenchWhat::Deform {
-            n,
-            reps,
-            f64,
-            field,
-        } => {
-            let only = field.as_deref().map(FieldKind::parse).transpose()?;
-            if f64 {
-                bench_deform::<f64>(n, reps, only)
-            } else {
-                bench_deform::<f32>(n, reps, only)
-            }
-        }
-        BenchWhat::Lpips {
-            size,
-            reps,
-            f64,
-            weights,
-        } => {
-            let w = match weights.as_deref() {
-                Some([vgg, lin]) => lpips::LpipsWeights::load(vgg, lin, lpips::Verify::Any)?,
-                _ => random_lpips_weights(0)?,
-            };
-            if f64 {
-                bench_lpips::<f64>(&w, size, reps)
-            } else {
-                bench_lpips::<f32>(&w, size, reps)
-            }
-        }
-    }
-}
-
 /// LPIPS weights of the right shapes with uniform random values (for timing only).
-fn random_lpips_weights(seed: u64) -> crate::Result<lpips::LpipsWeights> {
+pub fn random_lpips_weights(seed: u64) -> crate::Result<lpips::LpipsWeights> {
     let mut r = Rng::new(seed);
     let mut u =
         |n: usize, s: f64| -> Vec<f32> { (0..n).map(|_| r.uniform_range(-s, s) as f32).collect() };
@@ -119,11 +44,9 @@ fn random_lpips_weights(seed: u64) -> crate::Result<lpips::LpipsWeights> {
     lpips::LpipsWeights::from_parts(convs, lins, id(), id())
 }
 
-fn bench_lpips<T: Real>(
-    w: &lpips::LpipsWeights,
-    size: usize,
-    reps: usize,
-) -> crate::Result<ExitCode> {
+/// LPIPS of one `size`×`size` pair with weights `w`: the median of `reps`
+/// runs, and the convolutions' GFLOP/s.
+pub fn lpips<T: Real>(w: &lpips::LpipsWeights, size: usize, reps: usize) -> crate::Result<()> {
     let net = lpips::Lpips::<T>::new(w);
     let mut r = Rng::new(1);
     let n = 3 * size * size;
@@ -140,17 +63,15 @@ fn bench_lpips<T: Real>(
         }
         flops += 2.0 * 9.0 * (cin * cout * h * wd) as f64;
     }
-    let mut times = Vec::new();
     let mut value = 0.0;
-    for _ in 0..reps.max(1) {
-        let t0 = Instant::now();
+    let times = harness::repeat(0, reps, || -> crate::Result<()> {
         value = net
             .distance(&a, &b, size, size, lpips::Convention::D3dgs)?
             .value
             .to_f64();
-        times.push(t0.elapsed().as_secs_f64());
-    }
-    let t = median(times);
+        Ok(())
+    })?;
+    let t = times.median();
     println!(
         "lpips vgg {size}x{size} pair, {} ({}), {} threads: {:.0} ms per pair (median of {}), {:.1} GFLOP/s in the convolutions ({:.0} GFLOP per pair); value {value:.6}",
         std::any::type_name::<T>(),
@@ -165,12 +86,7 @@ fn bench_lpips<T: Real>(
         2.0 * flops / t / 1e9,
         2.0 * flops / 1e9,
     );
-    Ok(ExitCode::SUCCESS)
-}
-
-pub(crate) fn median(mut v: Vec<f64>) -> f64 {
-    v.sort_by(|a, b| a.total_cmp(b));
-    v[v.len() / 2]
+    Ok(())
 }
 
 /// Nominal FLOPs of one (pixel, Gaussian) pair, counted from the code of a
@@ -181,17 +97,16 @@ pub(crate) fn median(mut v: Vec<f64>) -> f64 {
 /// the FMA units' use.
 pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 81.0];
 
-fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
+/// The rasterizer's forward and backward (f32, SH degree 3, exact
+/// gradients) at 800x800/50k, 400x400/20k and 64x64/2.6k Gaussians on each
+/// of `thread_counts`: the fastest of `reps` runs, pairs evaluated, pairs/s
+/// and % of the FMA peak.
+pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
     let reps = reps.max(1);
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
-    println!("machine threads: {cores}");
-    let mut thread_counts = vec![1usize];
-    if cores > 1 {
-        thread_counts.push(cores);
-    }
+    println!("machine threads: {}", harness::available_cores());
     let peaks: Vec<Option<(&str, f64)>> = thread_counts
         .iter()
-        .map(|&t| fma_peak(t, 20_000_000))
+        .map(|&t| harness::fma_peak(t, 20_000_000))
         .collect();
     for (&t, p) in thread_counts.iter().zip(&peaks) {
         match p {
@@ -205,18 +120,18 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
         "instruction set of the row functions: {:?}",
         crate::kernels::fastmath::isa()
     );
-    println!(
-        "{:<16} {:>3} {:>10} {:>10} {:>12} {:>11} {:>11} {:>6} {:>6}",
-        "scene",
-        "thr",
-        "fwd ms",
-        "bwd ms",
-        "pairs eval",
-        "fwd pair/s",
-        "bwd pair/s",
-        "fwd %",
-        "bwd %"
-    );
+    let table = Table::new(&[
+        ("scene", -16),
+        ("thr", 3),
+        ("fwd ms", 10),
+        ("bwd ms", 10),
+        ("pairs eval", 12),
+        ("fwd pair/s", 11),
+        ("bwd pair/s", 11),
+        ("fwd %", 6),
+        ("bwd %", 6),
+    ]);
+    table.print_header();
     for (w, h, n) in [
         (800usize, 800usize, 50_000usize),
         (400, 400, 20_000),
@@ -229,31 +144,29 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
             .map(|v| v as f32)
             .collect();
         for (&threads, peak) in thread_counts.iter().zip(&peaks) {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .map_err(|e| crate::Error::invalid("thread pool", e.to_string()))?;
+            let pool = harness::thread_pool(threads)?;
             let (fwd, bwd, pairs) = pool.install(|| -> crate::Result<_> {
-                let mut f = Vec::new();
-                let mut b = Vec::new();
+                let mut f = harness::Samples::new();
+                let mut b = harness::Samples::new();
                 let mut pairs = 0;
                 for _ in 0..reps {
-                    let t0 = Instant::now();
-                    let (_, state) = render::rasterize(&input)?;
-                    f.push(t0.elapsed().as_secs_f64());
+                    let (r, t) = harness::timed(|| render::rasterize(&input));
+                    let (_, state) = r?;
+                    f.push(t);
                     pairs = state.pairs_evaluated();
-                    let t1 = Instant::now();
-                    render::rasterize_backward(
-                        &input,
-                        &state,
-                        &grad,
-                        None,
-                        render::GradientMode::Exact,
-                    )?;
-                    b.push(t1.elapsed().as_secs_f64());
+                    let (r, t) = harness::timed(|| {
+                        render::rasterize_backward(
+                            &input,
+                            &state,
+                            &grad,
+                            None,
+                            render::GradientMode::Exact,
+                        )
+                    });
+                    r?;
+                    b.push(t);
                 }
-                let min = |v: Vec<f64>| v.into_iter().fold(f64::INFINITY, f64::min);
-                Ok((min(f), min(b), pairs))
+                Ok((f.min(), b.min(), pairs))
             })?;
             let rate = [pairs as f64 / fwd, pairs as f64 / bwd];
             let pct = |i: usize| match peak {
@@ -263,18 +176,17 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
                 ),
                 None => "-".into(),
             };
-            println!(
-                "{:<16} {:>3} {:>10.2} {:>10.2} {:>12} {:>11.3e} {:>11.3e} {:>6} {:>6}",
+            table.print_row(&[
                 format!("{w}x{h} {n}"),
-                threads,
-                fwd * 1e3,
-                bwd * 1e3,
-                pairs,
-                rate[0],
-                rate[1],
+                format!("{threads}"),
+                format!("{:.2}", fwd * 1e3),
+                format!("{:.2}", bwd * 1e3),
+                format!("{pairs}"),
+                format!("{:.3e}", rate[0]),
+                format!("{:.3e}", rate[1]),
                 pct(0),
-                pct(1)
-            );
+                pct(1),
+            ]);
         }
     }
     println!(
@@ -283,91 +195,20 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
          (backward) FLOP per pair over the FMA peak)",
         RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
     );
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }
 
-/// The machine's f32 FMA peak in GFLOP/s (2 FLOPs per lane per fused
-/// multiply-add) on `threads` threads, each running `iters` rounds of 24
-/// (AVX-512) or 12 (AVX2) independent vector FMAs, and the instruction set
-/// used; `None` without AVX2+FMA or AVX-512. The ceiling `benches/fma_peak`
-/// prints.
-pub fn fma_peak(threads: usize, iters: usize) -> Option<(&'static str, f64)> {
-    #[cfg(target_arch = "x86_64")]
-    {
-        let (name, flop_per_iter, run): (&str, f64, fn(usize) -> f32) =
-            if std::is_x86_feature_detected!("avx512f") {
-                // SAFETY: the CPU has AVX-512F (checked above).
-                ("AVX-512", 24.0 * 16.0 * 2.0, |n| unsafe { peak::avx512(n) })
-            } else if std::is_x86_feature_detected!("avx2") && std::is_x86_feature_detected!("fma")
-            {
-                // SAFETY: the CPU has AVX2 and FMA (checked above).
-                ("AVX2", 12.0 * 8.0 * 2.0, |n| unsafe { peak::avx2(n) })
-            } else {
-                return None;
-            };
-        let t0 = Instant::now();
-        let sum: f32 = (0..threads.max(1))
-            .map(|_| std::thread::spawn(move || run(iters)))
-            .collect::<Vec<_>>()
-            .into_iter()
-            .map(|h| h.join().unwrap_or(0.0))
-            .sum();
-        let s = t0.elapsed().as_secs_f64();
-        std::hint::black_box(sum);
-        Some((
-            name,
-            threads.max(1) as f64 * iters as f64 * flop_per_iter / s / 1e9,
-        ))
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        let _ = (threads, iters);
-        None
+/// Train `spec` in memory (no files) in its precision and print the mean
+/// time of each stage, over all iterations and over those with the field
+/// on.
+pub fn train(spec: &RunSpec) -> crate::Result<()> {
+    match spec.precision {
+        PrecisionChoice::F32 => train_as::<f32>(spec),
+        PrecisionChoice::F64 => train_as::<f64>(spec),
     }
 }
 
-#[cfg(target_arch = "x86_64")]
-mod peak {
-    use std::arch::x86_64::*;
-
-    #[target_feature(enable = "avx512f")]
-    pub unsafe fn avx512(iters: usize) -> f32 {
-        let mut c = [_mm512_set1_ps(0.0); 24];
-        let a = _mm512_set1_ps(0.999_999);
-        let b = _mm512_set1_ps(1e-7);
-        for _ in 0..iters {
-            for v in c.iter_mut() {
-                *v = _mm512_fmadd_ps(a, *v, b);
-            }
-        }
-        let s = c
-            .iter()
-            .fold(_mm512_set1_ps(0.0), |s, &v| _mm512_add_ps(s, v));
-        _mm512_reduce_add_ps(s)
-    }
-
-    #[target_feature(enable = "avx2,fma")]
-    pub unsafe fn avx2(iters: usize) -> f32 {
-        let mut c = [_mm256_set1_ps(0.0); 12];
-        let a = _mm256_set1_ps(0.999_999);
-        let b = _mm256_set1_ps(1e-7);
-        for _ in 0..iters {
-            for v in c.iter_mut() {
-                *v = _mm256_fmadd_ps(a, *v, b);
-            }
-        }
-        let mut out = [0.0f32; 8];
-        let s = c
-            .iter()
-            .fold(_mm256_set1_ps(0.0), |s, &v| _mm256_add_ps(s, v));
-        _mm256_storeu_ps(out.as_mut_ptr(), s);
-        out.iter().sum()
-    }
-}
-
-/// Train in memory (no files) and print the mean time of each stage, over
-/// all iterations and over those with the field on.
-fn bench_train<T: crate::math::Real>(spec: &super::train::RunSpec) -> crate::Result<ExitCode> {
+fn train_as<T: crate::math::Real>(spec: &RunSpec) -> crate::Result<()> {
     use crate::train::{run, StageTimes};
     let data = spec.load_dataset()?;
     let config = spec.train_config(&data)?;
@@ -402,51 +243,28 @@ fn bench_train<T: crate::math::Real>(spec: &super::train::RunSpec) -> crate::Res
         rayon::current_num_threads(),
         gaussians as f64 / n as f64
     );
-    println!(
-        "{:<16} {:>14} {:>18}",
-        "stage", "ms/it (all)", "ms/it (field on)"
-    );
+    let table = Table::new(&[
+        ("stage", -16),
+        ("ms/it (all)", 14),
+        ("ms/it (field on)", 18),
+    ]);
+    table.print_header();
     for (i, name) in StageTimes::NAMES.iter().enumerate() {
-        println!(
-            "{:<16} {:>14.2} {:>18.2}",
-            name,
-            1e3 * all.values()[i] / n as f64,
-            1e3 * active.values()[i] / n_active.max(1) as f64
-        );
+        table.print_row(&[
+            name.to_string(),
+            format!("{:.2}", 1e3 * all.values()[i] / n as f64),
+            format!("{:.2}", 1e3 * active.values()[i] / n_active.max(1) as f64),
+        ]);
     }
-    println!(
-        "{:<16} {:>14.2} {:>18.2}",
-        "total",
-        1e3 * total / n as f64,
-        1e3 * active.values().iter().sum::<f64>() / n_active.max(1) as f64
-    );
-    Ok(ExitCode::SUCCESS)
-}
-
-/// CPU time of the whole process (all threads) in seconds; `None` where not
-/// available. On a shared machine, CPU time ÷ threads estimates the wall
-/// time the same work would take with the cores to itself.
-fn process_cpu_seconds() -> Option<f64> {
-    #[cfg(target_os = "linux")]
-    {
-        #[repr(C)]
-        struct Timespec {
-            sec: i64,
-            nsec: i64,
-        }
-        extern "C" {
-            fn clock_gettime(clock: i32, tp: *mut Timespec) -> i32;
-        }
-        const CLOCK_PROCESS_CPUTIME_ID: i32 = 2;
-        let mut ts = Timespec { sec: 0, nsec: 0 };
-        // SAFETY: clock_gettime writes one timespec (two 64-bit fields on
-        // 64-bit Linux) into the buffer we own.
-        let rc = unsafe { clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &mut ts) };
-        if rc == 0 && cfg!(target_pointer_width = "64") {
-            return Some(ts.sec as f64 + ts.nsec as f64 * 1e-9);
-        }
-    }
-    None
+    table.print_row(&[
+        "total".to_string(),
+        format!("{:.2}", 1e3 * total / n as f64),
+        format!(
+            "{:.2}",
+            1e3 * active.values().iter().sum::<f64>() / n_active.max(1) as f64
+        ),
+    ]);
+    Ok(())
 }
 
 /// Seeded inputs of the deform benchmark: positions in [-1.3, 1.3]³, times in [0, 1].
@@ -465,36 +283,41 @@ fn deform_inputs<T: Real>(n: usize) -> (Vec<T>, Vec<T>, Deformation<T>) {
     (xyz, t, g)
 }
 
-fn bench_deform<T: Real>(
+/// The deformation fields (MLP D8 W256, CfC D6 W128; `only` one kind) on
+/// `n` seeded Gaussians: forward and forward+backward (median and fastest
+/// of `reps` runs after one warm-up), GFLOP/s and process CPU time; with
+/// `profile`, then each field's per-operation profile and the matrix
+/// kernels alone on the fields' shapes.
+pub fn deform<T: Real>(
     n: usize,
     reps: usize,
     only: Option<FieldKind>,
-) -> crate::Result<ExitCode> {
+    profile: bool,
+) -> crate::Result<()> {
     let reps = reps.max(1);
     if n == 0 {
         return Err(crate::Error::invalid("n", "must be at least 1"));
     }
     println!(
-        "threads: {} (rayon pool; machine reports {} available); precision {}; N = {n}; median of {reps}",
-        rayon::current_num_threads(),
-        std::thread::available_parallelism().map_or(1, |n| n.get()),
+        "{}; precision {}; N = {n}; median of {reps}",
+        harness::threads_line(),
         T::PRECISION,
     );
     println!(
         "matrix kernel path: {:?}",
         crate::kernels::matmul::kernel_path()
     );
-    println!(
-        "{:<16} {:>11} {:>10} {:>16} {:>11} {:>12} {:>18} {:>22}",
-        "field",
-        "forward ms",
-        "GFLOP/s",
-        "fwd+bwd ms",
-        "GFLOP/s",
-        "backward ms",
-        "min fwd / fwd+bwd",
-        "CPU/threads fwd / f+b"
-    );
+    let table = Table::new(&[
+        ("field", -16),
+        ("forward ms", 11),
+        ("GFLOP/s", 10),
+        ("fwd+bwd ms", 16),
+        ("GFLOP/s", 11),
+        ("backward ms", 12),
+        ("min fwd / fwd+bwd", 18),
+        ("CPU/threads fwd / f+b", 22),
+    ]);
+    table.print_header();
     let (xyz, t, g) = deform_inputs::<T>(n);
     {
         // One trunk-layer-sized product alone: the matrix kernel's rate.
@@ -503,15 +326,8 @@ fn bench_deform<T: Real>(
         let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
         let (a, b) = (cast(cotangent(15, n * k)), cast(cotangent(16, k * w)));
         let run = || matmul(MatRef::row_major(&a, n, k), MatRef::row_major(&b, k, w));
-        drop(run());
-        let times: Vec<f64> = (0..reps)
-            .map(|_| {
-                let t0 = Instant::now();
-                drop(run());
-                t0.elapsed().as_secs_f64()
-            })
-            .collect();
-        let s = median(times);
+        let times = harness::repeat(1, reps, || Ok::<_, crate::Error>(run()))?;
+        let s = times.median();
         println!(
             "{:<16} {:>11.1} {:>10.1}   (one [N, 256]·[256, 256] product, as in a trunk layer)",
             "matmul N×256×256",
@@ -569,20 +385,22 @@ fn bench_deform<T: Real>(
         let min = |v: &[f64]| v.iter().copied().fold(f64::INFINITY, f64::min);
         let (fmin, fbmin) = (min(&fwd), min(&both));
         let (f, b, fb) = (median(fwd), median(bwd), median(both));
-        println!(
-            "{:<16} {:>11.1} {:>10.1} {:>16.1} {:>11.1} {:>12.1} {:>18} {:>22}",
-            name,
-            f * 1e3,
-            flop / f / 1e9,
-            fb * 1e3,
-            3.0 * flop / fb / 1e9,
-            b * 1e3,
+        table.print_row(&[
+            name.to_string(),
+            format!("{:.1}", f * 1e3),
+            format!("{:.1}", flop / f / 1e9),
+            format!("{:.1}", fb * 1e3),
+            format!("{:.1}", 3.0 * flop / fb / 1e9),
+            format!("{:.1}", b * 1e3),
             format!("{:.1} / {:.1}", fmin * 1e3, fbmin * 1e3),
-            cpu
-        );
+            cpu,
+        ]);
     }
     println!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs;");
     println!(" CPU/threads: median process CPU time / threads, the wall time with idle cores if the threads never wait; includes spin-waiting)");
+    if !profile {
+        return Ok(());
+    }
     for (name, config) in [
         ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
         ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
@@ -593,7 +411,7 @@ fn bench_deform<T: Real>(
         deform_profile::<T>(name, config, &xyz, &t, &g, reps)?;
     }
     kernel_shapes::<T>(n, reps);
-    Ok(ExitCode::SUCCESS)
+    Ok(())
 }
 
 /// The matrix kernels alone on the shapes of the fields' products (no
@@ -650,16 +468,8 @@ fn kernel_shapes<T: Real>(n: usize, reps: usize) {
                 matmul_tn(am, bm)
             }
         };
-        drop(run());
-        let times: Vec<f64> = (0..reps.max(1))
-            .map(|_| {
-                let t0 = Instant::now();
-                drop(run());
-                t0.elapsed().as_secs_f64()
-            })
-            .collect();
-        let fastest = times.iter().copied().fold(f64::INFINITY, f64::min);
-        let s = median(times);
+        let Ok(times) = harness::repeat(1, reps, || Ok::<_, std::convert::Infallible>(run()));
+        let (s, fastest) = (times.median(), times.min());
         let shape = if *kind == "x·W" {
             format!("[{n},{k}]·[{k},{m}]")
         } else {
