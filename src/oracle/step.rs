@@ -37,6 +37,7 @@ use crate::deform::{Field, FieldConfig};
 use crate::densify::DensifyStats;
 use crate::error::{Error, Result};
 use crate::gaussians::Gaussians;
+use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
 use crate::math::{Precision, Real};
 use crate::optim::{AdamState, GaussianOptimizer, GroupLrs, LearningRates, StepGroups};
@@ -100,7 +101,9 @@ fn shape_error(case: &TensorFile, name: &str, expected: String, found: &[usize])
 
 /// The canonical Gaussians of the case (`opacity` `[N,1]` read into `[N]`).
 fn read_gaussians<T: Real>(case: &TensorFile) -> Result<Gaussians<T>> {
-    let (shape, xyz) = case.get_real_any::<T>("xyz")?;
+    let xyz = case.real_array::<T>("xyz")?;
+    let shape = xyz.shape().to_vec();
+    let xyz = into_row_major(xyz);
     if shape.len() != 2 || shape[1] != 3 || shape[0] == 0 {
         return Err(shape_error(
             case,
@@ -110,7 +113,9 @@ fn read_gaussians<T: Real>(case: &TensorFile) -> Result<Gaussians<T>> {
         ));
     }
     let n = shape[0];
-    let (shape, sh) = case.get_real_any::<T>("sh")?;
+    let sh = case.real_array::<T>("sh")?;
+    let shape = sh.shape().to_vec();
+    let sh = into_row_major(sh);
     let degree = match shape.as_slice() {
         [m, k, 3] if *m == n => (0..=3).find(|&d| Gaussians::<T>::coeffs_for_degree(d) == *k),
         _ => None,
@@ -196,7 +201,9 @@ fn read_stats<T: Real>(case: &TensorFile, n: usize) -> Result<DensifyStats<T>> {
         if !case.contains(name) {
             return Ok(None);
         }
-        let (shape, v) = case.get_i32(name)?;
+        let v = case.i32_array(name)?;
+        let shape = v.shape().to_vec();
+        let v: Vec<i32> = v.iter().copied().collect();
         if shape != [n] {
             return Err(shape_error(case, name, format!("shape [{n}]"), &shape));
         }

@@ -338,7 +338,9 @@ fn load_checked<T: Real>(
     };
     let field_optimizer = adam("field", field.param_count())?;
     let i32s = |name: &str, len: Option<usize>| -> Result<Vec<i32>> {
-        let (shape, v) = f.get_i32(name)?;
+        let v = f.i32_array(name)?;
+        let shape = v.shape().to_vec();
+        let v: Vec<i32> = v.iter().copied().collect();
         if shape.len() != 1 || len.is_some_and(|l| shape[0] != l) || v.iter().any(|&x| x < 0) {
             return Err(Error::field(
                 &path,
