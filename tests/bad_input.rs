@@ -2,28 +2,16 @@
 //! below once panicked, aborted, hung or gave a silent wrong result. Each
 //! must now exit with 2 and a message naming the file and the field.
 
+mod support;
+
 use liquid_splat::io::TensorFile;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
 use std::time::{Duration, Instant};
+use support::{cli, copy_dir, s, text, tmp};
 
 const SWING: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/scenes/swing");
 const BLOB: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/scenes/blob");
 const BLOB_NERFIES: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/scenes/blob-nerfies");
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("ls-bad-input-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn cli(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
-        .args(args)
-        .output()
-        .unwrap()
-}
 
 /// Run `args`, expect exit 2 within `limit`, and a message holding every
 /// one of `needles`.
@@ -31,11 +19,7 @@ fn refused_within(args: &[&str], limit: Duration, needles: &[&str]) -> String {
     let t = Instant::now();
     let o = cli(args);
     let elapsed = t.elapsed();
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
+    let text = text(&o);
     assert_eq!(o.status.code(), Some(2), "{args:?}: {text}");
     assert!(elapsed < limit, "{args:?} took {elapsed:?}: {text}");
     for n in needles {
@@ -50,28 +34,7 @@ fn refused(args: &[&str], needles: &[&str]) -> String {
 
 fn ok(args: &[&str]) {
     let o = cli(args);
-    assert!(
-        o.status.success(),
-        "{args:?}: {}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    );
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        if e.file_type().unwrap().is_dir() {
-            copy_dir(&e.path(), &to.join(e.file_name()));
-        } else {
-            std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-        }
-    }
+    assert!(o.status.success(), "{args:?}: {}", text(&o));
 }
 
 /// `case new` into `dir/name`, then `edit` the file.
@@ -91,10 +54,9 @@ fn case(dir: &Path, name: &str, new: &[&str], edit: impl FnOnce(&mut TensorFile)
 }
 
 fn set_real(f: &mut TensorFile, name: &str, index: usize, v: f64) {
-    let t = f.tensors.get_mut(name).unwrap();
-    match &mut t.data {
-        liquid_splat::io::TensorData::F64(d) => d[index] = v,
-        liquid_splat::io::TensorData::F32(d) => d[index] = v as f32,
+    match f.tensors.get_mut(name).unwrap() {
+        liquid_splat::io::Tensor::F64(d) => *d.iter_mut().nth(index).unwrap() = v,
+        liquid_splat::io::Tensor::F32(d) => *d.iter_mut().nth(index).unwrap() = v as f32,
         _ => panic!("{name} is not floating-point"),
     }
 }

@@ -1,16 +1,12 @@
 //! `liquid-splat count`: the paper's parameter counts (docs/UPSTREAM.md §6.3, §8.2)
 //! and the ptflops MAC conventions (§8.3), as the CLI prints them.
 
-use std::process::Command;
+mod support;
 
 fn run(args: &[&str]) -> (i32, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
-        .arg("count")
-        .args(args)
-        .output()
-        .unwrap();
+    let out = support::cli(&[&["count"], args].concat());
     (
-        out.status.code().unwrap_or(-1),
+        support::code(&out),
         String::from_utf8_lossy(&out.stdout).into_owned(),
         String::from_utf8_lossy(&out.stderr).into_owned(),
     )

@@ -1,6 +1,8 @@
 //! Dataset loading, the scene generator, the committed fixtures, bad input, and the real
 //! D-NeRF scenes when the shared data folder is present.
 
+mod support;
+
 use liquid_splat::dataset::image::{decode_png, encode_png};
 use liquid_splat::dataset::synth::{self, Layout, SynthOptions};
 use liquid_splat::dataset::{
@@ -8,13 +10,7 @@ use liquid_splat::dataset::{
 };
 use liquid_splat::gaussians::Gaussians;
 use std::path::{Path, PathBuf};
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("ls-ds-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+use support::tmp;
 
 fn small() -> SynthOptions {
     SynthOptions {
@@ -185,7 +181,7 @@ fn downscale_and_initial_gaussians() {
 }
 
 fn fixtures() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/scenes")
+    support::fixture("scenes")
 }
 
 #[test]
@@ -365,9 +361,8 @@ fn bad_nerfies_input_is_a_named_error() {
 
 #[test]
 fn cli_exits_2_on_bad_input() {
-    let bin = env!("CARGO_BIN_EXE_liquid-splat");
     let dir = tmp("cli");
-    let run = |args: &[&str]| std::process::Command::new(bin).args(args).output().unwrap();
+    let run = |args: &[&str]| support::cli(args);
     let out = run(&["inspect", dir.to_str().unwrap()]);
     assert_eq!(out.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&out.stderr).starts_with("error: "));

@@ -2,6 +2,9 @@
 //! scalar re-implementation of both forwards, thread-count determinism,
 //! weight files and the oracle stage.
 
+mod support;
+
+use approx::abs_diff_eq;
 use liquid_splat::deform::{Activation, Deformation, Field, FieldConfig, FieldKind, Variant};
 use liquid_splat::io::TensorFile;
 use liquid_splat::math::gradcheck::{compare, cotangent};
@@ -367,7 +370,7 @@ fn mlp_6dof_theta_zero_is_finite_and_defined() {
         for (k, vk) in v.iter().enumerate() {
             let got = d.d_xyz[3 * i + k];
             assert!(
-                (got - vk).abs() <= 1e-12 * vk.abs().max(1.0),
+                abs_diff_eq!(got, *vk, epsilon = 1e-12 * vk.abs().max(1.0)),
                 "{got} vs {vk}"
             );
         }
@@ -393,8 +396,15 @@ fn mlp_6dof_theta_zero_is_finite_and_defined() {
 // ---- independent scalar re-implementation of the forward passes ----
 
 fn lin(f: &TensorFile, name: &str, x: &[f64]) -> Vec<f64> {
-    let (ws, w) = f.get_real_any::<f64>(&format!("{name}.weight")).unwrap();
-    let (_, b) = f.get_real_any::<f64>(&format!("{name}.bias")).unwrap();
+    let w = f.real_array::<f64>(&format!("{name}.weight")).unwrap();
+    let ws = w.shape().to_vec();
+    let w: Vec<f64> = w.iter().copied().collect();
+    let b: Vec<f64> = f
+        .real_array::<f64>(&format!("{name}.bias"))
+        .unwrap()
+        .iter()
+        .copied()
+        .collect();
     assert_eq!(ws[1], x.len(), "{name}");
     (0..ws[0])
         .map(|o| {
@@ -546,7 +556,7 @@ fn forward_matches_scalar_reimplementation() {
                 .collect();
             for (a, b) in got.iter().zip(&want) {
                 assert!(
-                    (a - b).abs() <= 1e-12 * b.abs().max(1.0),
+                    abs_diff_eq!(a, b, epsilon = 1e-12 * b.abs().max(1.0)),
                     "{cfg:?}: {got:?} vs {want:?}"
                 );
             }
@@ -626,11 +636,7 @@ fn fields_are_bit_identical_across_thread_counts() {
                 .collect(),
         };
         let run = |threads: usize| {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| forward_backward_bits(&field, &xyz, &t, &g))
+            support::with_threads(threads, || forward_backward_bits(&field, &xyz, &t, &g))
         };
         let one = run(1);
         assert_eq!(one, run(2), "{cfg:?}");

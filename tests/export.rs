@@ -2,32 +2,17 @@
 //! rendered as a static model, against the deformed render at that time;
 //! `render --times`.
 
-use liquid_splat::dataset::{self, Dataset, LoadOptions};
+mod support;
+
+use liquid_splat::dataset::Dataset;
 use liquid_splat::deform::{Activation, FieldConfig, FieldKind};
 use liquid_splat::gaussians::ply;
 use liquid_splat::math::Real;
 use liquid_splat::render::{rasterize, Colors, Covariances, RasterInput};
 use liquid_splat::train::{self, export, TrainConfig, Trainer, View};
-use std::path::{Path, PathBuf};
+use support::{cli, text, tmp};
 
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("ls-export-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-fn scene() -> Dataset {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/scenes/swing");
-    dataset::load(
-        &dir,
-        &LoadOptions {
-            init_points: 300,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-}
+use support::swing as scene;
 
 /// A small CfC field, active from the first iteration, trained briefly:
 /// its offsets move, scale and turn the Gaussians (non-unit quaternions).
@@ -149,21 +134,6 @@ fn exported_ply_renders_the_deformed_model_f32() {
 fn exported_ply_renders_the_deformed_model_f64() {
     let e = differences::<f64>();
     assert!(e[0] < 1e-14, "worst {}", e[0]);
-}
-
-fn cli(args: &[&str]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn text(o: &std::process::Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
 }
 
 #[test]

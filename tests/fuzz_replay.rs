@@ -7,10 +7,13 @@
 //! an abort or hang fails the run. Longer, coverage-guided runs: see
 //! `fuzz/README.md`.
 
+mod support;
+
 use liquid_splat::fuzz::{self, Outcome};
 use liquid_splat::math::Rng;
 use std::panic::{catch_unwind, AssertUnwindSafe};
-use std::path::{Path, PathBuf};
+use std::path::Path;
+use support::tmp;
 
 const FIXTURES: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures");
 /// Mutations per seed (`LIQUID_SPLAT_FUZZ_MUTATIONS` overrides it for a
@@ -22,13 +25,6 @@ fn env_or(key: &str, default: u64) -> u64 {
         .ok()
         .and_then(|v| v.parse().ok())
         .unwrap_or(default)
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("ls-fuzz-replay-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
 }
 
 /// Values that break parsers: boundaries of the integer types, huge and

@@ -1,15 +1,17 @@
 //! Golden fixtures (`fixtures/cases/`): regenerating them gives identical
 //! bytes, and the published tolerance files are met and discriminate.
 
-use liquid_splat::io::{Tensor, TensorData, TensorFile};
+mod support;
+
+use liquid_splat::io::{Tensor, TensorFile};
 use liquid_splat::oracle::new::golden_files;
 use liquid_splat::oracle::{compare, run_case, Tolerances};
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::process::Command;
+use support::{cli, s, text};
 
 fn dir() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/cases")
+    support::fixture("cases")
 }
 
 fn committed() -> BTreeSet<String> {
@@ -43,18 +45,9 @@ fn regenerated_golden_files_are_bit_identical() {
 
 #[test]
 fn cli_regen_and_run_reproduce_the_files() {
-    let tmp = std::env::temp_dir().join(format!("ls-golden-{}", std::process::id()));
-    let bin = env!("CARGO_BIN_EXE_liquid-splat");
-    let st = Command::new(bin)
-        .args(["--threads", "2", "case", "regen-golden"])
-        .arg(&tmp)
-        .output()
-        .unwrap();
-    assert!(
-        st.status.success(),
-        "{}",
-        String::from_utf8_lossy(&st.stderr)
-    );
+    let tmp = support::tmp("regen");
+    let st = cli(&["--threads", "2", "case", "regen-golden", s(&tmp)]);
+    assert!(st.status.success(), "{}", text(&st));
     for name in committed() {
         assert_eq!(
             std::fs::read(tmp.join(&name)).unwrap(),
@@ -64,13 +57,8 @@ fn cli_regen_and_run_reproduce_the_files() {
     }
     // `case run` on a committed input writes the committed expected output.
     let input = dir().join("rasterize_f32_inria.input.safetensors");
-    let st = Command::new(bin)
-        .args(["case", "run"])
-        .arg(&input)
-        .arg(tmp.join("out.safetensors"))
-        .status()
-        .unwrap();
-    assert!(st.success());
+    let st = cli(&["case", "run", s(&input), s(&tmp.join("out.safetensors"))]);
+    assert!(st.status.success(), "{}", text(&st));
     assert_eq!(
         std::fs::read(tmp.join("out.safetensors")).unwrap(),
         std::fs::read(dir().join("rasterize_f32_inria.expected.safetensors")).unwrap()
@@ -81,8 +69,8 @@ fn cli_regen_and_run_reproduce_the_files() {
 fn widen(f: &TensorFile) -> TensorFile {
     let mut g = f.clone();
     for t in g.tensors.values_mut() {
-        if let TensorData::F32(v) = &t.data {
-            t.data = TensorData::F64(v.iter().map(|&x| x as f64).collect());
+        if let Tensor::F32(v) = t {
+            *t = Tensor::F64(v.mapv(f64::from));
         }
     }
     g
@@ -91,11 +79,8 @@ fn widen(f: &TensorFile) -> TensorFile {
 fn narrow(f: &TensorFile) -> TensorFile {
     let mut g = f.clone();
     for t in g.tensors.values_mut() {
-        if let TensorData::F64(v) = &t.data {
-            *t = Tensor {
-                shape: t.shape.clone(),
-                data: TensorData::F32(v.iter().map(|&x| x as f32).collect()),
-            };
+        if let Tensor::F64(v) = t {
+            *t = Tensor::F32(v.mapv(|x| x as f32));
         }
     }
     g
@@ -156,10 +141,8 @@ fn f64_tolerances_separate_inria_from_exact() {
 
 #[test]
 fn case_new_cli_writes_runnable_cases_and_rejects_bad_options() {
-    let tmp = std::env::temp_dir().join(format!("ls-case-new-{}", std::process::id()));
-    std::fs::create_dir_all(&tmp).unwrap();
-    let bin = env!("CARGO_BIN_EXE_liquid-splat");
-    let run = |args: &[&str]| Command::new(bin).args(args).output().unwrap();
+    let tmp = support::tmp("case-new");
+    let run = |args: &[&str]| cli(args);
     let p = |n: &str| tmp.join(n).display().to_string();
     for (stage, extra) in [
         (

@@ -1,16 +1,15 @@
 //! The gsplat oracle stages through the CLI: `case new` for every stage and
 //! option, `case run`, and typed errors (exit 2) for bad settings.
 
+mod support;
+
 use liquid_splat::io::TensorFile;
 use std::path::Path;
-use std::process::Command;
 
 #[test]
 fn case_new_and_run_every_gsplat_stage() {
-    let tmp = std::env::temp_dir().join(format!("ls-gsplat-{}", std::process::id()));
-    std::fs::create_dir_all(&tmp).unwrap();
-    let bin = env!("CARGO_BIN_EXE_liquid-splat");
-    let run = |args: &[&str]| Command::new(bin).args(args).output().unwrap();
+    let tmp = support::tmp("stages");
+    let run = |args: &[&str]| support::cli(args);
     let p = |n: &str| tmp.join(n).display().to_string();
     for stage in liquid_splat::oracle::gsplat::STAGES {
         for (i, extra) in [

@@ -5,6 +5,7 @@
 //! independence.
 
 mod gsplat_common;
+mod support;
 
 use gsplat_common::*;
 use liquid_splat::camera::Camera;
@@ -526,11 +527,7 @@ fn thread_count_does_not_change_a_bit() {
                     ..RasterizationSettings::new(53, 41, version)
                 };
                 let run = |threads: usize| {
-                    let pool = rayon::ThreadPoolBuilder::new()
-                        .num_threads(threads)
-                        .build()
-                        .unwrap();
-                    pool.install(|| {
+                    support::with_threads(threads, || {
                         let base = run_composite::<f32>(&s, v, &settings, None);
                         let vc: Vec<f32> = cotangent(9, base.colors.len())
                             .iter()

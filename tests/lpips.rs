@@ -6,21 +6,17 @@
 //! weights (`fixtures/lpips/vgg.pth`, a copy of its `weights/v0.1/vgg.pth`) or formula ones,
 //! both input conventions, f32 and f64.
 
+mod support;
+
 use liquid_splat::io::pth::{Container, PthFile};
 use liquid_splat::lpips::weights::{self, LPIPS_VGG_SHA256};
 use liquid_splat::lpips::{Convention, Lpips, LpipsWeights, Verify, WeightFile};
 use liquid_splat::math::Real;
 use std::path::{Path, PathBuf};
+use support::{cli, read_json as json, text, tmp};
 
 fn fixtures() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/lpips")
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("ls-lpips-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    support::fixture("lpips")
 }
 
 const CONVS: [(usize, usize); 13] = liquid_splat::lpips::VGG16_CONVS;
@@ -455,25 +451,6 @@ fn weights_load_from_files_and_bad_files_are_named_errors() {
 }
 
 // ---- the commands ----
-
-fn cli(args: &[&str]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
-        .args(args)
-        .output()
-        .unwrap()
-}
-
-fn text(o: &std::process::Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
-fn json(p: &Path) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap()
-}
 
 /// `train` and `eval` report LPIPS per view and mean when weights are given
 /// (labelled with the convention and the weight files), and never without.

@@ -1,17 +1,10 @@
 //! `liquid-splat case compare` as a CI job sees it: exit codes and outputs.
 
+mod support;
+
 use liquid_splat::io::TensorFile;
 use std::path::{Path, PathBuf};
-use std::process::Command;
-
-fn scratch(test: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!(
-        "liquid-splat-compare-{}-{test}",
-        std::process::id()
-    ));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
+use support::tmp as scratch;
 
 fn write(dir: &Path, name: &str, color: &[f32], radii: Vec<i32>) -> PathBuf {
     let mut f = TensorFile::new(dir.join(name));
@@ -24,14 +17,13 @@ fn write(dir: &Path, name: &str, color: &[f32], radii: Vec<i32>) -> PathBuf {
 }
 
 fn run(args: &[&std::ffi::OsStr]) -> (i32, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
-        .arg("case")
-        .arg("compare")
-        .args(args)
-        .output()
-        .unwrap();
+    let args: Vec<&std::ffi::OsStr> = ["case".as_ref(), "compare".as_ref()]
+        .into_iter()
+        .chain(args.iter().copied())
+        .collect();
+    let out = support::cli(&args);
     (
-        out.status.code().unwrap_or(-1),
+        support::code(&out),
         String::from_utf8_lossy(&out.stdout).into_owned(),
         String::from_utf8_lossy(&out.stderr).into_owned(),
     )

@@ -3,7 +3,9 @@
 //! statistics against hand computations, thread-count bit-identity, and
 //! malformed cases.
 
-use liquid_splat::io::{TensorData, TensorFile};
+mod support;
+
+use liquid_splat::io::{Tensor, TensorFile};
 use liquid_splat::math::gradcheck::{compare, numeric_gradient};
 use liquid_splat::math::Precision;
 use liquid_splat::oracle::new::{new_case, CaseSpec};
@@ -18,12 +20,16 @@ fn case(precision: Precision, seed: u64) -> TensorFile {
 }
 
 fn f64s(f: &TensorFile, name: &str) -> Vec<f64> {
-    f.tensors[name].data.to_f64()
+    f.tensors[name].to_f64().iter().copied().collect()
+}
+
+fn i32s(f: &TensorFile, name: &str) -> Vec<i32> {
+    f.i32_array(name).unwrap().iter().copied().collect()
 }
 
 fn set(f: &mut TensorFile, name: &str, i: usize, v: f64) {
-    match &mut f.tensors.get_mut(name).unwrap().data {
-        TensorData::F64(x) => x[i] = v,
+    match f.tensors.get_mut(name).unwrap() {
+        Tensor::F64(x) => *x.iter_mut().nth(i).unwrap() = v,
         _ => panic!("{name} is not F64"),
     }
 }
@@ -57,7 +63,7 @@ fn check(c: &TensorFile, out: &TensorFile, name: &str, indices: &[usize]) {
 /// Indices of the first `k` rows of width `w` belonging to visible Gaussians,
 /// column `col`.
 fn visible(out: &TensorFile, w: usize, col: usize, k: usize) -> Vec<usize> {
-    let (_, radii) = out.get_i32("radii").unwrap();
+    let radii = i32s(&out, "radii");
     radii
         .iter()
         .enumerate()
@@ -179,13 +185,13 @@ fn adam_update_and_statistics_match_hand_computation() {
     assert_ne!(lr("f_dc"), lr("f_rest"));
 
     // Statistics: visible Gaussians add the NDC gradient norm.
-    let (_, radii) = out.get_i32("radii").unwrap();
+    let radii = i32s(&out, "radii");
     let g2 = f64s(&out, "grad_means2d");
     let (acc0, acc1) = (f64s(&c, "stats.accum"), f64s(&out, "stats.accum"));
-    let (_, den0) = c.get_i32("stats.denom").unwrap();
-    let (_, den1) = out.get_i32("stats.denom").unwrap();
-    let (_, mr0) = c.get_i32("stats.max_radii").unwrap();
-    let (_, mr1) = out.get_i32("stats.max_radii").unwrap();
+    let den0 = i32s(&c, "stats.denom");
+    let den1 = i32s(&out, "stats.denom");
+    let mr0 = i32s(&c, "stats.max_radii");
+    let mr1 = i32s(&out, "stats.max_radii");
     assert_eq!(radii[0], 0);
     assert!(radii.iter().any(|&r| r > 0));
     for i in 0..radii.len() {
@@ -234,8 +240,8 @@ fn field_off_leaves_the_field_and_its_state_alone() {
     bare.metadata.retain(|k, _| !k.starts_with("adam."));
     let out = run_case(&bare).unwrap();
     assert_eq!(out.meta("new.adam.sh.step").unwrap(), "1");
-    let (_, denom) = out.get_i32("stats.denom").unwrap();
-    let (_, radii) = out.get_i32("radii").unwrap();
+    let denom = i32s(&out, "stats.denom");
+    let radii = i32s(&out, "radii");
     let vis: Vec<i32> = radii.iter().map(|&r| (r > 0) as i32).collect();
     assert_eq!(denom, vis);
 }
@@ -244,13 +250,8 @@ fn field_off_leaves_the_field_and_its_state_alone() {
 fn same_bits_for_one_and_three_threads() {
     for precision in [Precision::F32, Precision::F64] {
         let c = case(precision, 6);
-        let run = |threads| {
-            rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap()
-                .install(|| run_case(&c).unwrap().to_bytes().unwrap())
-        };
+        let run =
+            |threads| support::with_threads(threads, || run_case(&c).unwrap().to_bytes().unwrap());
         assert!(run(1) == run(3), "{precision}");
     }
 }
@@ -382,8 +383,8 @@ fn f32_tolerances_catch_a_one_percent_error() {
         "new.adam.sh.v",
     ] {
         let mut actual = expected.clone();
-        match &mut actual.tensors.get_mut(name).unwrap().data {
-            TensorData::F32(v) => v.iter_mut().for_each(|x| *x *= 1.01),
+        match actual.tensors.get_mut(name).unwrap() {
+            Tensor::F32(v) => v.iter_mut().for_each(|x| *x *= 1.01),
             _ => panic!("{name}"),
         }
         let report = liquid_splat::oracle::compare(&expected, &actual, &tol).unwrap();

@@ -4,6 +4,7 @@
 //! here from closed forms for one Gaussian on (or beside) the optical axis of
 //! a camera at the origin with identity rotation.
 
+use approx::abs_diff_eq;
 use liquid_splat::camera::{Camera, RasterCamera};
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
 use liquid_splat::render::{
@@ -47,7 +48,7 @@ fn single(mean: [f64; 3], s: f64, opacity: f64) -> (RasterGrads<f64>, RasterGrad
 
 fn close(what: &str, got: f64, want: f64, rtol: f64) {
     assert!(
-        (got - want).abs() <= rtol * want.abs(),
+        abs_diff_eq!(got, want, epsilon = rtol * want.abs()),
         "{what}: got {got:e}, want {want:e} (rtol {rtol:e})"
     );
 }
@@ -57,7 +58,7 @@ fn all_close(what: &str, a: &[f64], b: &[f64], rtol: f64) {
     let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     for (i, (x, y)) in a.iter().zip(b).enumerate() {
         assert!(
-            (x - y).abs() <= rtol * scale,
+            abs_diff_eq!(x, y, epsilon = rtol * scale),
             "{what}[{i}]: {x:e} vs {y:e} (scale {scale:e})"
         );
     }
@@ -161,7 +162,11 @@ fn tangent_clamp_tz_term_is_doubled_by_inria_only() {
     );
     let scale = exact.means3d.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     for a in 0..2 {
-        assert!((inria.means3d[a] - exact.means3d[a]).abs() <= 1e-12 * scale);
+        assert!(abs_diff_eq!(
+            inria.means3d[a],
+            exact.means3d[a],
+            epsilon = 1e-12 * scale
+        ));
     }
     all_close("cov", &inria.scales_or_cov, &exact.scales_or_cov, 1e-12);
     all_close("opacities", &inria.opacities, &exact.opacities, 1e-12);

@@ -1,11 +1,13 @@
 //! Oracle stage `rasterize`: file round trip through the CLI and malformed inputs.
 
+mod support;
+
 use liquid_splat::io::TensorFile;
 use liquid_splat::oracle::rasterize::run;
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
 use liquid_splat::render::{rasterize, rasterize_backward, Colors, GradientMode};
 use std::path::PathBuf;
-use std::process::Command;
+use support::{cli, s, text};
 
 fn case_file(path: PathBuf) -> (TensorFile, Vec<f64>, Vec<f64>) {
     let s = random_scene(&SceneSpec::small(6, 3)).unwrap();
@@ -42,17 +44,12 @@ fn case_file(path: PathBuf) -> (TensorFile, Vec<f64>, Vec<f64>) {
 
 #[test]
 fn round_trip_through_the_cli_matches_the_library() {
-    let dir = std::env::temp_dir().join(format!("ls-raster-oracle-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = support::tmp("round-trip");
     let (case, color, gmeans) = case_file(dir.join("in.safetensors"));
     case.save(&dir.join("in.safetensors")).unwrap();
-    let st = Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
-        .args(["case", "run"])
-        .arg(dir.join("in.safetensors"))
-        .arg(dir.join("out.safetensors"))
-        .status()
-        .unwrap();
-    assert!(st.success());
+    let (input, output) = (dir.join("in.safetensors"), dir.join("out.safetensors"));
+    let st = cli(&["case", "run", s(&input), s(&output)]);
+    assert!(st.status.success(), "{}", text(&st));
     let out = TensorFile::load(&dir.join("out.safetensors")).unwrap();
     assert_eq!(out.get_real::<f64>("color", &[3, 24, 32]).unwrap(), color);
     assert_eq!(
@@ -71,17 +68,13 @@ fn round_trip_through_the_cli_matches_the_library() {
     ] {
         assert!(out.contains(name), "{name}");
     }
-    assert_eq!(out.get_i32("radii").unwrap().0, vec![6]);
+    assert_eq!(out.shape("radii").unwrap(), &[6]);
     // Wrong stage: exit 2.
     let mut wrong = case.clone();
     wrong.set_meta("stage", "no-such-stage");
     wrong.save(&dir.join("wrong.safetensors")).unwrap();
-    let st = Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
-        .args(["case", "run"])
-        .arg(dir.join("wrong.safetensors"))
-        .arg(dir.join("out2.safetensors"))
-        .output()
-        .unwrap();
+    let (input, output) = (dir.join("wrong.safetensors"), dir.join("out2.safetensors"));
+    let st = cli(&["case", "run", s(&input), s(&output)]);
     assert_eq!(st.status.code(), Some(2));
     assert!(String::from_utf8_lossy(&st.stderr).contains("stage"));
     std::fs::remove_dir_all(&dir).unwrap();

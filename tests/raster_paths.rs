@@ -3,6 +3,8 @@
 //! and backward gradients in both gradient modes, f32, on scenes with partial
 //! tiles, stopped pixels and clamped alphas.
 
+mod support;
+
 use liquid_splat::kernels::fastmath::{force_isa, Isa};
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
 use liquid_splat::render::{rasterize, rasterize_backward, GradientMode};
@@ -72,11 +74,7 @@ fn every_instruction_set_and_thread_count_gives_the_same_bits() {
         for &isa in &paths {
             assert!(force_isa(Some(isa)));
             for threads in [1, 2, 3] {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .build()
-                    .unwrap();
-                let got = pool.install(|| run_bits(&spec, colors, cov));
+                let got = support::with_threads(threads, || run_bits(&spec, colors, cov));
                 match &want {
                     None => want = Some(got),
                     Some(w) => assert!(

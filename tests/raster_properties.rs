@@ -2,6 +2,8 @@
 //! range, order independence, near-plane culling, f32 vs f64, and a single
 //! Gaussian computed by hand.
 
+mod support;
+
 use liquid_splat::camera::Camera;
 use liquid_splat::math::Real;
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, Scene, SceneSpec};
@@ -88,11 +90,7 @@ fn bit_identical_for_1_2_3_threads() {
         let mut prints64 = Vec::new();
         let mut prints32 = Vec::new();
         for threads in [1, 2, 3] {
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()
-                .unwrap();
-            pool.install(|| {
+            support::with_threads(threads, || {
                 let (o, g) = run_mode(&s64, colors, cov, mode);
                 prints64.push(fingerprint(&o, &g));
                 let (o, g) = run_mode(&s32, colors, cov, mode);

@@ -1,30 +1,15 @@
 //! Training: bit-exact reproduction across thread counts and against a
 //! recorded hash, checkpoint/resume, and damaged checkpoints.
 
-use liquid_splat::dataset::{self, Dataset, LoadOptions};
+mod support;
+
+use liquid_splat::dataset::Dataset;
 use liquid_splat::deform::{Activation, FieldConfig, FieldKind};
 use liquid_splat::train::{self, checkpoint, Event, RunOptions, TrainConfig, Trainer};
-use std::path::{Path, PathBuf};
+use std::path::Path;
+use support::{copy_dir, tmp};
 
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("ls-train-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
-
-/// The committed fixture scene with a few hundred random initial points.
-fn scene() -> Dataset {
-    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/scenes/swing");
-    dataset::load(
-        &dir,
-        &LoadOptions {
-            init_points: 300,
-            ..Default::default()
-        },
-    )
-    .unwrap()
-}
+use support::swing as scene;
 
 /// The small CfC field of the short runs.
 fn cfc_field() -> FieldConfig {
@@ -72,11 +57,7 @@ fn train_in_pool<T: liquid_splat::math::Real>(
     iterations: u64,
     field: FieldConfig,
 ) -> Trainer<T> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .unwrap();
-    pool.install(|| {
+    support::with_threads(threads, || {
         let views = train::run::views::<T>(&data.train);
         let g = liquid_splat::dataset::init::initial_gaussians::<T>(&data.init).unwrap();
         let mut t = Trainer::new(
@@ -135,7 +116,7 @@ static RECORD: std::sync::Mutex<()> = std::sync::Mutex::new(());
 /// `LIQUID_SPLAT_RECORD=1`, write them first.
 fn check_record(set: impl Fn(&mut Record)) {
     let _guard = RECORD.lock().unwrap_or_else(|e| e.into_inner());
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("fixtures/training/record.json");
+    let path = support::fixture("training/record.json");
     let load = || -> Record { serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap() };
     let mut got = load();
     got.crate_version = env!("CARGO_PKG_VERSION").into();
@@ -215,14 +196,6 @@ fn run(
 
 fn binding(data: &Dataset) -> checkpoint::DataBinding {
     checkpoint::DataBinding::of(data, "fixtures/scenes/swing")
-}
-
-fn copy_dir(from: &Path, to: &Path) {
-    std::fs::create_dir_all(to).unwrap();
-    for e in std::fs::read_dir(from).unwrap() {
-        let e = e.unwrap();
-        std::fs::copy(e.path(), to.join(e.file_name())).unwrap();
-    }
 }
 
 #[test]

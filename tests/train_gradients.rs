@@ -10,6 +10,7 @@
 //! here from the transform, not through the field's `d_xyz`), whose
 //! derivative is `Rᵀ·g` rather than `g`.
 
+use approx::abs_diff_eq;
 use liquid_splat::deform::{Activation, Field, FieldConfig, FieldKind, Variant};
 use liquid_splat::gaussians::Gaussians;
 use liquid_splat::loss::loss_and_grad;
@@ -133,7 +134,10 @@ fn check_xyz(field: FieldConfig, seed: u64) {
     // The reference forward is the model's forward (to rounding).
     let l0 = loss_at(&model, &view, &x0);
     let l = grads.loss.loss;
-    assert!((l0 - l).abs() <= 1e-14 * l.abs(), "{field:?}: {l0} vs {l}");
+    assert!(
+        abs_diff_eq!(l0, l, epsilon = 1e-14 * l.abs()),
+        "{field:?}: {l0} vs {l}"
+    );
     if field.is_6dof {
         // The warp's rotations are far from the identity: the check tells
         // Rᵀ·g from g.

@@ -5,7 +5,7 @@ pub mod image;
 pub mod pth;
 pub mod tensor_file;
 
-pub use tensor_file::{Tensor, TensorData, TensorFile};
+pub use tensor_file::{Tensor, TensorFile};
 
 use crate::error::{Error, Result};
 use std::io::Write;

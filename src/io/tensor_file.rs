@@ -6,71 +6,132 @@
 //! content always gives the same bytes.
 
 use crate::error::{Error, Result};
-use crate::math::Real;
+use crate::math::{Precision, Real};
+use ndarray::{ArrayD, ArrayViewD, IxDyn};
 use safetensors::tensor::{Dtype, SafeTensors};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 
-/// Element storage of a tensor.
+/// A tensor: an n-dimensional array of one element type. Files store the
+/// elements in row-major (C) order whatever the array's memory layout.
 #[derive(Clone, Debug, PartialEq)]
-pub enum TensorData {
-    F32(Vec<f32>),
-    F64(Vec<f64>),
-    I32(Vec<i32>),
+pub enum Tensor {
+    /// 32-bit floats (safetensors `F32`).
+    F32(ArrayD<f32>),
+    /// 64-bit floats (safetensors `F64`).
+    F64(ArrayD<f64>),
+    /// 32-bit signed integers (safetensors `I32`).
+    I32(ArrayD<i32>),
 }
 
-impl TensorData {
-    pub fn dtype_name(&self) -> &'static str {
-        match self {
-            TensorData::F32(_) => "F32",
-            TensorData::F64(_) => "F64",
-            TensorData::I32(_) => "I32",
-        }
-    }
-    pub fn len(&self) -> usize {
-        match self {
-            TensorData::F32(v) => v.len(),
-            TensorData::F64(v) => v.len(),
-            TensorData::I32(v) => v.len(),
-        }
-    }
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-    /// Every element widened to f64 (exact for all three types).
-    pub fn to_f64(&self) -> Vec<f64> {
-        match self {
-            TensorData::F32(v) => v.iter().map(|&x| x as f64).collect(),
-            TensorData::F64(v) => v.clone(),
-            TensorData::I32(v) => v.iter().map(|&x| x as f64).collect(),
-        }
-    }
+/// `a`'s elements in row-major order, mapped by `f`, as a standard-layout
+/// array of the same shape.
+fn map_row_major<A: Copy, B>(a: &ArrayD<A>, f: impl Fn(A) -> B) -> ArrayD<B> {
+    let values: Vec<B> = a.iter().map(|&x| f(x)).collect();
+    ArrayD::from_shape_vec(a.raw_dim(), values).expect("one value per element of the shape")
 }
 
-/// A tensor: row-major data and its shape.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Tensor {
-    pub shape: Vec<usize>,
-    pub data: TensorData,
+/// An array's elements in row-major order (no copy for a standard-layout
+/// array).
+pub fn into_row_major<A: Clone>(a: ArrayD<A>) -> Vec<A> {
+    if a.is_standard_layout() {
+        a.into_raw_vec_and_offset().0
+    } else {
+        a.iter().cloned().collect()
+    }
 }
 
 impl Tensor {
+    /// A tensor of `shape` from row-major `values` of a real type, stored in
+    /// that type's precision.
+    ///
+    /// # Panics
+    /// If `values.len()` is not the product of `shape` (a caller's bug: every
+    /// reader checks shapes before it builds a tensor).
     pub fn real<T: Real>(shape: Vec<usize>, values: &[T]) -> Self {
-        debug_assert_eq!(shape.iter().product::<usize>(), values.len());
-        let data = match T::PRECISION {
-            crate::math::Precision::F32 => {
-                TensorData::F32(values.iter().map(|v| v.to_f64() as f32).collect())
+        fn shaped<A>(shape: Vec<usize>, v: Vec<A>) -> ArrayD<A> {
+            let len = v.len();
+            ArrayD::from_shape_vec(IxDyn(&shape), v)
+                .unwrap_or_else(|_| panic!("{len} values do not fill a tensor of shape {shape:?}"))
+        }
+        match T::PRECISION {
+            Precision::F32 => Tensor::F32(shaped(
+                shape,
+                values.iter().map(|v| v.to_f64() as f32).collect(),
+            )),
+            Precision::F64 => {
+                Tensor::F64(shaped(shape, values.iter().map(|v| v.to_f64()).collect()))
             }
-            crate::math::Precision::F64 => {
-                TensorData::F64(values.iter().map(|v| v.to_f64()).collect())
-            }
-        };
-        Tensor { shape, data }
+        }
     }
+
+    /// A real tensor of the array's shape, stored in `T`'s precision.
+    pub fn from_real<T: Real>(array: &ArrayD<T>) -> Self {
+        match T::PRECISION {
+            Precision::F32 => Tensor::F32(map_row_major(array, |v| v.to_f64() as f32)),
+            Precision::F64 => Tensor::F64(map_row_major(array, |v| v.to_f64())),
+        }
+    }
+
+    /// An I32 tensor of `shape` from row-major `values`.
+    ///
+    /// # Panics
+    /// If `values.len()` is not the product of `shape`.
     pub fn i32(shape: Vec<usize>, values: Vec<i32>) -> Self {
-        Tensor {
-            shape,
-            data: TensorData::I32(values),
+        let len = values.len();
+        Tensor::I32(
+            ArrayD::from_shape_vec(IxDyn(&shape), values)
+                .unwrap_or_else(|_| panic!("{len} values do not fill a tensor of shape {shape:?}")),
+        )
+    }
+
+    /// The safetensors dtype name: `F32`, `F64` or `I32`.
+    pub fn dtype_name(&self) -> &'static str {
+        match self {
+            Tensor::F32(_) => "F32",
+            Tensor::F64(_) => "F64",
+            Tensor::I32(_) => "I32",
+        }
+    }
+
+    /// The shape (empty for a scalar).
+    pub fn shape(&self) -> &[usize] {
+        match self {
+            Tensor::F32(a) => a.shape(),
+            Tensor::F64(a) => a.shape(),
+            Tensor::I32(a) => a.shape(),
+        }
+    }
+
+    /// The number of elements.
+    pub fn len(&self) -> usize {
+        match self {
+            Tensor::F32(a) => a.len(),
+            Tensor::F64(a) => a.len(),
+            Tensor::I32(a) => a.len(),
+        }
+    }
+
+    /// Whether the tensor has no elements (some dimension is 0).
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Every element widened to f64 (exact for all three types), as a
+    /// standard-layout array of the same shape.
+    pub fn to_f64(&self) -> ArrayD<f64> {
+        match self {
+            Tensor::F32(a) => map_row_major(a, f64::from),
+            Tensor::F64(a) => map_row_major(a, |x| x),
+            Tensor::I32(a) => map_row_major(a, f64::from),
+        }
+    }
+
+    /// Bytes per element in a file.
+    fn element_size(&self) -> usize {
+        match self {
+            Tensor::F64(_) => 8,
+            Tensor::F32(_) | Tensor::I32(_) => 4,
         }
     }
 }
@@ -89,12 +150,16 @@ fn shape_str(s: &[usize]) -> String {
 /// from (or will be written to) for error messages.
 #[derive(Clone, Debug, Default)]
 pub struct TensorFile {
+    /// Where the file came from or will be written (named in errors).
     pub path: PathBuf,
+    /// String metadata (safetensors `__metadata__`), sorted by key.
     pub metadata: BTreeMap<String, String>,
+    /// The tensors, sorted by name.
     pub tensors: BTreeMap<String, Tensor>,
 }
 
 impl TensorFile {
+    /// An empty file for `path` (nothing is read or written).
     pub fn new(path: impl Into<PathBuf>) -> Self {
         TensorFile {
             path: path.into(),
@@ -112,6 +177,8 @@ impl TensorFile {
         Self::from_bytes(path, &bytes)
     }
 
+    /// Parse safetensors `bytes` (F32, F64 and I32 tensors); `path` names
+    /// the file in errors.
     pub fn from_bytes(path: &Path, bytes: &[u8]) -> Result<Self> {
         let (_, meta) = SafeTensors::read_metadata(bytes)
             .map_err(|e| Error::format(path, format!("not a valid safetensors file: {e}")))?;
@@ -122,23 +189,47 @@ impl TensorFile {
             out.metadata = m.iter().map(|(k, v)| (k.clone(), v.clone())).collect();
         }
         for (name, view) in st.tensors() {
-            let shape = view.shape().to_vec();
+            let shape = IxDyn(view.shape());
             let raw = view.data();
-            let data = match view.dtype() {
-                Dtype::F32 => TensorData::F32(
-                    raw.chunks_exact(4)
-                        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
-                        .collect(),
+            let bad_size = |_| Error::Tensor {
+                context: path.display().to_string(),
+                name: name.clone(),
+                expected: format!(
+                    "{} elements for shape {}",
+                    view.shape().iter().product::<usize>(),
+                    shape_str(view.shape())
                 ),
-                Dtype::F64 => TensorData::F64(
-                    raw.chunks_exact(8)
-                        .map(|c| f64::from_le_bytes(c.try_into().unwrap()))
-                        .collect(),
+                found: format!("{} bytes", raw.len()),
+            };
+            let tensor = match view.dtype() {
+                Dtype::F32 => Tensor::F32(
+                    ArrayD::from_shape_vec(
+                        shape.clone(),
+                        raw.chunks_exact(4)
+                            .map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                            .collect(),
+                    )
+                    .map_err(bad_size)?,
                 ),
-                Dtype::I32 => TensorData::I32(
-                    raw.chunks_exact(4)
-                        .map(|c| i32::from_le_bytes(c.try_into().unwrap()))
-                        .collect(),
+                Dtype::F64 => Tensor::F64(
+                    ArrayD::from_shape_vec(
+                        shape.clone(),
+                        raw.chunks_exact(8)
+                            .map(|c| {
+                                f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])
+                            })
+                            .collect(),
+                    )
+                    .map_err(bad_size)?,
+                ),
+                Dtype::I32 => Tensor::I32(
+                    ArrayD::from_shape_vec(
+                        shape.clone(),
+                        raw.chunks_exact(4)
+                            .map(|c| i32::from_le_bytes([c[0], c[1], c[2], c[3]]))
+                            .collect(),
+                    )
+                    .map_err(bad_size)?,
                 ),
                 other => {
                     return Err(Error::Tensor {
@@ -149,7 +240,7 @@ impl TensorFile {
                     })
                 }
             };
-            out.tensors.insert(name, Tensor { shape, data });
+            out.tensors.insert(name, tensor);
         }
         Ok(out)
     }
@@ -161,15 +252,15 @@ impl TensorFile {
     /// of 8 bytes. (The `safetensors` crate's own writer emits metadata in
     /// hash-map order, which changes from run to run.)
     pub fn to_bytes(&self) -> Result<Vec<u8>> {
-        fn align(d: &TensorData) -> u8 {
-            match d {
-                TensorData::F64(_) => 0,
-                TensorData::F32(_) => 1,
-                TensorData::I32(_) => 2,
+        fn align(t: &Tensor) -> u8 {
+            match t {
+                Tensor::F64(_) => 0,
+                Tensor::F32(_) => 1,
+                Tensor::I32(_) => 2,
             }
         }
         let mut order: Vec<(&String, &Tensor)> = self.tensors.iter().collect();
-        order.sort_by(|(ln, lt), (rn, rt)| align(&lt.data).cmp(&align(&rt.data)).then(ln.cmp(rn)));
+        order.sort_by(|(ln, lt), (rn, rt)| align(lt).cmp(&align(rt)).then(ln.cmp(rn)));
         let json = |s: &str| serde_json::to_string(s).expect("a string always serialises");
         let mut header = String::from("{");
         if !self.metadata.is_empty() {
@@ -184,28 +275,15 @@ impl TensorFile {
         }
         let mut offset = 0usize;
         for (i, (name, t)) in order.iter().enumerate() {
-            let elems: usize = t.shape.iter().product();
-            if elems != t.data.len() {
-                return Err(Error::Tensor {
-                    context: self.ctx(),
-                    name: name.to_string(),
-                    expected: format!("{elems} elements for shape {}", shape_str(&t.shape)),
-                    found: format!("{} elements", t.data.len()),
-                });
-            }
-            let bytes = elems
-                * match t.data {
-                    TensorData::F64(_) => 8,
-                    _ => 4,
-                };
+            let bytes = t.len() * t.element_size();
             if i > 0 || !self.metadata.is_empty() {
                 header.push(',');
             }
             header.push_str(&format!(
                 "{}:{{\"dtype\":\"{}\",\"shape\":[{}],\"data_offsets\":[{},{}]}}",
                 json(name),
-                t.data.dtype_name(),
-                t.shape
+                t.dtype_name(),
+                t.shape()
                     .iter()
                     .map(|d| d.to_string())
                     .collect::<Vec<_>>()
@@ -221,15 +299,17 @@ impl TensorFile {
         let mut out = Vec::with_capacity(8 + header.len() + offset);
         out.extend_from_slice(&(header.len() as u64).to_le_bytes());
         out.extend_from_slice(&header);
+        // Elements in row-major order (`iter` walks an array logically,
+        // whatever its memory layout).
         for (_, t) in order {
-            match &t.data {
-                TensorData::F32(v) => v
+            match t {
+                Tensor::F32(a) => a
                     .iter()
                     .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
-                TensorData::F64(v) => v
+                Tensor::F64(a) => a
                     .iter()
                     .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
-                TensorData::I32(v) => v
+                Tensor::I32(a) => a
                     .iter()
                     .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
             }
@@ -244,6 +324,7 @@ impl TensorFile {
 
     // ---- metadata ----
 
+    /// Set metadata `key` to `value`'s text.
     pub fn set_meta(&mut self, key: &str, value: impl ToString) {
         self.metadata.insert(key.to_string(), value.to_string());
     }
@@ -306,14 +387,17 @@ impl TensorFile {
     /// (tensors in name order, elements in row-major order), naming the
     /// tensor, the flat index and the value.
     pub fn check_finite(&self) -> Result<()> {
+        fn first_bad<A: Copy + Into<f64>>(a: &ArrayD<A>) -> Option<(usize, f64)> {
+            a.iter()
+                .map(|&x| x.into())
+                .enumerate()
+                .find(|(_, x): &(usize, f64)| !x.is_finite())
+        }
         for (name, t) in &self.tensors {
-            let bad = match &t.data {
-                TensorData::F32(v) => v
-                    .iter()
-                    .position(|x| !x.is_finite())
-                    .map(|i| (i, v[i] as f64)),
-                TensorData::F64(v) => v.iter().position(|x| !x.is_finite()).map(|i| (i, v[i])),
-                TensorData::I32(_) => None,
+            let bad = match t {
+                Tensor::F32(a) => first_bad(a),
+                Tensor::F64(a) => first_bad(a),
+                Tensor::I32(_) => None,
             };
             if let Some((i, x)) = bad {
                 return Err(Error::Tensor {
@@ -327,29 +411,32 @@ impl TensorFile {
         Ok(())
     }
 
+    /// Whether the file holds tensor `name`.
     pub fn contains(&self, name: &str) -> bool {
         self.tensors.contains_key(name)
     }
 
+    /// Tensor `name`, or an error naming it.
+    pub fn get(&self, name: &str) -> Result<&Tensor> {
+        self.tensors.get(name).ok_or_else(|| Error::MissingTensor {
+            context: self.ctx(),
+            name: name.to_string(),
+        })
+    }
+
+    /// The shape of tensor `name`.
     pub fn shape(&self, name: &str) -> Result<&[usize]> {
-        self.tensors
-            .get(name)
-            .map(|t| t.shape.as_slice())
-            .ok_or_else(|| Error::MissingTensor {
-                context: self.ctx(),
-                name: name.to_string(),
-            })
+        self.get(name).map(Tensor::shape)
     }
 
     /// The precision of the floating-point tensors: all must agree.
-    pub fn precision(&self) -> Result<crate::math::Precision> {
-        use crate::math::Precision;
+    pub fn precision(&self) -> Result<Precision> {
         let mut found: Option<(Precision, &str)> = None;
         for (name, t) in &self.tensors {
-            let p = match t.data {
-                TensorData::F32(_) => Precision::F32,
-                TensorData::F64(_) => Precision::F64,
-                TensorData::I32(_) => continue,
+            let p = match t {
+                Tensor::F32(_) => Precision::F32,
+                Tensor::F64(_) => Precision::F64,
+                Tensor::I32(_) => continue,
             };
             match found {
                 None => found = Some((p, name)),
@@ -361,7 +448,7 @@ impl TensorFile {
                             "dtype {} like `{first}`",
                             if q == Precision::F32 { "F32" } else { "F64" }
                         ),
-                        found: t.data.dtype_name().into(),
+                        found: t.dtype_name().into(),
                     })
                 }
                 _ => {}
@@ -372,36 +459,21 @@ impl TensorFile {
             .ok_or_else(|| Error::format(&self.path, "no floating-point tensors"))
     }
 
-    /// A real tensor of element type `T` and any shape.
-    pub fn get_real_any<T: Real>(&self, name: &str) -> Result<(Vec<usize>, Vec<T>)> {
-        let t = self.tensors.get(name).ok_or_else(|| Error::MissingTensor {
-            context: self.ctx(),
-            name: name.to_string(),
-        })?;
-        let want = match T::PRECISION {
-            crate::math::Precision::F32 => "F32",
-            crate::math::Precision::F64 => "F64",
-        };
-        let v: Vec<T> = match (&t.data, T::PRECISION) {
-            (TensorData::F32(v), crate::math::Precision::F32) => {
-                v.iter().map(|&x| T::from_f32(x)).collect()
-            }
-            (TensorData::F64(v), crate::math::Precision::F64) => {
-                v.iter().map(|&x| T::from_f64(x)).collect()
-            }
-            (d, _) => {
-                return Err(Error::Tensor {
-                    context: self.ctx(),
-                    name: name.into(),
-                    expected: format!("dtype {want}"),
-                    found: format!("dtype {}", d.dtype_name()),
-                })
-            }
-        };
-        Ok((t.shape.clone(), v))
+    /// Real tensor `name` as an array of element type `T` (row-major, its
+    /// own shape). Its dtype must be `T`'s.
+    pub fn real_array<T: Real>(&self, name: &str) -> Result<ArrayD<T>> {
+        match (self.get(name)?, T::PRECISION) {
+            (Tensor::F32(a), Precision::F32) => Ok(map_row_major(a, T::from_f32)),
+            (Tensor::F64(a), Precision::F64) => Ok(map_row_major(a, T::from_f64)),
+            (t, p) => Err(Error::Tensor {
+                context: self.ctx(),
+                name: name.into(),
+                expected: format!("dtype {}", if p == Precision::F32 { "F32" } else { "F64" }),
+                found: format!("dtype {}", t.dtype_name()),
+            }),
+        }
     }
 
-    /// A real tensor of element type `T` whose shape must equal `expected`.
     /// Fail unless tensor `name` is present with shape `expected` (reads
     /// no data: a check before allocating for it).
     pub fn expect_shape(&self, name: &str, expected: &[usize]) -> Result<()> {
@@ -417,44 +489,47 @@ impl TensorFile {
         Ok(())
     }
 
+    /// Real tensor `name` of element type `T`, whose shape must equal
+    /// `expected`, as its row-major elements.
     pub fn get_real<T: Real>(&self, name: &str, expected: &[usize]) -> Result<Vec<T>> {
-        let (shape, v) = self.get_real_any::<T>(name)?;
-        if shape != expected {
-            return Err(Error::Tensor {
-                context: self.ctx(),
-                name: name.into(),
-                expected: format!("shape {}", shape_str(expected)),
-                found: format!("shape {}", shape_str(&shape)),
-            });
-        }
-        Ok(v)
+        let array = self.real_array::<T>(name)?;
+        self.expect_shape(name, expected)?;
+        Ok(into_row_major(array))
     }
 
-    /// An I32 tensor of any shape.
-    pub fn get_i32(&self, name: &str) -> Result<(Vec<usize>, Vec<i32>)> {
-        let t = self.tensors.get(name).ok_or_else(|| Error::MissingTensor {
-            context: self.ctx(),
-            name: name.to_string(),
-        })?;
-        match &t.data {
-            TensorData::I32(v) => Ok((t.shape.clone(), v.clone())),
-            d => Err(Error::Tensor {
+    /// I32 tensor `name` as a view of its array (any shape).
+    pub fn i32_array(&self, name: &str) -> Result<ArrayViewD<'_, i32>> {
+        match self.get(name)? {
+            Tensor::I32(a) => Ok(a.view()),
+            t => Err(Error::Tensor {
                 context: self.ctx(),
                 name: name.into(),
                 expected: "dtype I32".into(),
-                found: format!("dtype {}", d.dtype_name()),
+                found: format!("dtype {}", t.dtype_name()),
             }),
         }
     }
 
-    pub fn insert_real<T: Real>(&mut self, name: &str, shape: Vec<usize>, values: &[T]) {
-        self.tensors
-            .insert(name.to_string(), Tensor::real(shape, values));
+    /// Insert (or replace) tensor `name`.
+    pub fn insert(&mut self, name: &str, tensor: Tensor) {
+        self.tensors.insert(name.to_string(), tensor);
     }
 
+    /// Insert a real tensor of `shape` from row-major `values`, stored in
+    /// `T`'s precision.
+    ///
+    /// # Panics
+    /// If `values.len()` is not the product of `shape`.
+    pub fn insert_real<T: Real>(&mut self, name: &str, shape: Vec<usize>, values: &[T]) {
+        self.insert(name, Tensor::real(shape, values));
+    }
+
+    /// Insert an I32 tensor of `shape` from row-major `values`.
+    ///
+    /// # Panics
+    /// If `values.len()` is not the product of `shape`.
     pub fn insert_i32(&mut self, name: &str, shape: Vec<usize>, values: Vec<i32>) {
-        self.tensors
-            .insert(name.to_string(), Tensor::i32(shape, values));
+        self.insert(name, Tensor::i32(shape, values));
     }
 
     /// Fail if the file holds tensors outside `known` (catches typos in

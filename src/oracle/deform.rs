@@ -5,8 +5,8 @@
 //! `depth`, `width`, `activation`, `backbone_units`, `backbone_layers`,
 //! `is_6dof` (defaults per field kind, see [`FieldConfig::new`]). Case tensors:
 //! the weights under their PyTorch `state_dict` names, `xyz` `[N,3]`, `t`
-//! `[N,1]`, `grad_d_xyz` `[N,3]`, `grad_d_rotation` `[N,4]`,
-//! `grad_d_scaling` `[N,3]`, all of one dtype (F32 or F64, which selects the
+//! `[N,1]`, and the cotangents `grad_d_xyz` `[N,3]`, `grad_d_rotation` `[N,4]`,
+//! `grad_d_scaling` `[N,3]` (each optional, absent = zeros), all of one dtype (F32 or F64, which selects the
 //! precision). Outputs: `d_xyz`, `d_rotation`, `d_scaling`, `grad_t` `[N,1]`
 //! and `grad.<name>` for every weight. For the 6-DoF MLP (`is_6dof=true`)
 //! `d_xyz` is `R·x + p − x` (see `deform::se3`), and two more outputs:
@@ -18,8 +18,11 @@
 
 use crate::deform::{Deformation, Field, FieldConfig};
 use crate::error::{Error, Result};
+use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
 use crate::math::{Precision, Real};
+
+use super::cotangent;
 
 const INPUTS: [&str; 5] = [
     "xyz",
@@ -58,21 +61,24 @@ fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
         }
     }
     let field = Field::<T>::from_tensor_file(config, &weights)?;
-    let (shape, xyz) = case.get_real_any::<T>("xyz")?;
-    if shape.len() != 2 || shape[1] != 3 {
-        return Err(Error::Tensor {
-            context: case.path.display().to_string(),
-            name: "xyz".into(),
-            expected: "shape [N,3]".into(),
-            found: format!("shape {shape:?}"),
-        });
-    }
-    let n = shape[0];
+    let xyz = case.real_array::<T>("xyz")?;
+    let n = match *xyz.shape() {
+        [n, 3] => n,
+        ref shape => {
+            return Err(Error::Tensor {
+                context: case.path.display().to_string(),
+                name: "xyz".into(),
+                expected: "shape [N,3]".into(),
+                found: format!("shape {shape:?}"),
+            })
+        }
+    };
+    let xyz = into_row_major(xyz);
     let t = case.get_real::<T>("t", &[n, 1])?;
     let grad = Deformation {
-        d_xyz: case.get_real::<T>("grad_d_xyz", &[n, 3])?,
-        d_rotation: case.get_real::<T>("grad_d_rotation", &[n, 4])?,
-        d_scaling: case.get_real::<T>("grad_d_scaling", &[n, 3])?,
+        d_xyz: cotangent::<T>(case, "grad_d_xyz", &[n, 3])?,
+        d_rotation: cotangent::<T>(case, "grad_d_rotation", &[n, 4])?,
+        d_scaling: cotangent::<T>(case, "grad_d_scaling", &[n, 3])?,
     };
     let (d, cache) = field.forward(&xyz, &t)?;
     let fg = field.backward(&cache, &grad)?;

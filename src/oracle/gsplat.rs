@@ -1,6 +1,7 @@
 //! Oracle stages in gsplat's conventions (see [`crate::gsplat`]): one stage
 //! per gsplat function, tensors under gsplat's argument names, cotangents
-//! `v_<output>` and gradients `v_<input>` (gsplat's naming).
+//! `v_<output>` and gradients `v_<input>` (gsplat's naming). Every cotangent
+//! is optional: an absent one reads as zeros ([`super::cotangent`]).
 //!
 //! Common metadata: `version` (`1.5.3` or `1.6`, default `1.6`) and
 //! `gradient` (`exact`, the default, or `gsplat`). Booleans are `true` /
@@ -22,8 +23,11 @@ use crate::gsplat::rendering::{
 };
 use crate::gsplat::sh::{spherical_harmonics, spherical_harmonics_vjp};
 use crate::gsplat::{camera_tensors, GradientMode, Version};
+use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
 use crate::math::{Precision, Real, Rng};
+
+use super::cotangent;
 
 /// `gsplat.quat_scale_to_covar_preci`.
 pub const COVAR: &str = "gsplat_quat_scale_to_covar_preci";
@@ -84,31 +88,50 @@ fn shape_err(case: &TensorFile, name: &str, expected: String, found: &[usize]) -
     }
 }
 
-/// `[rows, width]` real tensor; returns `rows`.
+/// `[rows, width]` real tensor: `rows` and the row-major values.
 fn rows<T: Real>(case: &TensorFile, name: &str, width: usize) -> Result<(usize, Vec<T>)> {
-    let (s, v) = case.get_real_any::<T>(name)?;
-    if s.len() != 2 || s[1] != width {
-        return Err(shape_err(case, name, format!("shape [M,{width}]"), &s));
+    let a = case.real_array::<T>(name)?;
+    match *a.shape() {
+        [m, w] if w == width => Ok((m, into_row_major(a))),
+        ref s => Err(shape_err(case, name, format!("shape [M,{width}]"), s)),
     }
-    Ok((s[0], v))
 }
 
+/// `[M]` real tensor.
 fn vec1<T: Real>(case: &TensorFile, name: &str) -> Result<Vec<T>> {
-    let (s, v) = case.get_real_any::<T>(name)?;
-    if s.len() != 1 {
-        return Err(shape_err(case, name, "shape [M]".into(), &s));
+    let a = case.real_array::<T>(name)?;
+    match a.shape() {
+        [_] => Ok(into_row_major(a)),
+        s => Err(shape_err(case, name, "shape [M]".into(), s)),
     }
-    Ok(v)
 }
 
+/// `viewmats [C,4,4]` and `Ks [C,3,3]`, `C > 0`: `C` and both row-major.
 fn cameras<T: Real>(case: &TensorFile) -> Result<(usize, Vec<T>, Vec<T>)> {
-    let (s, vm) = case.get_real_any::<T>("viewmats")?;
-    if s.len() != 3 || s[1] != 4 || s[2] != 4 || s[0] == 0 {
-        return Err(shape_err(case, "viewmats", "shape [C,4,4]".into(), &s));
-    }
-    let c = s[0];
+    let vm = case.real_array::<T>("viewmats")?;
+    let c = match *vm.shape() {
+        [c, 4, 4] if c > 0 => c,
+        ref s => return Err(shape_err(case, "viewmats", "shape [C,4,4]".into(), s)),
+    };
     let ks = case.get_real::<T>("Ks", &[c, 3, 3])?;
-    Ok((c, vm, ks))
+    Ok((c, into_row_major(vm), ks))
+}
+
+/// I32 tensor `name` of shape `expected`, row-major.
+fn ints(case: &TensorFile, name: &str, expected: &[usize]) -> Result<Vec<i32>> {
+    let a = case.i32_array(name)?;
+    if a.shape() != expected {
+        let want = format!(
+            "shape [{}]",
+            expected
+                .iter()
+                .map(|d| d.to_string())
+                .collect::<Vec<_>>()
+                .join(",")
+        );
+        return Err(shape_err(case, name, want, a.shape()));
+    }
+    Ok(a.iter().copied().collect())
 }
 
 fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
@@ -147,13 +170,13 @@ fn run_covar<T: Real>(case: &TensorFile, res: &mut TensorFile) -> Result<()> {
     let mut known = vec!["quats", "scales"];
     let v_covars = if cc {
         known.push("v_covars");
-        Some(case.get_real::<T>("v_covars", &shape)?)
+        Some(cotangent::<T>(case, "v_covars", &shape)?)
     } else {
         None
     };
     let v_precis = if cp {
         known.push("v_precis");
-        Some(case.get_real::<T>("v_precis", &shape)?)
+        Some(cotangent::<T>(case, "v_precis", &shape)?)
     } else {
         None
     };
@@ -180,11 +203,12 @@ fn run_covar<T: Real>(case: &TensorFile, res: &mut TensorFile) -> Result<()> {
 fn run_sh<T: Real>(case: &TensorFile, res: &mut TensorFile) -> Result<()> {
     let degree: usize = case.meta_parse("degrees_to_use")?;
     let (m, dirs) = rows::<T>(case, "dirs", 3)?;
-    let (s, coeffs) = case.get_real_any::<T>("coeffs")?;
-    if s.len() != 3 || s[0] != m || s[2] == 0 {
-        return Err(shape_err(case, "coeffs", format!("shape [{m},K,D]"), &s));
-    }
-    let (k, d) = (s[1], s[2]);
+    let coeffs = case.real_array::<T>("coeffs")?;
+    let (k, d) = match *coeffs.shape() {
+        [rows, k, d] if rows == m && d > 0 => (k, d),
+        ref s => return Err(shape_err(case, "coeffs", format!("shape [{m},K,D]"), s)),
+    };
+    let coeffs = into_row_major(coeffs);
     if degree > crate::gsplat::sh::MAX_DEGREE || (degree + 1) * (degree + 1) > k {
         return Err(Error::field(
             &case.path,
@@ -192,7 +216,7 @@ fn run_sh<T: Real>(case: &TensorFile, res: &mut TensorFile) -> Result<()> {
             format!("{degree} with K = {k} (at most 4, (degree+1)² ≤ K)"),
         ));
     }
-    let v = case.get_real::<T>("v_colors", &[m, d])?;
+    let v = cotangent::<T>(case, "v_colors", &[m, d])?;
     case.reject_unknown(["dirs", "coeffs", "v_colors"])?;
     let colors = spherical_harmonics(degree, &dirs, &coeffs, k, d, None);
     let (vd, vk) = spherical_harmonics_vjp(degree, &dirs, &coeffs, k, d, None, &v);
@@ -284,7 +308,11 @@ fn run_projection<T: Real>(
         v.extend(w);
         v
     };
+    // Cotangents in the output layout, as dense `[C,N,w]` rows.
     let read = |name: &str, w: usize, last: Option<usize>| -> Result<Vec<T>> {
+        if !case.contains(name) {
+            return Ok(vec![T::ZERO; cn * w]);
+        }
         let v = case.get_real::<T>(name, &shp(last))?;
         Ok(match dense_of {
             Some(e) => unpack(e, &v, w, cn),
@@ -351,10 +379,7 @@ fn split_ids(ids: &[i64]) -> Vec<i32> {
 
 fn run_isect<T: Real>(case: &TensorFile, res: &mut TensorFile, version: Version) -> Result<()> {
     let (m, means2d) = rows::<T>(case, "means2d", 2)?;
-    let (rs, radii) = case.get_i32("radii")?;
-    if rs != [m, 2] {
-        return Err(shape_err(case, "radii", format!("shape [{m},2]"), &rs));
-    }
+    let radii = ints(case, "radii", &[m, 2])?;
     let depths = case.get_real::<T>("depths", &[m])?;
     let tile_size: usize = case.meta_parse("tile_size")?;
     let tw: usize = case.meta_parse("tile_width")?;
@@ -363,11 +388,7 @@ fn run_isect<T: Real>(case: &TensorFile, res: &mut TensorFile, version: Version)
     let mut known = vec!["means2d", "radii", "depths"];
     let image_ids = if case.contains("image_ids") {
         known.push("image_ids");
-        let (s, v) = case.get_i32("image_ids")?;
-        if s != [m] {
-            return Err(shape_err(case, "image_ids", format!("shape [{m}]"), &s));
-        }
-        Some(v)
+        Some(ints(case, "image_ids", &[m])?)
     } else {
         None
     };
@@ -418,6 +439,36 @@ fn run_isect<T: Real>(case: &TensorFile, res: &mut TensorFile, version: Version)
     Ok(())
 }
 
+/// The per-image tensors of the two rasterizing stages.
+struct ImageTensors<T> {
+    /// Optional `backgrounds [I,D]`.
+    backgrounds: Option<Vec<T>>,
+    /// Cotangent `v_render_colors [I,H,W,D]` (absent = zeros).
+    v_render_colors: Vec<T>,
+    /// Cotangent `v_render_alphas [I,H,W,1]` (absent = zeros).
+    v_render_alphas: Vec<T>,
+}
+
+/// Read [`ImageTensors`] for `[images, height, width, channels]` and add
+/// their names to `known`.
+fn image_tensors<T: Real>(
+    case: &TensorFile,
+    known: &mut Vec<&str>,
+    [images, h, w, d]: [usize; 4],
+) -> Result<ImageTensors<T>> {
+    known.extend(["backgrounds", "v_render_colors", "v_render_alphas"]);
+    let backgrounds = if case.contains("backgrounds") {
+        Some(case.get_real::<T>("backgrounds", &[images, d])?)
+    } else {
+        None
+    };
+    Ok(ImageTensors {
+        backgrounds,
+        v_render_colors: cotangent::<T>(case, "v_render_colors", &[images, h, w, d])?,
+        v_render_alphas: cotangent::<T>(case, "v_render_alphas", &[images, h, w, 1])?,
+    })
+}
+
 fn run_rasterize<T: Real>(
     case: &TensorFile,
     res: &mut TensorFile,
@@ -429,23 +480,27 @@ fn run_rasterize<T: Real>(
     let tile_size: usize = case.meta_parse("tile_size")?;
     let (m, means2d) = rows::<T>(case, "means2d", 2)?;
     let conics = case.get_real::<T>("conics", &[m, 3])?;
-    let (cs, colors) = case.get_real_any::<T>("colors")?;
-    if cs.len() != 2 || cs[0] != m || cs[1] == 0 {
-        return Err(shape_err(case, "colors", format!("shape [{m},D]"), &cs));
-    }
-    let d = cs[1];
+    let colors = case.real_array::<T>("colors")?;
+    let d = match *colors.shape() {
+        [rows, d] if rows == m && d > 0 => d,
+        ref s => return Err(shape_err(case, "colors", format!("shape [{m},D]"), s)),
+    };
+    let colors = into_row_major(colors);
     let opac = vec1::<T>(case, "opacities")?;
-    let (os, offsets) = case.get_i32("isect_offsets")?;
-    if os.len() != 3 {
-        return Err(shape_err(
-            case,
-            "isect_offsets",
-            "shape [I,th,tw]".into(),
-            &os,
-        ));
-    }
-    let images = os[0];
-    let (_, flatten) = case.get_i32("flatten_ids")?;
+    let offsets = case.i32_array("isect_offsets")?;
+    let images = match *offsets.shape() {
+        [images, _, _] => images,
+        ref s => {
+            return Err(shape_err(
+                case,
+                "isect_offsets",
+                "shape [I,th,tw]".into(),
+                s,
+            ))
+        }
+    };
+    let offsets: Vec<i32> = offsets.iter().copied().collect();
+    let flatten: Vec<i32> = case.i32_array("flatten_ids")?.iter().copied().collect();
     let mut known = vec![
         "means2d",
         "conics",
@@ -453,24 +508,15 @@ fn run_rasterize<T: Real>(
         "opacities",
         "isect_offsets",
         "flatten_ids",
-        "v_render_colors",
-        "v_render_alphas",
     ];
-    let bg = if case.contains("backgrounds") {
-        known.push("backgrounds");
-        Some(case.get_real::<T>("backgrounds", &[images, d])?)
-    } else {
-        None
-    };
+    let im = image_tensors::<T>(case, &mut known, [images, h, w, d])?;
     case.reject_unknown(known)?;
-    let vc = case.get_real::<T>("v_render_colors", &[images, h, w, d])?;
-    let va = case.get_real::<T>("v_render_alphas", &[images, h, w, 1])?;
     let input = RasterInput {
         means2d: &means2d,
         conics: &conics,
         colors: &colors,
         opacities: &opac,
-        backgrounds: bg.as_deref(),
+        backgrounds: im.backgrounds.as_deref(),
         channels: d,
         width: w,
         height: h,
@@ -479,7 +525,14 @@ fn run_rasterize<T: Real>(
         flatten_ids: &flatten,
     };
     let out = rasterize_to_pixels(&input, version)?;
-    let g = rasterize_to_pixels_vjp(&input, version, &out, &vc, &va, mode)?;
+    let g = rasterize_to_pixels_vjp(
+        &input,
+        version,
+        &out,
+        &im.v_render_colors,
+        &im.v_render_alphas,
+        mode,
+    )?;
     res.insert_real("render_colors", vec![images, h, w, d], &out.render_colors);
     res.insert_real("render_alphas", vec![images, h, w, 1], &out.render_alphas);
     res.insert_i32("last_ids", vec![images, h, w], out.last_ids);
@@ -519,15 +572,7 @@ fn run_rasterization<T: Real>(
     let (n, means) = rows::<T>(case, "means", 3)?;
     let (c, vm, ks) = cameras::<T>(case)?;
     let opac = case.get_real::<T>("opacities", &[n])?;
-    let mut known = vec![
-        "means",
-        "opacities",
-        "colors",
-        "viewmats",
-        "Ks",
-        "v_render_colors",
-        "v_render_alphas",
-    ];
+    let mut known = vec!["means", "opacities", "colors", "viewmats", "Ks"];
     let use_covars = case.contains("covars");
     let (a, b) = if use_covars {
         known.push("covars");
@@ -539,7 +584,9 @@ fn run_rasterization<T: Real>(
             case.get_real::<T>("scales", &[n, 3])?,
         )
     };
-    let (cs, colors) = case.get_real_any::<T>("colors")?;
+    let colors = case.real_array::<T>("colors")?;
+    let cs = colors.shape().to_vec();
+    let colors = into_row_major(colors);
     let sh_degree: Option<usize> = match case.metadata.get("sh_degree") {
         Some(_) => Some(case.meta_parse("sh_degree")?),
         None => None,
@@ -566,15 +613,8 @@ fn run_rasterization<T: Real>(
         }
     };
     let d = col.channels();
-    let bg = if case.contains("backgrounds") {
-        known.push("backgrounds");
-        Some(case.get_real::<T>("backgrounds", &[c, d])?)
-    } else {
-        None
-    };
+    let im = image_tensors::<T>(case, &mut known, [c, h, w, d])?;
     case.reject_unknown(known)?;
-    let vc = case.get_real::<T>("v_render_colors", &[c, h, w, d])?;
-    let va = case.get_real::<T>("v_render_alphas", &[c, h, w, 1])?;
     let input = RasterizationInput {
         means: &means,
         covars: if use_covars {
@@ -589,10 +629,17 @@ fn run_rasterization<T: Real>(
         colors: col,
         viewmats: &vm,
         ks: &ks,
-        backgrounds: bg.as_deref(),
+        backgrounds: im.backgrounds.as_deref(),
     };
     let f = rasterization(&input, &s)?;
-    let g = rasterization_vjp(&input, &s, &f, &vc, &va, mode)?;
+    let g = rasterization_vjp(
+        &input,
+        &s,
+        &f,
+        &im.v_render_colors,
+        &im.v_render_alphas,
+        mode,
+    )?;
     res.insert_real("render_colors", vec![c, h, w, d], &f.render_colors);
     res.insert_real("render_alphas", vec![c, h, w, 1], &f.render_alphas);
     let nr = f.rows.len();

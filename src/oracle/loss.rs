@@ -10,6 +10,7 @@
 pub const STAGE: &str = "loss";
 
 use crate::error::{Error, Result};
+use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
 use crate::loss::{loss_and_grad, LAMBDA_DSSIM};
 use crate::math::{Precision, Real};
@@ -24,17 +25,20 @@ pub fn run(case: &TensorFile) -> Result<TensorFile> {
 }
 
 fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
-    let (shape, image) = case.get_real_any::<T>("image")?;
-    if shape.len() != 3 || shape[0] != 3 || shape[1] == 0 || shape[2] == 0 {
-        return Err(Error::Tensor {
-            context: case.path.display().to_string(),
-            name: "image".into(),
-            expected: "shape [3,H,W] with H, W > 0".into(),
-            found: format!("shape {shape:?}"),
-        });
-    }
-    let (h, w) = (shape[1], shape[2]);
-    let gt = case.get_real::<T>("gt", &shape)?;
+    let image = case.real_array::<T>("image")?;
+    let (h, w) = match *image.shape() {
+        [3, h, w] if h > 0 && w > 0 => (h, w),
+        ref shape => {
+            return Err(Error::Tensor {
+                context: case.path.display().to_string(),
+                name: "image".into(),
+                expected: "shape [3,H,W] with H, W > 0".into(),
+                found: format!("shape {shape:?}"),
+            })
+        }
+    };
+    let image = into_row_major(image);
+    let gt = case.get_real::<T>("gt", &[3, h, w])?;
     let lambda = case.meta_finite_or("lambda_dssim", LAMBDA_DSSIM)?;
     if !(0.0..=1.0).contains(&lambda) {
         return Err(Error::field(
@@ -49,7 +53,7 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     res.insert_real("l1", vec![], &[out.l1]);
     res.insert_real("ssim", vec![], &[out.ssim]);
     res.insert_real("loss", vec![], &[out.loss]);
-    res.insert_real("grad_image", shape, &grad);
+    res.insert_real("grad_image", vec![3, h, w], &grad);
     Ok(res)
 }
 

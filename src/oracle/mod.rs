@@ -6,6 +6,12 @@
 //! computes the stage's outputs and gradients into another tensor file; the
 //! tensors' dtype (F32 or F64) selects the precision.
 //!
+//! A stage differentiates the sum of its outputs weighted by cotangent
+//! tensors (`grad_out_*`, `grad_d_*`, gsplat's `v_<output>`). Every
+//! cotangent is optional: an absent one reads as zeros of its shape
+//! ([`cotangent`]), so a case without cotangents is a forward-only run whose
+//! gradients are zero.
+//!
 //! - [`rasterize`]: the Inria rasterizer's forward and backward.
 //! - [`deform`]: the MLP and CfC deformation fields' forward and backward.
 //! - [`loss`]: L1 + SSIM training loss and its gradient.
@@ -36,6 +42,7 @@ pub use compare::{
 
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
+use crate::math::Real;
 
 /// Stage names [`run_case`] understands.
 pub const STAGES: &[&str] = &[
@@ -74,5 +81,16 @@ fn run_stage(case: &TensorFile) -> Result<TensorFile> {
             "__metadata__.stage",
             format!("unknown stage `{other}` (known: {})", STAGES.join(", ")),
         )),
+    }
+}
+
+/// Cotangent tensor `name` of shape `shape`, or zeros of that shape when the
+/// case does not hold it (a forward-only case). A present tensor of another
+/// shape or dtype is an error naming it.
+pub fn cotangent<T: Real>(case: &TensorFile, name: &str, shape: &[usize]) -> Result<Vec<T>> {
+    if case.contains(name) {
+        case.get_real::<T>(name, shape)
+    } else {
+        Ok(vec![T::ZERO; shape.iter().product()])
     }
 }

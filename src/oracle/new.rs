@@ -11,7 +11,7 @@ use super::gsplat::{self as gs, GsplatOptions};
 use super::{deform, loss, rasterize, run_case, step, STAGES};
 use crate::deform::{Field, FieldConfig, FieldKind, Variant};
 use crate::error::{Error, Result};
-use crate::io::TensorFile;
+use crate::io::{Tensor, TensorFile};
 use crate::math::{Precision, Real, Rng};
 use crate::render::scene::{random_scene, SceneSpec, SCENE_SH_STRIDE};
 use crate::render::GradientMode;
@@ -227,7 +227,7 @@ fn field_case<T: Real>(spec: &CaseSpec, config: FieldConfig) -> Result<TensorFil
     let mut f = TensorFile::new(format!("{}.safetensors", spec.stage));
     f.metadata = weights.metadata.clone();
     for (name, t) in &weights.tensors {
-        f.insert_real(name, t.shape.clone(), &to_t::<T>(&t.data.to_f64()));
+        f.insert(name, Tensor::from_real(&t.to_f64().mapv(T::from_f64)));
     }
     Ok(f)
 }

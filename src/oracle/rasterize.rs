@@ -4,8 +4,8 @@
 //! Inputs: `means3D [N,3]`, `shs [N,M,3]` or `colors_precomp [N,3]`,
 //! `opacities [N,1]`, `scales [N,3]` and `rotations [N,4]` or
 //! `cov3D_precomp [N,6]`, `viewmatrix [4,4]`, `projmatrix [4,4]` (Inria memory
-//! layout), `campos [3]`, `bg [3]`, `grad_out_color [3,H,W]`, optional
-//! `grad_out_depth [1,H,W]`. Metadata: `stage=rasterize`, `image_height`,
+//! layout), `campos [3]`, `bg [3]`, and the cotangents `grad_out_color
+//! [3,H,W]` and `grad_out_depth [1,H,W]` (each optional, absent = zeros). Metadata: `stage=rasterize`, `image_height`,
 //! `image_width`, `tanfovx`, `tanfovy`, `scale_modifier`, `sh_degree`
 //! (required with `shs`), optional `gradient` (`exact`, the default, or
 //! `inria`: see [`GradientMode`]). The floating-point dtype of the tensors
@@ -19,6 +19,7 @@
 
 use crate::camera::RasterCamera;
 use crate::error::{Error, Result};
+use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
 use crate::math::{Precision, Real};
 use crate::render::{
@@ -114,16 +115,19 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     let (h, w) = (camera.height, camera.width);
     let scale_modifier = case.meta_finite("scale_modifier")?;
 
-    let (shape, means) = case.get_real_any::<T>("means3D")?;
-    if shape.len() != 2 || shape[1] != 3 {
-        return Err(Error::Tensor {
-            context: case.path.display().to_string(),
-            name: "means3D".into(),
-            expected: "shape [N,3]".into(),
-            found: format!("shape {shape:?}"),
-        });
-    }
-    let n = shape[0];
+    let means = case.real_array::<T>("means3D")?;
+    let n = match *means.shape() {
+        [n, 3] => n,
+        ref shape => {
+            return Err(Error::Tensor {
+                context: case.path.display().to_string(),
+                name: "means3D".into(),
+                expected: "shape [N,3]".into(),
+                found: format!("shape {shape:?}"),
+            })
+        }
+    };
+    let means = into_row_major(means);
     let mut known = vec![
         "means3D",
         "opacities",
@@ -137,17 +141,20 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     let sh_data;
     let colors = if case.contains("shs") {
         known.push("shs");
-        let (s, v) = case.get_real_any::<T>("shs")?;
-        if s.len() != 3 || s[0] != n || s[2] != 3 {
-            return Err(Error::Tensor {
-                context: case.path.display().to_string(),
-                name: "shs".into(),
-                expected: format!("shape [{n},M,3]"),
-                found: format!("shape {s:?}"),
-            });
-        }
+        let shs = case.real_array::<T>("shs")?;
+        let stride = match *shs.shape() {
+            [rows, m, 3] if rows == n => m,
+            ref s => {
+                return Err(Error::Tensor {
+                    context: case.path.display().to_string(),
+                    name: "shs".into(),
+                    expected: format!("shape [{n},M,3]"),
+                    found: format!("shape {s:?}"),
+                })
+            }
+        };
         let degree: usize = case.meta_parse("sh_degree")?;
-        sh_data = (s[1], degree, v);
+        sh_data = (stride, degree, into_row_major(shs));
         Colors::Sh {
             coeffs: &sh_data.2,
             stride: sh_data.0,
@@ -178,7 +185,7 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     };
     case.reject_unknown(known)?;
     let background = array::<T, 3>(case, "bg", &[3])?;
-    let grad_color = case.get_real::<T>("grad_out_color", &[3, h, w])?;
+    let grad_color = super::cotangent::<T>(case, "grad_out_color", &[3, h, w])?;
     let grad_depth = if case.contains("grad_out_depth") {
         Some(case.get_real::<T>("grad_out_depth", &[1, h, w])?)
     } else {

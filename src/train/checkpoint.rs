@@ -294,7 +294,9 @@ fn load_checked<T: Real>(
         state::read_optimizer(&f, "", &gaussians, field.param_count(), Source::Checkpoint)?;
     let stats = state::read_stats(&f, "", gaussians.len(), Source::Checkpoint)?;
     let i32s = |name: &str| -> Result<Vec<i32>> {
-        let (shape, v) = f.get_i32(name)?;
+        let v = f.i32_array(name)?;
+        let shape = v.shape().to_vec();
+        let v: Vec<i32> = v.iter().copied().collect();
         if shape.len() != 1 || v.iter().any(|&x| x < 0) {
             return Err(Error::field(
                 &path,

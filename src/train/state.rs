@@ -23,6 +23,7 @@ use super::model::ModelOptimizer;
 use crate::densify::DensifyStats;
 use crate::error::{Error, Result};
 use crate::gaussians::{Gaussians, Group};
+use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
 use crate::math::Real;
 use crate::optim::{AdamState, GaussianOptimizer};
@@ -68,7 +69,9 @@ pub fn write_gaussians<T: Real>(f: &mut TensorFile, prefix: &str, g: &Gaussians<
 /// (`[N,3]`), the SH degree from `sh` (`[N,K,3]`, K = 1, 4, 9 or 16).
 pub fn read_gaussians<T: Real>(f: &TensorFile, prefix: &str) -> Result<Gaussians<T>> {
     let xyz_name = format!("{prefix}xyz");
-    let (shape, xyz) = f.get_real_any::<T>(&xyz_name)?;
+    let xyz = f.real_array::<T>(&xyz_name)?;
+    let shape = xyz.shape().to_vec();
+    let xyz = into_row_major(xyz);
     let n = match shape.as_slice() {
         [n, 3] => *n,
         _ => {
@@ -242,7 +245,9 @@ pub fn read_stats<T: Real>(
         if !present(&name) {
             return Ok(None);
         }
-        let (shape, v) = f.get_i32(&name)?;
+        let v = f.i32_array(&name)?;
+        let shape = v.shape().to_vec();
+        let v: Vec<i32> = v.iter().copied().collect();
         if shape != [n] {
             let expected = format!("shape [{n}]");
             return Err(tensor_error(f, &name, expected, format!("shape {shape:?}")));

@@ -138,6 +138,41 @@ def test_dense_and_packed_layouts_agree():
     assert dense_px[1].max() > 0.1
 
 
+def test_forward_functions_run_their_stage_once_without_cotangents(monkeypatch):
+    t, args = _projection_case()
+    calls = []
+    native_run = gs._native.run_case
+
+    def counting(tensors, meta, threads=None):
+        calls.append((meta["stage"], meta.get("packed"), sorted(tensors)))
+        return native_run(tensors, meta, threads)
+
+    monkeypatch.setattr(gs._native, "run_case", counting)
+    kw = dict(opacities=t["opacities"], calc_compensations=True, near_plane=4.0)
+    for packed in (False, True):
+        calls.clear()
+        r = gs.fully_fused_projection(*args, packed=packed, **kw)
+        assert len(calls) == 1, calls
+        stage, flag, names = calls[0]
+        assert (stage, flag) == ("gsplat_fully_fused_projection", packed)
+        assert not [n for n in names if n.startswith("v_")], names
+        # The same outputs as a run of the stage given zero cotangents of the output layout.
+        lead = (r[2] if packed else r[0]).shape[:-1]  # of radii [..., 2]
+        zeros = {"v_means2d": np.zeros(lead + (2,)), "v_depths": np.zeros(lead),
+                 "v_conics": np.zeros(lead + (3,)), "v_compensations": np.zeros(lead)}
+        case = {k: v for k, v in t.items() if not k.startswith("v_")}
+        meta = {"stage": "gsplat_fully_fused_projection", "width": int(args[6]),
+                "height": int(args[7]), "near_plane": 4.0, "calc_compensations": True,
+                "packed": packed}
+        want, _ = native_run({**case, **zeros}, meta)
+        names = ("camera_ids", "gaussian_ids") if packed else ()
+        names += ("radii", "means2d", "depths", "conics", "compensations")
+        for name, got in zip(names, r):
+            assert got.tobytes() == want[name].tobytes(), name
+        for name in ("v_means", "v_quats", "v_scales"):
+            assert not want[name].any()
+
+
 def test_version_and_gradient_select_the_stage_options():
     t, m = ls.load(CASES / "gsplat_rasterization_f64_v16.input.safetensors")
     args = (t["means"], t["quats"], t["scales"], t["opacities"], t["colors"], t["viewmats"], t["Ks"], 24, 16)

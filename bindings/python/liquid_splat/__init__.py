@@ -322,7 +322,6 @@ def rasterize(
         cov3D_precomp, viewmatrix, projmatrix, campos, bg, image_height, image_width,
         tanfovx, tanfovy, scale_modifier, sh_degree, "exact",
     )
-    t["grad_out_color"] = np.zeros((3, meta["image_height"], meta["image_width"]), means3D.dtype)
     out, _ = _native.run_case(t, meta, threads)
     return RasterizeResult(
         out["color"], out["depth"], out["radii"], out["final_T"], out["n_contrib"], out["means2D"]
@@ -455,10 +454,7 @@ class _Field:
     ) -> DeformResult:
         """``(d_xyz, d_rotation, d_scaling[, d_xyz_se3])`` at canonical centres ``xyz``
         [N,3] and normalised time ``t`` ([N,1] or a float for every point)."""
-        a, ins = self._inputs("forward", xyz, t)
-        n = ins["xyz"].shape[0]
-        for name, c in (("grad_d_xyz", 3), ("grad_d_rotation", 4), ("grad_d_scaling", 3)):
-            ins[name] = np.zeros((n, c), self.dtype)
+        _, ins = self._inputs("forward", xyz, t)
         out = self._run(ins, threads)
         return DeformResult(out["d_xyz"], out["d_rotation"], out["d_scaling"], out.get("d_xyz_se3"))
 

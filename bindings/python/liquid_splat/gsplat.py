@@ -101,11 +101,6 @@ def _run(t: Tensors, meta: Dict[str, MetaValue], threads: Optional[int]) -> Tens
     return out
 
 
-def _zeros(a: _Args, shape: Tuple[int, ...]) -> np.ndarray:
-    assert a.dtype is not None
-    return np.zeros(shape, a.dtype)
-
-
 def _join_ids(words: np.ndarray) -> np.ndarray:
     """``[n, 2]`` int32 words (high, low) as gsplat's int64 ``isect_ids``."""
     w = words.astype(np.int64)
@@ -145,10 +140,6 @@ def quat_scale_to_covar_preci(
     computed. ``quats [N,4]`` (w, x, y, z, any norm; normalised inside), ``scales [N,3]``."""
     a, t, meta, shape = _covar_case("quat_scale_to_covar_preci", quats, scales, compute_covar,
                                     compute_preci, triu, version, gradient)
-    if meta["compute_covar"]:
-        t["v_covars"] = _zeros(a, shape)
-    if meta["compute_preci"]:
-        t["v_precis"] = _zeros(a, shape)
     out = _run(t, meta, threads)
     return out.get("covars"), out.get("precis")
 
@@ -174,7 +165,8 @@ def quat_scale_to_covar_preci_vjp(
     for key, name, v in (("compute_covar", "v_covars", v_covars),
                          ("compute_preci", "v_precis", v_precis)):
         if meta[key]:
-            t[name] = _zeros(a, shape) if v is None else a.array(name, v, shape)
+            if v is not None:
+                t[name] = a.array(name, v, shape)
         elif v is not None:
             raise ValueError(f"{func}(): argument `{name}`: given, but {key}=False")
     out = _run(t, meta, threads)
@@ -216,7 +208,6 @@ def spherical_harmonics(
     (any length) up to degree ``degrees_to_use`` (0–4)."""
     a, t, meta = _sh_case("spherical_harmonics", degrees_to_use, dirs, coeffs, masks, version,
                           gradient)
-    t["v_colors"] = _zeros(a, (coeffs.shape[0], coeffs.shape[2]))
     return _run(t, meta, threads)["colors"]
 
 
@@ -287,16 +278,6 @@ def _proj_case(func, means, covars, quats, scales, viewmats, Ks, width, height, 
     return _Proj(a, t, meta, viewmats.shape[0], means.shape[0])
 
 
-_PROJ_COTANGENTS = (("v_means2d", (2,)), ("v_depths", ()), ("v_conics", (3,)))
-
-
-def _proj_zeros(p: _Proj, lead: Tuple[int, ...]) -> Tensors:
-    z = {k: _zeros(p.a, lead + s) for k, s in _PROJ_COTANGENTS}
-    if p.meta["calc_compensations"]:
-        z["v_compensations"] = _zeros(p.a, lead)
-    return z
-
-
 def fully_fused_projection(
     means: np.ndarray,
     covars: Optional[np.ndarray],
@@ -331,14 +312,11 @@ def fully_fused_projection(
     p = _proj_case("fully_fused_projection", means, covars, quats, scales, viewmats, Ks, width,
                    height, eps2d, near_plane, far_plane, radius_clip, packed, sparse_grad,
                    calc_compensations, camera_model, opacities, version, gradient)
+    # No cotangents: the stage reads them as zeros (one run, packed or dense).
+    out = _run(p.t, p.meta, threads)
     if p.meta["packed"]:
-        # The packed cotangents have one row per visible entry: count them with a dense run.
-        dense = _run({**p.t, **_proj_zeros(p, (p.c, p.n))}, {**p.meta, "packed": False}, threads)
-        nnz = int((dense["radii"] > 0).all(axis=-1).sum())
-        out = _run({**p.t, **_proj_zeros(p, (nnz,))}, p.meta, threads)
         return (out["camera_ids"], out["gaussian_ids"], out["radii"], out["means2d"],
                 out["depths"], out["conics"], out.get("compensations"))
-    out = _run({**p.t, **_proj_zeros(p, (p.c, p.n))}, p.meta, threads)
     return out["radii"], out["means2d"], out["depths"], out["conics"], out.get("compensations")
 
 
@@ -384,8 +362,8 @@ def fully_fused_projection_vjp(
     t["v_depths"] = p.a.array("v_depths", v_depths, lead)
     t["v_conics"] = p.a.array("v_conics", v_conics, lead + (3,))
     if p.meta["calc_compensations"]:
-        t["v_compensations"] = (np.zeros(v_depths.shape, p.a.dtype) if v_compensations is None
-                                else p.a.array("v_compensations", v_compensations, lead))
+        if v_compensations is not None:
+            t["v_compensations"] = p.a.array("v_compensations", v_compensations, lead)
     elif v_compensations is not None:
         raise ValueError(f"{func}(): argument `v_compensations`: given, but calc_compensations=False")
     out = _run(t, p.meta, threads)
@@ -575,13 +553,10 @@ def rasterize_to_pixels(
     the projected Gaussians (dense ``[C,N,·]`` or packed ``[nnz,·]`` rows; ``colors`` with
     any ``D ≥ 1`` channels) over the tiles of ``isect_offsets [I,th,tw]`` and
     ``flatten_ids``; optional ``backgrounds [I,D]``."""
-    a, t, meta, (i, h, w) = _r2p_case(
+    _, t, meta, _ = _r2p_case(
         "rasterize_to_pixels", means2d, conics, colors, opacities, image_width, image_height,
         tile_size, isect_offsets, flatten_ids, backgrounds, masks, packed, absgrad, version,
         gradient)
-    d = colors.shape[-1]
-    t["v_render_colors"] = _zeros(a, (i, h, w, d))
-    t["v_render_alphas"] = _zeros(a, (i, h, w, 1))
     out = _run(t, meta, threads)
     return out["render_colors"], out["render_alphas"]
 
@@ -740,13 +715,11 @@ def rasterization(
     ``conics``, ``opacities``, ``tiles_per_gauss`` (packed adds ``camera_ids``,
     ``gaussian_ids``), ``isect_ids`` (int64), ``flatten_ids``, ``isect_offsets``,
     ``width``, ``height``, ``tile_size``, ``tile_width``, ``tile_height``, ``n_cameras``."""
-    a, t, meta, shape = _raster_case(
+    _, t, meta, shape = _raster_case(
         "rasterization", means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane, far_plane, radius_clip, eps2d, sh_degree, packed, tile_size, backgrounds,
         render_mode, sparse_grad, absgrad, rasterize_mode, channel_chunk, distributed,
         camera_model, segmented, covars, version, gradient)
-    t["v_render_colors"] = _zeros(a, shape)
-    t["v_render_alphas"] = _zeros(a, shape[:3] + (1,))
     out = _run(t, meta, threads)
     m: Dict[str, Any] = {k[len("meta."):]: v for k, v in out.items() if k.startswith("meta.")}
     m["isect_ids"] = _join_ids(m["isect_ids"])

@@ -207,11 +207,8 @@ class _Deform(torch.autograd.Function):
         tt = _np("t", t)
         case: Dict[str, np.ndarray] = {"xyz": x, "t": tt}
         case.update({n: _np(n, p) for n, p in zip(names, params)})
-        n = x.shape[0]
-        zeros = {k: np.zeros((n, c), x.dtype) for k, c in
-                 (("grad_d_xyz", 3), ("grad_d_rotation", 4), ("grad_d_scaling", 3))}
         meta = {"stage": "deform", **config}
-        out, _ = _native.run_case({**case, **zeros}, meta)
+        out, _ = _native.run_case(case, meta)
         ctx.case, ctx.meta, ctx.names = case, meta, names
         return (torch.from_numpy(out["d_xyz"]), torch.from_numpy(out["d_rotation"]),
                 torch.from_numpy(out["d_scaling"]))

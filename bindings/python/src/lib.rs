@@ -16,11 +16,11 @@
 
 use liquid_splat::deform::count::{macs_per_gaussian, param_count, MacConvention};
 use liquid_splat::deform::{Field, FieldConfig};
-use liquid_splat::io::tensor_file::{Tensor, TensorData};
-use liquid_splat::io::TensorFile;
+use liquid_splat::io::{Tensor, TensorFile};
 use liquid_splat::oracle::{self, Tolerances};
-use numpy::{PyArray1, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray};
-use numpy::{PyReadonlyArrayDyn, PyUntypedArrayMethods};
+use numpy::ndarray::ArrayD;
+use numpy::PyUntypedArrayMethods;
+use numpy::{PyArray, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray};
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyString};
@@ -88,7 +88,8 @@ fn type_name(obj: &Bound<'_, PyAny>) -> String {
         .unwrap_or_else(|_| "?".to_string())
 }
 
-/// One numpy array as a library tensor (a copy). `what` names it in errors.
+/// One numpy array as a library tensor: its ndarray copy, same shape and
+/// dtype. `what` names it in errors.
 fn tensor_from_array(what: &str, obj: &Bound<'_, PyAny>, finite: bool) -> PyResult<Tensor> {
     let py = obj.py();
     let arr = obj.downcast::<PyUntypedArray>().map_err(|_| {
@@ -120,28 +121,30 @@ fn tensor_from_array(what: &str, obj: &Bound<'_, PyAny>, finite: bool) -> PyResu
              found a non-contiguous {kind} array of shape {shape:?}"
         )));
     }
-    fn values<'py, T: numpy::Element + Copy>(
-        what: &str,
-        obj: &Bound<'py, PyAny>,
-    ) -> PyResult<Vec<T>> {
-        let a: PyReadonlyArrayDyn<'py, T> = obj.downcast::<PyArrayDyn<T>>()?.readonly();
-        a.as_slice()
-            .map(|s| s.to_vec())
-            .map_err(|e| PyValueError::new_err(format!("{what}: {e}")))
+    fn array<T: numpy::Element + Copy>(obj: &Bound<'_, PyAny>) -> PyResult<ArrayD<T>> {
+        Ok(obj
+            .downcast::<PyArrayDyn<T>>()?
+            .readonly()
+            .as_array()
+            .to_owned())
     }
-    let data = match kind {
-        "float32" => TensorData::F32(values::<f32>(what, obj)?),
-        "float64" => TensorData::F64(values::<f64>(what, obj)?),
-        _ => TensorData::I32(values::<i32>(what, obj)?),
+    /// The first non-finite element in row-major order: (flat index, value).
+    fn first_bad<T: Copy + Into<f64>>(a: &ArrayD<T>) -> Option<(usize, f64)> {
+        a.iter()
+            .map(|&x| x.into())
+            .enumerate()
+            .find(|(_, x): &(usize, f64)| !x.is_finite())
+    }
+    let tensor = match kind {
+        "float32" => Tensor::F32(array::<f32>(obj)?),
+        "float64" => Tensor::F64(array::<f64>(obj)?),
+        _ => Tensor::I32(array::<i32>(obj)?),
     };
     if finite {
-        let bad = match &data {
-            TensorData::F32(v) => v
-                .iter()
-                .position(|x| !x.is_finite())
-                .map(|i| (i, v[i] as f64)),
-            TensorData::F64(v) => v.iter().position(|x| !x.is_finite()).map(|i| (i, v[i])),
-            TensorData::I32(_) => None,
+        let bad = match &tensor {
+            Tensor::F32(a) => first_bad(a),
+            Tensor::F64(a) => first_bad(a),
+            Tensor::I32(_) => None,
         };
         if let Some((i, x)) = bad {
             return Err(PyValueError::new_err(format!(
@@ -149,7 +152,7 @@ fn tensor_from_array(what: &str, obj: &Bound<'_, PyAny>, finite: bool) -> PyResu
             )));
         }
     }
-    Ok(Tensor { shape, data })
+    Ok(tensor)
 }
 
 /// A metadata value as the string a case file stores: `str` as is, `bool`
@@ -214,11 +217,10 @@ fn to_dicts<'py>(
 ) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
     let tensors = PyDict::new(py);
     for (name, t) in file.tensors {
-        let shape = t.shape;
-        let arr = match t.data {
-            TensorData::F32(v) => PyArray1::from_vec(py, v).reshape(shape)?.into_any(),
-            TensorData::F64(v) => PyArray1::from_vec(py, v).reshape(shape)?.into_any(),
-            TensorData::I32(v) => PyArray1::from_vec(py, v).reshape(shape)?.into_any(),
+        let arr = match t {
+            Tensor::F32(a) => PyArray::from_owned_array(py, a).into_any(),
+            Tensor::F64(a) => PyArray::from_owned_array(py, a).into_any(),
+            Tensor::I32(a) => PyArray::from_owned_array(py, a).into_any(),
         };
         tensors.set_item(name, arr)?;
     }
