@@ -3,7 +3,7 @@
 
 use criterion::{criterion_group, criterion_main, Criterion};
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
-use liquid_splat::render::{rasterize, rasterize_backward, GradientMode};
+use liquid_splat::render::{rasterize, rasterize_vjp, GradientMode};
 
 fn bench(c: &mut Criterion) {
     println!(
@@ -42,8 +42,7 @@ fn bench(c: &mut Criterion) {
             group.bench_function(format!("backward {w}x{h} {n} t{threads}"), |b| {
                 b.iter(|| {
                     pool.install(|| {
-                        rasterize_backward(&input, &state, &grad, None, GradientMode::Exact)
-                            .unwrap()
+                        rasterize_vjp(&input, &state, &grad, None, GradientMode::Exact).unwrap()
                     })
                 })
             });

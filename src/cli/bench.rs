@@ -243,7 +243,7 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
                     f.push(t0.elapsed().as_secs_f64());
                     pairs = state.pairs_evaluated();
                     let t1 = Instant::now();
-                    render::rasterize_backward(
+                    render::rasterize_vjp(
                         &input,
                         &state,
                         &grad,

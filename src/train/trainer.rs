@@ -23,7 +23,7 @@ use crate::loss::{loss_and_grad, metrics, LossOutput};
 use crate::math::{Real, Rng};
 use crate::optim::{AdamState, GaussianOptimizer, StepGroups};
 use crate::render::{
-    rasterize, rasterize_backward, Colors, Covariances, GradientMode, RasterInput, RasterOutput,
+    rasterize, rasterize_vjp, Colors, Covariances, GradientMode, RasterInput, RasterOutput,
 };
 use std::time::Instant;
 
@@ -322,7 +322,7 @@ impl<T: Real> Trainer<T> {
         // Backward, stage by stage in reverse. The field's backward runs
         // inside the activations' ([`deform_gaussians_vjp`]), which adds its
         // gradient of the canonical means to the identity path.
-        let rg = rasterize_backward(&input, &state, &grad_image, None, GradientMode::Exact)?;
+        let rg = rasterize_vjp(&input, &state, &grad_image, None, GradientMode::Exact)?;
         times.raster_backward = clock.lap();
         let field = fwd.offsets.as_ref().map(|(_, cache)| (&self.field, cache));
         let (gaussians, field) = deform_gaussians_vjp(&self.gaussians, field, &rg)?;
