@@ -19,7 +19,7 @@ use liquid_splat::gsplat::rendering::{
 };
 use liquid_splat::gsplat::{camera_tensors, GradientMode, Version};
 use liquid_splat::math::gradcheck::cotangent;
-use liquid_splat::render::{rasterize, rasterize_backward, Colors, Covariances, RasterInput};
+use liquid_splat::render::{rasterize, rasterize_vjp, Colors, Covariances, RasterInput};
 
 fn max_rel(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
@@ -91,7 +91,7 @@ fn composite_equals_the_inria_stage_where_conventions_coincide() {
         let (h, w) = (s.height, s.width);
         let hw = h * w;
         let gcol = cotangent(seed, 3 * hw);
-        let ig = rasterize_backward(&inria_in, &state, &gcol, None, Default::default()).unwrap();
+        let ig = rasterize_vjp(&inria_in, &state, &gcol, None, Default::default()).unwrap();
         for version in Version::ALL {
             for packed in [true, false] {
                 let settings = RasterizationSettings {

@@ -8,7 +8,7 @@ use approx::abs_diff_eq;
 use liquid_splat::camera::{Camera, RasterCamera};
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
 use liquid_splat::render::{
-    rasterize, rasterize_backward, Colors, Covariances, GradientMode, RasterGrads, RasterInput,
+    rasterize, rasterize_vjp, Colors, Covariances, GradientMode, RasterGrads, RasterInput,
 };
 
 /// 16×16 pixels (one tile), tan(fov/2) = 0.5 on both axes: fx = fy = 16.
@@ -41,8 +41,8 @@ fn single(mean: [f64; 3], s: f64, opacity: f64) -> (RasterGrads<f64>, RasterGrad
     let (out, state) = rasterize(&input).unwrap();
     assert!(out.radii[0] > 0, "the Gaussian must be visible");
     let gc: Vec<f64> = (0..3 * 256).map(|i| G[i / 256]).collect();
-    let exact = rasterize_backward(&input, &state, &gc, None, GradientMode::Exact).unwrap();
-    let inria = rasterize_backward(&input, &state, &gc, None, GradientMode::Inria).unwrap();
+    let exact = rasterize_vjp(&input, &state, &gc, None, GradientMode::Exact).unwrap();
+    let inria = rasterize_vjp(&input, &state, &gc, None, GradientMode::Inria).unwrap();
     (exact, inria)
 }
 
@@ -93,8 +93,8 @@ fn modes_agree_where_the_formulas_coincide() {
             assert!(state.tangent_clamps().iter().all(|c| !c[0] && !c[1]));
             let hw = s.raster_camera.width * s.raster_camera.height;
             let gc = liquid_splat::math::gradcheck::cotangent(seed, 3 * hw);
-            let e = rasterize_backward(&input, &state, &gc, None, GradientMode::Exact).unwrap();
-            let i = rasterize_backward(&input, &state, &gc, None, GradientMode::Inria).unwrap();
+            let e = rasterize_vjp(&input, &state, &gc, None, GradientMode::Exact).unwrap();
+            let i = rasterize_vjp(&input, &state, &gc, None, GradientMode::Inria).unwrap();
             let r = 1e-9;
             all_close("means3d", &i.means3d, &e.means3d, r);
             all_close("means2d", &i.means2d, &e.means2d, r);
@@ -215,7 +215,7 @@ fn depth_gradient_and_scale_modifier() {
     let hw = s.raster_camera.width * s.raster_camera.height;
     let gc = liquid_splat::math::gradcheck::cotangent(5, 3 * hw);
     let gd = liquid_splat::math::gradcheck::cotangent(6, hw);
-    let run = |m, d: Option<&[f64]>| rasterize_backward(&input, &state, &gc, d, m).unwrap();
+    let run = |m, d: Option<&[f64]>| rasterize_vjp(&input, &state, &gc, d, m).unwrap();
     let i_none = run(GradientMode::Inria, None);
     let i_depth = run(GradientMode::Inria, Some(&gd));
     assert_eq!(i_none, i_depth, "inria: the depth image has no gradient");

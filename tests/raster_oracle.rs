@@ -5,7 +5,7 @@ mod support;
 use liquid_splat::io::TensorFile;
 use liquid_splat::oracle::rasterize::run;
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
-use liquid_splat::render::{rasterize, rasterize_backward, Colors, GradientMode};
+use liquid_splat::render::{rasterize, rasterize_vjp, Colors, GradientMode};
 use std::path::PathBuf;
 use support::{cli, s, text};
 
@@ -37,7 +37,7 @@ fn case_file(path: PathBuf) -> (TensorFile, Vec<f64>, Vec<f64>) {
     // Direct library results for comparison.
     let input = s.input(ColorSource::Sh, CovSource::ScaleRotation);
     let (out, state) = rasterize(&input).unwrap();
-    let g = rasterize_backward(&input, &state, &gc, Some(&gd), GradientMode::Exact).unwrap();
+    let g = rasterize_vjp(&input, &state, &gc, Some(&gd), GradientMode::Exact).unwrap();
     assert!(matches!(input.colors, Colors::Sh { .. }));
     (f, out.color, g.means3d)
 }
@@ -133,7 +133,7 @@ fn gradient_metadata_selects_the_mode_and_is_echoed() {
     let gc = case
         .get_real::<f64>("grad_out_color", &[3, 24, 32])
         .unwrap();
-    let g = rasterize_backward(&input, &state, &gc, None, GradientMode::Inria).unwrap();
+    let g = rasterize_vjp(&input, &state, &gc, None, GradientMode::Inria).unwrap();
     assert_eq!(
         out_i.get_real::<f64>("grad_means3D", &[6, 3]).unwrap(),
         g.means3d

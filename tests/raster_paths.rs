@@ -7,7 +7,7 @@ mod support;
 
 use liquid_splat::kernels::fastmath::{force_isa, Isa};
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
-use liquid_splat::render::{rasterize, rasterize_backward, GradientMode};
+use liquid_splat::render::{rasterize, rasterize_vjp, GradientMode};
 
 /// Every output and gradient of one scene, as bits.
 fn run_bits(spec: &SceneSpec, colors: ColorSource, cov: CovSource) -> Vec<u32> {
@@ -30,7 +30,7 @@ fn run_bits(spec: &SceneSpec, colors: ColorSource, cov: CovSource) -> Vec<u32> {
     bits.extend(&out.n_contrib);
     bits.push(state.pairs_evaluated() as u32);
     for mode in GradientMode::ALL {
-        let g = rasterize_backward(&input, &state, &gc, Some(&gd), mode).unwrap();
+        let g = rasterize_vjp(&input, &state, &gc, Some(&gd), mode).unwrap();
         for v in [
             &g.means3d,
             &g.means2d,

@@ -8,7 +8,7 @@ use liquid_splat::camera::Camera;
 use liquid_splat::math::Real;
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, Scene, SceneSpec};
 use liquid_splat::render::{
-    rasterize, rasterize_backward, Colors, Covariances, GradientMode, RasterGrads, RasterInput,
+    rasterize, rasterize_vjp, Colors, Covariances, GradientMode, RasterGrads, RasterInput,
     RasterOutput,
 };
 use proptest::prelude::*;
@@ -38,7 +38,7 @@ fn run_mode<T: Real>(
         .into_iter()
         .map(T::from_f64)
         .collect();
-    let g = rasterize_backward(&input, &state, &gc, Some(&gd), mode).unwrap();
+    let g = rasterize_vjp(&input, &state, &gc, Some(&gd), mode).unwrap();
     (out, g)
 }
 

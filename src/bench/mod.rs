@@ -155,7 +155,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
                     f.push(t);
                     pairs = state.pairs_evaluated();
                     let (r, t) = harness::timed(|| {
-                        render::rasterize_backward(
+                        render::rasterize_vjp(
                             &input,
                             &state,
                             &grad,

@@ -22,9 +22,7 @@ use crate::error::{Error, Result};
 use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
 use crate::math::{Precision, Real};
-use crate::render::{
-    rasterize, rasterize_backward, Colors, Covariances, GradientMode, RasterInput,
-};
+use crate::render::{rasterize, rasterize_vjp, Colors, Covariances, GradientMode, RasterInput};
 
 /// The stage name this entry handles.
 pub const STAGE: &str = "rasterize";
@@ -200,7 +198,7 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
         background,
     };
     let (out, state) = rasterize(&input)?;
-    let g = rasterize_backward(&input, &state, &grad_color, grad_depth.as_deref(), mode)?;
+    let g = rasterize_vjp(&input, &state, &grad_color, grad_depth.as_deref(), mode)?;
 
     let mut res = TensorFile::new(case.path.clone());
     res.metadata = case.metadata.clone();

@@ -12,7 +12,7 @@
 
 use super::scene::{random_scene, ColorSource, CovSource, Scene, SceneSpec};
 use super::{
-    rasterize as render, rasterize_backward, rasterize_with_ndc_offset, Colors, Covariances,
+    rasterize as render, rasterize_vjp, rasterize_with_ndc_offset, Colors, Covariances,
     GradientMode, RasterInput,
 };
 use crate::error::Result;
@@ -146,7 +146,7 @@ pub fn check_scene(
     } else {
         Vec::new()
     };
-    let grads = rasterize_backward(
+    let grads = rasterize_vjp(
         &base,
         &state,
         &vc,

@@ -55,13 +55,14 @@ pub(crate) mod tiles;
 
 use crate::camera::RasterCamera;
 use crate::error::{Error, Result};
-use crate::math::covariance::{cov3d, cov3d_vjp, cov3d_vjp_scaled};
-use crate::math::sh::{sh_to_color, sh_to_color_vjp, ShColor, MAX_SH_DEGREE};
+use crate::math::covariance::cov3d;
+use crate::math::sh::{sh_to_color, ShColor, MAX_SH_DEGREE};
 use crate::math::Real;
-use project::{Intrinsics, Projected, ProjectedGrad};
-use rasterize::Splat;
-use rasterize_vjp::EntryGrad;
+use project::{Intrinsics, Projected};
+use rasterize::{Blended, Splat};
 use rayon::prelude::*;
+
+pub use rasterize_vjp::rasterize_vjp;
 
 /// Tile side in pixels (`BLOCK_X = BLOCK_Y = 16`).
 pub const BLOCK: usize = 16;
@@ -128,9 +129,9 @@ pub struct RasterOutput<T> {
     pub means2d: Vec<T>,
 }
 
-/// What the backward needs from the forward.
+/// What [`rasterize`] saves for its backward, [`rasterize_vjp`].
 #[derive(Clone, Debug)]
-pub struct ForwardState<T> {
+pub struct RasterizeSaved<T> {
     intr: Intrinsics<T>,
     proj: Vec<Projected<T>>,
     colors: Vec<ShColor<T>>,
@@ -140,12 +141,15 @@ pub struct ForwardState<T> {
     splats: Vec<Splat<T>>,
     /// (pixel, Gaussian) pairs the forward evaluated.
     evaluated: u64,
-    /// `[H, grid_x]`: per image row and tile, the largest `n_contrib` of
-    /// the row's pixels in the tile.
-    row_last: Vec<u32>,
+    /// Per image row: the entries at which some pixel of the row blends,
+    /// with the mask of blending pixels, tile after tile.
+    blended: Vec<Vec<Blended>>,
+    /// `[H, grid_x]`: per image row and tile, the end of the tile's entries
+    /// in the row's `blended`.
+    blended_end: Vec<u32>,
 }
 
-impl<T: Real> ForwardState<T> {
+impl<T: Real> RasterizeSaved<T> {
     /// Number of Gaussians rendered.
     pub fn len(&self) -> usize {
         self.proj.len()
@@ -432,7 +436,7 @@ impl<T: Real> RasterInput<'_, T> {
 
 /// Render: the forward pass. Fails with [`Error::Invalid`] on inconsistent
 /// lengths or an unusable camera; never panics.
-pub fn rasterize<T: Real>(input: &RasterInput<T>) -> Result<(RasterOutput<T>, ForwardState<T>)> {
+pub fn rasterize<T: Real>(input: &RasterInput<T>) -> Result<(RasterOutput<T>, RasterizeSaved<T>)> {
     forward(input, None)
 }
 
@@ -443,14 +447,14 @@ pub fn rasterize<T: Real>(input: &RasterInput<T>) -> Result<(RasterOutput<T>, Fo
 pub fn rasterize_with_ndc_offset<T: Real>(
     input: &RasterInput<T>,
     ndc_offset: &[T],
-) -> Result<(RasterOutput<T>, ForwardState<T>)> {
+) -> Result<(RasterOutput<T>, RasterizeSaved<T>)> {
     forward(input, Some(ndc_offset))
 }
 
 fn forward<T: Real>(
     input: &RasterInput<T>,
     ndc_offset: Option<&[T]>,
-) -> Result<(RasterOutput<T>, ForwardState<T>)> {
+) -> Result<(RasterOutput<T>, RasterizeSaved<T>)> {
     let n = input.validate()?;
     if let Some(o) = ndc_offset {
         check_len("ndc offset", o.len(), 2 * n, n)?;
@@ -527,7 +531,8 @@ fn forward<T: Real>(
         width: w,
         bg: input.background,
     };
-    let mut row_last = vec![0u32; h * grid_x];
+    let mut blended: Vec<Vec<Blended>> = vec![Vec::new(); h];
+    let mut blended_end = vec![0u32; h * grid_x];
     let (c0, rest) = out.color.split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
     let evaluated: u64 = (
@@ -537,24 +542,28 @@ fn forward<T: Real>(
         out.depth.par_chunks_mut(w),
         out.final_t.par_chunks_mut(w),
         out.n_contrib.par_chunks_mut(w),
-        row_last.par_chunks_mut(grid_x),
+        blended.par_iter_mut(),
+        blended_end.par_chunks_mut(grid_x),
     )
         .into_par_iter()
         .enumerate()
-        .map(|(py, (c0, c1, c2, depth, final_t, n_contrib, row_last))| {
-            let mut row = rasterize::RowOut {
-                color: [c0, c1, c2],
-                depth,
-                final_t,
-                n_contrib,
-                row_last,
-            };
-            let mut ev = 0u64;
-            rasterize::forward_row(&frame, py, &mut row, &mut ev);
-            ev
-        })
+        .map(
+            |(py, (c0, c1, c2, depth, final_t, n_contrib, blended, blended_end))| {
+                let mut row = rasterize::RowOut {
+                    color: [c0, c1, c2],
+                    depth,
+                    final_t,
+                    n_contrib,
+                    blended,
+                    blended_end,
+                };
+                let mut ev = 0u64;
+                rasterize::forward_row(&frame, py, &mut row, &mut ev);
+                ev
+            },
+        )
         .sum();
-    let state = ForwardState {
+    let state = RasterizeSaved {
         intr,
         proj,
         colors,
@@ -562,209 +571,8 @@ fn forward<T: Real>(
         binning,
         splats,
         evaluated,
-        row_last,
+        blended,
+        blended_end,
     };
     Ok((out, state))
-}
-
-/// The backward pass: gradients of `<grad_color, color> + <grad_depth, depth>`
-/// with respect to every input (`grad_color` `[3,H,W]`, `grad_depth`
-/// `[1,H,W]` or `None` for zero), differentiated as `mode` says
-/// ([`GradientMode::Inria`] ignores `grad_depth`). `input` must be the one
-/// `state` was computed from; lengths are checked.
-pub fn rasterize_backward<T: Real>(
-    input: &RasterInput<T>,
-    state: &ForwardState<T>,
-    grad_color: &[T],
-    grad_depth: Option<&[T]>,
-    mode: GradientMode,
-) -> Result<RasterGrads<T>> {
-    let n = input.validate()?;
-    let intr = &state.intr;
-    let (w, h) = (intr.width, intr.height);
-    if n != state.len() || input.camera.width != w || input.camera.height != h {
-        return Err(Error::invalid(
-            "forward state",
-            format!(
-                "computed for {} Gaussians at {}x{}, called with {} at {}x{}",
-                state.len(),
-                w,
-                h,
-                n,
-                input.camera.width,
-                input.camera.height
-            ),
-        ));
-    }
-    let hw = w * h;
-    if grad_color.len() != 3 * hw {
-        return Err(Error::invalid(
-            "grad_color",
-            format!("{} values, expected 3x{h}x{w}", grad_color.len()),
-        ));
-    }
-    if let Some(d) = grad_depth {
-        if d.len() != hw {
-            return Err(Error::invalid(
-                "grad_depth",
-                format!("{} values, expected 1x{h}x{w}", d.len()),
-            ));
-        }
-    }
-
-    // 1. Per tile: contributions per list entry, rows in order.
-    let grid_x = intr.grid[0] as usize;
-    let bg = input.background;
-    let mut entry: Vec<EntryGrad<T>> = vec![[T::ZERO; 10]; state.num_rendered()];
-    {
-        let mut rest: &mut [EntryGrad<T>] = &mut entry;
-        let mut chunks = Vec::with_capacity(state.binning.ranges.len());
-        let mut pos = 0usize;
-        for (tile, r) in state.binning.ranges.iter().enumerate() {
-            let (s, e) = (r[0] as usize, r[1] as usize);
-            if e == s {
-                continue;
-            }
-            // Ranges are contiguous and ascending in tile order.
-            let (_, tail) = rest.split_at_mut(s - pos);
-            let (head, tail) = tail.split_at_mut(e - s);
-            chunks.push((tile, s, head));
-            rest = tail;
-            pos = e;
-        }
-        chunks
-            .into_par_iter()
-            .for_each_init(Vec::new, |rec, (tile, s, buf)| {
-                let job = rasterize_vjp::TileJob {
-                    splats: &state.splats[s..s + buf.len()],
-                    row_last: &state.row_last[tile % grid_x..],
-                    grid_x,
-                    bounds: rasterize::tile_bounds(tile, grid_x, w, h),
-                    width: w,
-                    height: h,
-                    bg,
-                    grad_color,
-                    grad_depth,
-                    mode,
-                };
-                rasterize_vjp::tile_vjp(&job, buf, rec);
-            });
-    }
-
-    // 2. Gaussian -> entries, ascending list position (so ascending tile).
-    let mut start = vec![0usize; n + 1];
-    for &g in &state.binning.list {
-        start[g as usize + 1] += 1;
-    }
-    for i in 0..n {
-        start[i + 1] += start[i];
-    }
-    let mut fill = start.clone();
-    let mut index = vec![0u32; state.num_rendered()];
-    for (pos, &g) in state.binning.list.iter().enumerate() {
-        index[fill[g as usize]] = pos as u32;
-        fill[g as usize] += 1;
-    }
-
-    // 3. Per Gaussian: sum its entries in order, then the chain rule.
-    let (cstride, sh) = match input.colors {
-        Colors::Sh {
-            coeffs,
-            stride,
-            degree,
-        } => (3 * stride, Some((coeffs, degree))),
-        Colors::Precomputed(_) => (3, None),
-    };
-    let (cov_w, scale_rot) = match input.covariances {
-        Covariances::ScaleRotation {
-            scales,
-            rotations,
-            scale_modifier,
-        } => (3, Some((scales, rotations, scale_modifier))),
-        Covariances::Precomputed(_) => (6, None),
-    };
-    let mut grads = RasterGrads {
-        means3d: vec![T::ZERO; 3 * n],
-        means2d: vec![T::ZERO; 3 * n],
-        colors: vec![T::ZERO; cstride * n],
-        opacities: vec![T::ZERO; n],
-        scales_or_cov: vec![T::ZERO; cov_w * n],
-        // Scratch of the right length for precomputed covariances, emptied below.
-        rotations: vec![T::ZERO; 4 * n],
-    };
-    (
-        grads.means3d.par_chunks_mut(3),
-        grads.means2d.par_chunks_mut(3),
-        grads.colors.par_chunks_mut(cstride),
-        grads.opacities.par_iter_mut(),
-        grads.scales_or_cov.par_chunks_mut(cov_w),
-        grads.rotations.par_chunks_mut(4),
-    )
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(i, (gm3, gm2, gcol, gop, gcov_out, grot))| {
-            let p = &state.proj[i];
-            if p.radius <= 0 {
-                return;
-            }
-            let mut acc = [T::ZERO; 10];
-            for &pos in &index[start[i]..start[i + 1]] {
-                let e = &entry[pos as usize];
-                for q in 0..10 {
-                    acc[q] += e[q];
-                }
-            }
-            *gop = acc[8];
-            let mean = input.mean(i);
-            let pg = ProjectedGrad {
-                xy: [acc[3], acc[4]],
-                conic: [acc[5], acc[6], acc[7]],
-                depth: acc[9],
-            };
-            let (mut gmean, gcov, gndc) =
-                project::project_vjp(intr, mean, &state.cov3d[i], p, &pg, mode);
-            gm2[0] = gndc[0];
-            gm2[1] = gndc[1];
-            let gc = [acc[0], acc[1], acc[2]];
-            match sh {
-                Some((coeffs, degree)) => {
-                    let c = &coeffs[i * cstride..(i + 1) * cstride];
-                    let gd = sh_to_color_vjp(
-                        degree,
-                        c,
-                        mean,
-                        input.camera.campos,
-                        &state.colors[i],
-                        gc,
-                        gcol,
-                    );
-                    for a in 0..3 {
-                        gmean[a] += gd[a];
-                    }
-                }
-                None => gcol.copy_from_slice(&gc),
-            }
-            gm3.copy_from_slice(&gmean);
-            match scale_rot {
-                Some((scales, rotations, modifier)) => {
-                    let vjp = match mode {
-                        GradientMode::Exact => cov3d_vjp,
-                        GradientMode::Inria => cov3d_vjp_scaled,
-                    };
-                    let (gs, gq) = vjp(
-                        [scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]],
-                        modifier,
-                        std::array::from_fn(|q| rotations[4 * i + q]),
-                        gcov,
-                    );
-                    gcov_out.copy_from_slice(&gs);
-                    grot.copy_from_slice(&gq);
-                }
-                None => gcov_out.copy_from_slice(&gcov),
-            }
-        });
-    if scale_rot.is_none() {
-        grads.rotations = Vec::new();
-    }
-    Ok(grads)
 }

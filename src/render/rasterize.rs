@@ -154,9 +154,17 @@ pub(crate) struct RowState<T> {
     pub evaluated: u64,
 }
 
-/// A list entry at which at least one lane of a row blended, recorded by the
-/// backward's forward walk: the transmittance before the entry, `exp(power)`
-/// and the mask of blending lanes (bit `l` for lane `l`).
+/// A list entry at which at least one lane of a row blended, as the forward
+/// saves it for the backward: the entry's position in its tile's list and
+/// the mask of blending lanes (bit `l` for lane `l`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) struct Blended {
+    pub j: u32,
+    pub mask: u16,
+}
+
+/// A [`Blended`] entry as the backward replays it: the lanes'
+/// transmittance before the entry and `exp(power)`.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Record<T> {
     pub j: u32,
@@ -184,14 +192,14 @@ pub(crate) fn power_lanes<V: Lanes>(s: &Splat<V::T>, dx: V, dy: V::T, k: &Blend<
         - V::splat(s.conic[1]) * dx * V::splat(dy)
 }
 
-/// Walk `splats` front to back for one row; with `REC`, push a [`Record`]
-/// for every entry at which some lane blends.
+/// Walk `splats` front to back for one row, pushing a [`Blended`] onto
+/// `blended` for every entry at which some lane blends.
 #[inline(always)]
-pub(crate) fn walk_row<V: Lanes, const REC: bool>(
+pub(crate) fn walk_row<V: Lanes>(
     splats: &[Splat<V::T>],
     row: Row,
     k: &Blend<V::T>,
-    rec: &mut Vec<Record<V::T>>,
+    blended: &mut Vec<Blended>,
 ) -> RowState<V::T> {
     let zero = V::T::ZERO;
     let px = V::load(&lane_x::<V::T>(row));
@@ -234,17 +242,10 @@ pub(crate) fn walk_row<V: Lanes, const REC: bool>(
                     *cv = V::select(b, *cv + V::splat(col) * a * t, *cv);
                 }
                 d = V::select(b, d + V::splat(s.depth) * a * t, d);
-                if REC {
-                    let mut r = Record {
-                        j: j as u32,
-                        t: [zero; LANES],
-                        g: [zero; LANES],
-                        blend: b_bits,
-                    };
-                    t.store(&mut r.t);
-                    g.store(&mut r.g);
-                    rec.push(r);
-                }
+                blended.push(Blended {
+                    j: j as u32,
+                    mask: b_bits,
+                });
                 t = V::select(b, test_t, t);
                 let mut m = b_bits;
                 while m != 0 {
@@ -277,6 +278,44 @@ pub(crate) fn walk_row<V: Lanes, const REC: bool>(
     st
 }
 
+/// The backward's replay of one row's [`Blended`] entries (as the forward
+/// saved them, in list order): per entry the same `power`, `exp`, alpha and
+/// transmittance products as [`walk_row`], so the same bits, without the
+/// skip and stop tests or the entries no lane blends. Pushes one [`Record`]
+/// per entry onto `rec` and returns the lanes' final transmittance.
+#[inline(always)]
+pub(crate) fn replay_row<V: Lanes>(
+    splats: &[Splat<V::T>],
+    blended: &[Blended],
+    row: Row,
+    k: &Blend<V::T>,
+    rec: &mut Vec<Record<V::T>>,
+) -> V {
+    let zero = V::T::ZERO;
+    let px = V::load(&lane_x::<V::T>(row));
+    let pyf = V::T::from_usize(row.py);
+    let one = V::splat(V::T::ONE);
+    let amax = V::splat(k.alpha_max);
+    let mut t = one;
+    for b in blended {
+        let s = &splats[b.j as usize];
+        let dx = V::splat(s.xy[0]) - px;
+        let g = power_lanes(s, dx, s.xy[1] - pyf, k).exp();
+        let a = (V::splat(s.opacity) * g).min_of(amax);
+        let mut r = Record {
+            j: b.j,
+            t: [zero; LANES],
+            g: [zero; LANES],
+            blend: b.mask,
+        };
+        t.store(&mut r.t);
+        g.store(&mut r.g);
+        rec.push(r);
+        t = V::select(V::from_bits(b.mask), t * (one - a), t);
+    }
+    t
+}
+
 /// Output slices of one image row (channel-major image, so each channel's
 /// row is contiguous).
 pub(crate) struct RowOut<'a, T> {
@@ -284,9 +323,10 @@ pub(crate) struct RowOut<'a, T> {
     pub depth: &'a mut [T],
     pub final_t: &'a mut [T],
     pub n_contrib: &'a mut [u32],
-    /// Per tile the row crosses: the largest `n_contrib` of its pixels there
-    /// (the backward's forward walk of the row ends at it).
-    pub row_last: &'a mut [u32],
+    /// The row's [`Blended`] entries, tile after tile (cleared first).
+    pub blended: &'a mut Vec<Blended>,
+    /// Per tile the row crosses: the end of its entries in `blended`.
+    pub blended_end: &'a mut [u32],
 }
 
 /// What every row of a frame reads.
@@ -311,16 +351,16 @@ fn forward_row_body<V: Lanes>(
 ) {
     let k = Blend::<V::T>::new();
     let ty = py / BLOCK;
-    let mut none = Vec::new();
+    out.blended.clear();
     for tx in 0..f.grid_x {
         let x0 = tx * BLOCK;
         let nx = BLOCK.min(f.width - x0);
         let [s, e] = f.ranges[ty * f.grid_x + tx];
-        let st = walk_row::<V, false>(
+        let st = walk_row::<V>(
             &f.splats[s as usize..e as usize],
             Row { x0, nx, py },
             &k,
-            &mut none,
+            out.blended,
         );
         for l in 0..nx {
             let t = st.t[l];
@@ -331,7 +371,7 @@ fn forward_row_body<V: Lanes>(
             out.final_t[x0 + l] = t;
             out.n_contrib[x0 + l] = st.last[l];
         }
-        out.row_last[tx] = st.last.iter().copied().max().unwrap_or(0);
+        out.blended_end[tx] = out.blended.len() as u32;
         *evaluated += st.evaluated;
     }
 }

@@ -1,4 +1,5 @@
-//! Per-pixel backward of the blending ([`super::rasterize`]).
+//! The rasterizer's backward ([`rasterize_vjp`]) and the per-pixel backward
+//! of the blending ([`super::rasterize`]).
 //!
 //! For a pixel with blended entries `i = 0..n` (front to back), transmittance
 //! `T_i = Π_{j<i} (1 − α_j)` and per-entry weight `w_i = g·c_i + g_D·z_i`
@@ -9,12 +10,19 @@
 //! Through `α = min(0.99, o·G)` the gradient is zero where the clamp is active.
 //!
 //! Vectorised as the forward: a tile row is one group of
-//! [`LANES`](super::rasterize::LANES) pixels. Per row, the forward walk
-//! ([`walk_row`]) records every entry at which some pixel blends (its
-//! transmittance before the entry, `exp(power)` and the blend mask); the
-//! backward then walks these records in reverse, each lane applying the
-//! per-pixel rule above (lanes that did not blend an entry contribute exactly
-//! zero to it and keep their state).
+//! [`LANES`](super::rasterize::LANES) pixels. The forward saved, per row and
+//! tile, the entries at which some pixel blends with the mask of blending
+//! pixels ([`Blended`]); the backward replays them ([`replay_row`]: the same
+//! products, so the same transmittances and `exp(power)`, without the skip
+//! and stop tests or the entries no pixel blends) and then walks them in
+//! reverse, each lane applying the per-pixel rule above (lanes that did not
+//! blend an entry contribute exactly zero to it and keep their state).
+//!
+//! [`rasterize_vjp`] runs in three named steps: [`entry_gradients`] (per
+//! tile, one [`EntryGrad`] per list entry), [`gaussian_entries`] (each
+//! Gaussian's entries in ascending list position) and [`gaussian_gradients`]
+//! (per Gaussian, the sum of its entries and the chain rule through the
+//! projection, the colour and the 3D covariance).
 //!
 //! Determinism: the contributions of a row's 16 pixels to an entry are summed
 //! by a fixed pairwise tree (lane `l` with `l + 8`, then `+ 4`, `+ 2`, `+ 1`),
@@ -24,24 +32,82 @@
 //! depends on the number of threads or the vector width.
 
 use super::lanes::{Lanes, Scalar};
-use super::rasterize::{lane_x, walk_row, Blend, Record, Row, Splat, LANES};
-use super::GradientMode;
+use super::project::{self, ProjectedGrad};
+use super::rasterize::{
+    self as raster, lane_x, replay_row, Blend, Blended, Record, Row, Splat, LANES,
+};
+use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
+use crate::error::{Error, Result};
+use crate::math::covariance::{cov3d_vjp, cov3d_vjp_scaled};
+use crate::math::sh::sh_to_color_vjp;
 use crate::math::Real;
+use rayon::prelude::*;
 
-/// Per list entry gradient: colour (3), pixel centre (2), conic (3),
-/// opacity (1), depth (1). In [`GradientMode::Inria`] the centre gradient is
-/// already in NDC units and the conic's `B` slot holds half of `dL/dB`, as
-/// upstream accumulates them.
-pub(crate) type EntryGrad<T> = [T; 10];
+/// The gradient one list entry (a Gaussian in one tile) receives from the
+/// tile's pixels. In [`GradientMode::Inria`] the centre gradient is already
+/// in NDC units and `conic[1]` holds half of `dL/dB`, as upstream
+/// accumulates them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(crate) struct EntryGrad<T> {
+    /// dL/d(colour), RGB.
+    pub color: [T; 3],
+    /// dL/d(pixel-space centre).
+    pub xy: [T; 2],
+    /// dL/d(conic A, B, C).
+    pub conic: [T; 3],
+    /// dL/d(opacity).
+    pub opacity: T,
+    /// dL/d(view-space depth).
+    pub depth: T,
+}
+
+impl<T: Real> EntryGrad<T> {
+    /// All zeros.
+    pub const ZERO: Self = EntryGrad {
+        color: [T::ZERO; 3],
+        xy: [T::ZERO; 2],
+        conic: [T::ZERO; 3],
+        opacity: T::ZERO,
+        depth: T::ZERO,
+    };
+
+    /// Add `o` field by field.
+    #[inline]
+    fn add(&mut self, o: &Self) {
+        for q in 0..3 {
+            self.color[q] += o.color[q];
+            self.conic[q] += o.conic[q];
+        }
+        for q in 0..2 {
+            self.xy[q] += o.xy[q];
+        }
+        self.opacity += o.opacity;
+        self.depth += o.depth;
+    }
+
+    /// The part the projection's backward takes.
+    fn projected(&self) -> ProjectedGrad<T> {
+        ProjectedGrad {
+            xy: self.xy,
+            conic: self.conic,
+            depth: self.depth,
+        }
+    }
+}
 
 /// What the backward of one tile reads.
 pub(crate) struct TileJob<'a, T> {
     /// The tile's gathered list.
     pub splats: &'a [Splat<T>],
-    /// Starting at this tile's column: every `grid_x`-th value is, per image
-    /// row, the last list position any pixel of the row blends in the tile.
-    pub row_last: &'a [u32],
+    /// Per image row, the [`Blended`] entries the forward saved (every tile
+    /// the row crosses, tile after tile).
+    pub blended: &'a [Vec<Blended>],
+    /// `[H, grid_x]`: per image row and tile, the end of the tile's entries
+    /// in the row's `blended`.
+    pub blended_end: &'a [u32],
     pub grid_x: usize,
+    /// The tile's column.
+    pub tx: usize,
     /// Pixel bounds `[x0, x1, y0, y1]`.
     pub bounds: [usize; 4],
     pub width: usize,
@@ -66,15 +132,19 @@ fn tile_vjp_body<V: Lanes>(
     let nx = x1 - x0;
     let hw = job.width * job.height;
     for py in y0..y1 {
-        rec.clear();
-        let row = Row { x0, nx, py };
-        // Past the last blended entry the walk records nothing and changes
-        // no state: stop there.
-        let last = job.row_last[py * job.grid_x] as usize;
-        let st = walk_row::<V, true>(&job.splats[..last], row, &k, rec);
-        if rec.is_empty() {
+        let ends = &job.blended_end[py * job.grid_x..(py + 1) * job.grid_x];
+        let start = if job.tx == 0 {
+            0
+        } else {
+            ends[job.tx - 1] as usize
+        };
+        let blended = &job.blended[py][start..ends[job.tx] as usize];
+        if blended.is_empty() {
             continue;
         }
+        rec.clear();
+        let row = Row { x0, nx, py };
+        let t_final = replay_row::<V>(job.splats, blended, row, &k, rec);
         let base = py * job.width + x0;
         let mut g = [[zero; LANES]; 3];
         for (ch, gc) in g.iter_mut().enumerate() {
@@ -89,7 +159,7 @@ fn tile_vjp_body<V: Lanes>(
                 }
                 exact_row::<V>(job, row, &k, rec, &g, V::load(&gd), grads);
             }
-            GradientMode::Inria => inria_row::<V>(job, row, &k, rec, &g, V::load(&st.t), grads),
+            GradientMode::Inria => inria_row::<V>(job, row, &k, rec, &g, t_final, grads),
         }
     }
 }
@@ -135,21 +205,21 @@ fn exact_row<V: Lanes>(
         r = V::select(b, a * w + (one - a) * r, r);
         let at = a * t_i;
         let e = &mut grads[rc.j as usize];
-        e[0] += V::select(b, g[0] * at, zero).tree_sum();
-        e[1] += V::select(b, g[1] * at, zero).tree_sum();
-        e[2] += V::select(b, g[2] * at, zero).tree_sum();
-        e[9] += V::select(b, gd * at, zero).tree_sum();
+        e.color[0] += V::select(b, g[0] * at, zero).tree_sum();
+        e.color[1] += V::select(b, g[1] * at, zero).tree_sum();
+        e.color[2] += V::select(b, g[2] * at, zero).tree_sum();
+        e.depth += V::select(b, gd * at, zero).tree_sum();
         if V::bits(live) == 0 {
             continue;
         }
         // alpha = o·G, G = exp(power).
         let gp = dalpha * o * gg;
-        e[8] += V::select(live, dalpha * gg, zero).tree_sum();
-        e[3] += V::select(live, gp * (V::splat(-ca) * dx - V::splat(cb) * dy), zero).tree_sum();
-        e[4] += V::select(live, gp * (V::splat(-cc) * dy - V::splat(cb) * dx), zero).tree_sum();
-        e[5] += V::select(live, gp * (V::splat(-half) * dx * dx), zero).tree_sum();
-        e[6] += V::select(live, gp * (-dx * dy), zero).tree_sum();
-        e[7] += V::select(live, gp * V::splat(-half * dys * dys), zero).tree_sum();
+        e.opacity += V::select(live, dalpha * gg, zero).tree_sum();
+        e.xy[0] += V::select(live, gp * (V::splat(-ca) * dx - V::splat(cb) * dy), zero).tree_sum();
+        e.xy[1] += V::select(live, gp * (V::splat(-cc) * dy - V::splat(cb) * dx), zero).tree_sum();
+        e.conic[0] += V::select(live, gp * (V::splat(-half) * dx * dx), zero).tree_sum();
+        e.conic[1] += V::select(live, gp * (-dx * dy), zero).tree_sum();
+        e.conic[2] += V::select(live, gp * V::splat(-half * dys * dys), zero).tree_sum();
     }
 }
 
@@ -203,7 +273,7 @@ fn inria_row<V: Lanes>(
             let c = V::splat(s.color[ch]);
             let acc = last_alpha * last_color[ch] + (one - last_alpha) * accum[ch];
             dl_dalpha = dl_dalpha + (c - acc) * g[ch];
-            e[ch] += V::select(b, dchannel_dcolor * g[ch], zero).tree_sum();
+            e.color[ch] += V::select(b, dchannel_dcolor * g[ch], zero).tree_sum();
             accum[ch] = V::select(b, acc, accum[ch]);
             last_color[ch] = V::select(b, c, last_color[ch]);
         }
@@ -214,12 +284,12 @@ fn inria_row<V: Lanes>(
         let gdy = gg * dy;
         let dg_ddelx = -gdx * V::splat(ca) - gdy * V::splat(cb);
         let dg_ddely = -gdy * V::splat(cc) - gdx * V::splat(cb);
-        e[3] += V::select(b, dl_dg * dg_ddelx * ndc[0], zero).tree_sum();
-        e[4] += V::select(b, dl_dg * dg_ddely * ndc[1], zero).tree_sum();
-        e[5] += V::select(b, neg_half * gdx * dx * dl_dg, zero).tree_sum();
-        e[6] += V::select(b, neg_half * gdx * dy * dl_dg, zero).tree_sum();
-        e[7] += V::select(b, neg_half * gdy * dy * dl_dg, zero).tree_sum();
-        e[8] += V::select(b, gg * dl_dalpha, zero).tree_sum();
+        e.xy[0] += V::select(b, dl_dg * dg_ddelx * ndc[0], zero).tree_sum();
+        e.xy[1] += V::select(b, dl_dg * dg_ddely * ndc[1], zero).tree_sum();
+        e.conic[0] += V::select(b, neg_half * gdx * dx * dl_dg, zero).tree_sum();
+        e.conic[1] += V::select(b, neg_half * gdx * dy * dl_dg, zero).tree_sum();
+        e.conic[2] += V::select(b, neg_half * gdy * dy * dl_dg, zero).tree_sum();
+        e.opacity += V::select(b, gg * dl_dalpha, zero).tree_sum();
         t = V::select(b, tn, t);
         last_alpha = V::select(b, a, last_alpha);
     }
@@ -264,4 +334,249 @@ pub(crate) fn tile_vjp<T: Real>(
         }
     }
     tile_vjp_body::<Scalar<T>>(job, grads, rec)
+}
+
+/// The backward pass of [`super::rasterize`]: gradients of
+/// `<grad_color, color> + <grad_depth, depth>` with respect to every input
+/// (`grad_color` `[3,H,W]`, `grad_depth` `[1,H,W]` or `None` for zero),
+/// differentiated as `mode` says ([`GradientMode::Inria`] ignores
+/// `grad_depth`). `input` must be the one `saved` was computed from; lengths
+/// are checked.
+pub fn rasterize_vjp<T: Real>(
+    input: &RasterInput<T>,
+    saved: &RasterizeSaved<T>,
+    grad_color: &[T],
+    grad_depth: Option<&[T]>,
+    mode: GradientMode,
+) -> Result<RasterGrads<T>> {
+    check_cotangents(input, saved, grad_color, grad_depth)?;
+    let entry = entry_gradients(input, saved, grad_color, grad_depth, mode);
+    let (start, index) = gaussian_entries(saved);
+    Ok(gaussian_gradients(
+        input, saved, &entry, &start, &index, mode,
+    ))
+}
+
+/// Check that `input` is the one `saved` was computed from (count and image
+/// size) and the cotangents' lengths.
+fn check_cotangents<T: Real>(
+    input: &RasterInput<T>,
+    saved: &RasterizeSaved<T>,
+    grad_color: &[T],
+    grad_depth: Option<&[T]>,
+) -> Result<()> {
+    let n = input.validate()?;
+    let (w, h) = (saved.intr.width, saved.intr.height);
+    if n != saved.len() || input.camera.width != w || input.camera.height != h {
+        return Err(Error::invalid(
+            "forward state",
+            format!(
+                "computed for {} Gaussians at {}x{}, called with {} at {}x{}",
+                saved.len(),
+                w,
+                h,
+                n,
+                input.camera.width,
+                input.camera.height
+            ),
+        ));
+    }
+    let hw = w * h;
+    if grad_color.len() != 3 * hw {
+        return Err(Error::invalid(
+            "grad_color",
+            format!("{} values, expected 3x{h}x{w}", grad_color.len()),
+        ));
+    }
+    if let Some(d) = grad_depth {
+        if d.len() != hw {
+            return Err(Error::invalid(
+                "grad_depth",
+                format!("{} values, expected 1x{h}x{w}", d.len()),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Step 1, per tile in parallel: the gradient of every list entry, each the
+/// sum over the tile's rows in ascending order (see the module docs).
+fn entry_gradients<T: Real>(
+    input: &RasterInput<T>,
+    saved: &RasterizeSaved<T>,
+    grad_color: &[T],
+    grad_depth: Option<&[T]>,
+    mode: GradientMode,
+) -> Vec<EntryGrad<T>> {
+    let (w, h) = (saved.intr.width, saved.intr.height);
+    let grid_x = saved.intr.grid[0] as usize;
+    let mut entry = vec![EntryGrad::ZERO; saved.num_rendered()];
+    let mut rest: &mut [EntryGrad<T>] = &mut entry;
+    let mut chunks = Vec::with_capacity(saved.binning.ranges.len());
+    let mut pos = 0usize;
+    for (tile, r) in saved.binning.ranges.iter().enumerate() {
+        let (s, e) = (r[0] as usize, r[1] as usize);
+        if e == s {
+            continue;
+        }
+        // Ranges are contiguous and ascending in tile order.
+        let (_, tail) = rest.split_at_mut(s - pos);
+        let (head, tail) = tail.split_at_mut(e - s);
+        chunks.push((tile, s, head));
+        rest = tail;
+        pos = e;
+    }
+    chunks
+        .into_par_iter()
+        .for_each_init(Vec::new, |rec, (tile, s, buf)| {
+            let job = TileJob {
+                splats: &saved.splats[s..s + buf.len()],
+                blended: &saved.blended,
+                blended_end: &saved.blended_end,
+                grid_x,
+                tx: tile % grid_x,
+                bounds: raster::tile_bounds(tile, grid_x, w, h),
+                width: w,
+                height: h,
+                bg: input.background,
+                grad_color,
+                grad_depth,
+                mode,
+            };
+            tile_vjp(&job, buf, rec);
+        });
+    entry
+}
+
+/// Step 2: each Gaussian's entries in ascending list position (so ascending
+/// tile), as `index[start[g]..start[g + 1]]`.
+fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> (Vec<usize>, Vec<u32>) {
+    let n = saved.len();
+    let list = &saved.binning.list;
+    let mut start = vec![0usize; n + 1];
+    for &g in list {
+        start[g as usize + 1] += 1;
+    }
+    for i in 0..n {
+        start[i + 1] += start[i];
+    }
+    let mut fill = start.clone();
+    let mut index = vec![0u32; list.len()];
+    for (pos, &g) in list.iter().enumerate() {
+        index[fill[g as usize]] = pos as u32;
+        fill[g as usize] += 1;
+    }
+    (start, index)
+}
+
+/// Step 3, per Gaussian in parallel: the sum of its entries in ascending
+/// list position, then the chain rule through the projection, the colour
+/// (SH or precomputed) and the 3D covariance (scale and rotation or
+/// precomputed).
+fn gaussian_gradients<T: Real>(
+    input: &RasterInput<T>,
+    saved: &RasterizeSaved<T>,
+    entry: &[EntryGrad<T>],
+    start: &[usize],
+    index: &[u32],
+    mode: GradientMode,
+) -> RasterGrads<T> {
+    let n = saved.len();
+    let (cstride, sh) = match input.colors {
+        Colors::Sh {
+            coeffs,
+            stride,
+            degree,
+        } => (3 * stride, Some((coeffs, degree))),
+        Colors::Precomputed(_) => (3, None),
+    };
+    let (cov_w, scale_rot) = match input.covariances {
+        Covariances::ScaleRotation {
+            scales,
+            rotations,
+            scale_modifier,
+        } => (3, Some((scales, rotations, scale_modifier))),
+        Covariances::Precomputed(_) => (6, None),
+    };
+    let mut grads = RasterGrads {
+        means3d: vec![T::ZERO; 3 * n],
+        means2d: vec![T::ZERO; 3 * n],
+        colors: vec![T::ZERO; cstride * n],
+        opacities: vec![T::ZERO; n],
+        scales_or_cov: vec![T::ZERO; cov_w * n],
+        // Scratch of the right length for precomputed covariances, emptied below.
+        rotations: vec![T::ZERO; 4 * n],
+    };
+    (
+        grads.means3d.par_chunks_mut(3),
+        grads.means2d.par_chunks_mut(3),
+        grads.colors.par_chunks_mut(cstride),
+        grads.opacities.par_iter_mut(),
+        grads.scales_or_cov.par_chunks_mut(cov_w),
+        grads.rotations.par_chunks_mut(4),
+    )
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(i, (gm3, gm2, gcol, gop, gcov_out, grot))| {
+            let p = &saved.proj[i];
+            if p.radius <= 0 {
+                return;
+            }
+            let mut acc = EntryGrad::ZERO;
+            for &pos in &index[start[i]..start[i + 1]] {
+                acc.add(&entry[pos as usize]);
+            }
+            *gop = acc.opacity;
+            let mean = input.mean(i);
+            let (mut gmean, gcov, gndc) = project::project_vjp(
+                &saved.intr,
+                mean,
+                &saved.cov3d[i],
+                p,
+                &acc.projected(),
+                mode,
+            );
+            gm2[0] = gndc[0];
+            gm2[1] = gndc[1];
+            match sh {
+                Some((coeffs, degree)) => {
+                    let c = &coeffs[i * cstride..(i + 1) * cstride];
+                    let gd = sh_to_color_vjp(
+                        degree,
+                        c,
+                        mean,
+                        input.camera.campos,
+                        &saved.colors[i],
+                        acc.color,
+                        gcol,
+                    );
+                    for a in 0..3 {
+                        gmean[a] += gd[a];
+                    }
+                }
+                None => gcol.copy_from_slice(&acc.color),
+            }
+            gm3.copy_from_slice(&gmean);
+            match scale_rot {
+                Some((scales, rotations, modifier)) => {
+                    let vjp = match mode {
+                        GradientMode::Exact => cov3d_vjp,
+                        GradientMode::Inria => cov3d_vjp_scaled,
+                    };
+                    let (gs, gq) = vjp(
+                        [scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]],
+                        modifier,
+                        std::array::from_fn(|q| rotations[4 * i + q]),
+                        gcov,
+                    );
+                    gcov_out.copy_from_slice(&gs);
+                    grot.copy_from_slice(&gq);
+                }
+                None => gcov_out.copy_from_slice(&gcov),
+            }
+        });
+    if scale_rot.is_none() {
+        grads.rotations = Vec::new();
+    }
+    grads
 }

@@ -18,7 +18,7 @@ use crate::loss::{loss_and_grad, LossOutput};
 use crate::math::Real;
 use crate::optim::{AdamState, GaussianOptimizer, StepGroups, StepRates};
 use crate::render::{
-    rasterize, rasterize_backward, Colors, Covariances, ForwardState, GradientMode, RasterGrads,
+    rasterize, rasterize_vjp, Colors, Covariances, ForwardState, GradientMode, RasterGrads,
     RasterInput, RasterOutput,
 };
 use std::time::Instant;
@@ -193,7 +193,7 @@ impl<T: Real> Model<T> {
     /// The rasterizer's backward (exact gradient mode).
     fn raster_backward(&self, saved: &ModelSaved<T>, grad_image: &[T]) -> Result<RasterGrads<T>> {
         let input = self.raster_input(&saved.deformed, &saved.camera);
-        rasterize_backward(&input, &saved.raster, grad_image, None, GradientMode::Exact)
+        rasterize_vjp(&input, &saved.raster, grad_image, None, GradientMode::Exact)
     }
 
     /// The backward of the activations and the field: the field's backward
