@@ -14,12 +14,16 @@ use std::path::{Path, PathBuf};
 /// Element storage of a tensor.
 #[derive(Clone, Debug, PartialEq)]
 pub enum TensorData {
+    /// 32-bit floats.
     F32(Vec<f32>),
+    /// 64-bit floats.
     F64(Vec<f64>),
+    /// 32-bit signed integers.
     I32(Vec<i32>),
 }
 
 impl TensorData {
+    /// The safetensors dtype name: `F32`, `F64` or `I32`.
     pub fn dtype_name(&self) -> &'static str {
         match self {
             TensorData::F32(_) => "F32",
@@ -27,6 +31,7 @@ impl TensorData {
             TensorData::I32(_) => "I32",
         }
     }
+    /// Number of elements.
     pub fn len(&self) -> usize {
         match self {
             TensorData::F32(v) => v.len(),
@@ -34,6 +39,7 @@ impl TensorData {
             TensorData::I32(v) => v.len(),
         }
     }
+    /// True when there are no elements.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -50,11 +56,14 @@ impl TensorData {
 /// A tensor: row-major data and its shape.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Tensor {
+    /// Size of each dimension, outermost first.
     pub shape: Vec<usize>,
+    /// The elements, row-major.
     pub data: TensorData,
 }
 
 impl Tensor {
+    /// An F32 or F64 tensor (by `T`'s precision) holding `values`.
     pub fn real<T: Real>(shape: Vec<usize>, values: &[T]) -> Self {
         debug_assert_eq!(shape.iter().product::<usize>(), values.len());
         let data = match T::PRECISION {
@@ -67,6 +76,7 @@ impl Tensor {
         };
         Tensor { shape, data }
     }
+    /// An I32 tensor holding `values`.
     pub fn i32(shape: Vec<usize>, values: Vec<i32>) -> Self {
         Tensor {
             shape,
@@ -89,12 +99,16 @@ fn shape_str(s: &[usize]) -> String {
 /// from (or will be written to) for error messages.
 #[derive(Clone, Debug, Default)]
 pub struct TensorFile {
+    /// The file it came from or will be written to (named in errors).
     pub path: PathBuf,
+    /// The safetensors `__metadata__` strings.
     pub metadata: BTreeMap<String, String>,
+    /// The tensors by name.
     pub tensors: BTreeMap<String, Tensor>,
 }
 
 impl TensorFile {
+    /// An empty file for `path`.
     pub fn new(path: impl Into<PathBuf>) -> Self {
         TensorFile {
             path: path.into(),
@@ -112,6 +126,7 @@ impl TensorFile {
         Self::from_bytes(path, &bytes)
     }
 
+    /// Parse safetensors `bytes` (`path` names them in errors).
     pub fn from_bytes(path: &Path, bytes: &[u8]) -> Result<Self> {
         let (_, meta) = SafeTensors::read_metadata(bytes)
             .map_err(|e| Error::format(path, format!("not a valid safetensors file: {e}")))?;
@@ -244,6 +259,7 @@ impl TensorFile {
 
     // ---- metadata ----
 
+    /// Set a metadata string.
     pub fn set_meta(&mut self, key: &str, value: impl ToString) {
         self.metadata.insert(key.to_string(), value.to_string());
     }
@@ -327,10 +343,12 @@ impl TensorFile {
         Ok(())
     }
 
+    /// True when a tensor `name` is present.
     pub fn contains(&self, name: &str) -> bool {
         self.tensors.contains_key(name)
     }
 
+    /// The shape of tensor `name` (an error if missing).
     pub fn shape(&self, name: &str) -> Result<&[usize]> {
         self.tensors
             .get(name)
@@ -401,7 +419,6 @@ impl TensorFile {
         Ok((t.shape.clone(), v))
     }
 
-    /// A real tensor of element type `T` whose shape must equal `expected`.
     /// Fail unless tensor `name` is present with shape `expected` (reads
     /// no data: a check before allocating for it).
     pub fn expect_shape(&self, name: &str, expected: &[usize]) -> Result<()> {
@@ -417,6 +434,7 @@ impl TensorFile {
         Ok(())
     }
 
+    /// A real tensor of element type `T` whose shape must equal `expected`.
     pub fn get_real<T: Real>(&self, name: &str, expected: &[usize]) -> Result<Vec<T>> {
         let (shape, v) = self.get_real_any::<T>(name)?;
         if shape != expected {
@@ -447,11 +465,13 @@ impl TensorFile {
         }
     }
 
+    /// Insert (or replace) a float tensor ([`Tensor::real`]).
     pub fn insert_real<T: Real>(&mut self, name: &str, shape: Vec<usize>, values: &[T]) {
         self.tensors
             .insert(name.to_string(), Tensor::real(shape, values));
     }
 
+    /// Insert (or replace) an I32 tensor.
     pub fn insert_i32(&mut self, name: &str, shape: Vec<usize>, values: Vec<i32>) {
         self.tensors
             .insert(name.to_string(), Tensor::i32(shape, values));
