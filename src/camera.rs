@@ -11,6 +11,10 @@
 //!   passes them: `viewmatrix = W2Cᵀ` and `projmatrix = (P·W2C)ᵀ`, both stored
 //!   row-major, so `viewmatrix[4j + i] = W2C(i, j)`.
 //!
+//! Geometry is f64 with glam's `DMat3`/`DVec3`/`DMat4` (plain scalar IEEE
+//! arithmetic); the stored fields stay row-major arrays, the layout of the
+//! dataset and case files ([`crate::math::vec`] converts).
+//!
 //! Precision: matrices are formed in f64 and rounded once to the rasterizer's
 //! type `T`; `projmatrix` is then the product `viewmatrix · Pᵀ` evaluated in `T`
 //! with a fixed summation order, as the upstream f32 `bmm` forms it. Upstream
@@ -18,10 +22,13 @@
 //! `-Rᵀ t` in f64, rounded once (the exact value rather than an inverse's).
 
 use crate::error::{Error, Result};
+use crate::math::vec::{dmat3_from_rows, dmat3_rows, dmat4_rows};
 use crate::math::Real;
+use glam::{DMat3, DMat4, DVec3, DVec4};
 
-/// Near and far planes, hard-coded upstream.
+/// Near plane distance (view-space depth), hard-coded upstream.
 pub const ZNEAR: f64 = 0.01;
+/// Far plane distance (view-space depth), hard-coded upstream.
 pub const ZFAR: f64 = 100.0;
 
 /// A camera: extrinsics, field of view and image size.
@@ -35,7 +42,9 @@ pub struct Camera {
     pub fov_x: f64,
     /// Vertical field of view, radians.
     pub fov_y: f64,
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
 }
 
@@ -48,9 +57,13 @@ pub struct RasterCamera<T> {
     pub projmatrix: [T; 16],
     /// Camera centre in world space.
     pub campos: [T; 3],
+    /// `tan(fov_x / 2)`.
     pub tanfovx: T,
+    /// `tan(fov_y / 2)`.
     pub tanfovy: T,
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
 }
 
@@ -76,17 +89,12 @@ pub fn check_rotation(r: &[[f64; 3]; 3]) -> std::result::Result<(), String> {
     if r.iter().flatten().any(|v| !v.is_finite()) {
         return Err(format!("{r:?} has a non-finite element"));
     }
-    let mut worst = 0.0f64;
-    for i in 0..3 {
-        for j in 0..3 {
-            let dot: f64 = (0..3).map(|k| r[k][i] * r[k][j]).sum();
-            let want = if i == j { 1.0 } else { 0.0 };
-            worst = worst.max((dot - want).abs());
-        }
-    }
-    let det = r[0][0] * (r[1][1] * r[2][2] - r[1][2] * r[2][1])
-        - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
-        + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0]);
+    let m = dmat3_from_rows(r);
+    let off = m.transpose() * m - DMat3::IDENTITY;
+    let worst = [off.x_axis, off.y_axis, off.z_axis]
+        .iter()
+        .fold(0.0f64, |w, c| w.max(c.abs().max_element()));
+    let det = m.determinant();
     if worst > ROTATION_TOLERANCE || (det - 1.0).abs() > ROTATION_TOLERANCE {
         return Err(format!(
             "{r:?} is not a rotation: max |RᵀR − I| = {worst:.3e}, det = {det:.6} (tolerance {ROTATION_TOLERANCE:e})"
@@ -165,13 +173,15 @@ impl Camera {
         height: usize,
     ) -> Result<Self> {
         check_finite("camera-to-world matrix", &c2w.concat())?;
+        let m = dmat3_from_rows(&[
+            [c2w[0][0], c2w[0][1], c2w[0][2]],
+            [c2w[1][0], c2w[1][1], c2w[1][2]],
+            [c2w[2][0], c2w[2][1], c2w[2][2]],
+        ]);
         // Flip the y and z axes of the camera frame: columns 1 and 2 of the rotation.
-        let mut r_c2w = [[0.0; 3]; 3];
-        for i in 0..3 {
-            r_c2w[i] = [c2w[i][0], -c2w[i][1], -c2w[i][2]];
-        }
-        let t_c2w = [c2w[0][3], c2w[1][3], c2w[2][3]];
-        Self::from_c2w_opencv(r_c2w, t_c2w, fov_x, fov_y, width, height)
+        let r_c2w = DMat3::from_cols(m.x_axis, -m.y_axis, -m.z_axis);
+        let centre = DVec3::new(c2w[0][3], c2w[1][3], c2w[2][3]);
+        Self::from_c2w(r_c2w, centre, fov_x, fov_y, width, height)
     }
 
     /// From a camera-to-world rotation and camera centre in OpenCV axes.
@@ -185,42 +195,63 @@ impl Camera {
         width: usize,
         height: usize,
     ) -> Result<Self> {
-        let mut r = [[0.0; 3]; 3];
-        for i in 0..3 {
-            for j in 0..3 {
-                r[i][j] = r_c2w[j][i];
-            }
-        }
-        let mut t = [0.0; 3];
-        for i in 0..3 {
-            t[i] = -(r[i][0] * centre[0] + r[i][1] * centre[1] + r[i][2] * centre[2]);
-        }
-        Self::from_w2c(r, t, fov_x, fov_y, width, height)
+        Self::from_c2w(
+            dmat3_from_rows(&r_c2w),
+            DVec3::from(centre),
+            fov_x,
+            fov_y,
+            width,
+            height,
+        )
+    }
+
+    /// From a camera-to-world rotation and camera centre (OpenCV axes):
+    /// `R = R_c2wᵀ`, `t = −R·c`.
+    fn from_c2w(
+        r_c2w: DMat3,
+        centre: DVec3,
+        fov_x: f64,
+        fov_y: f64,
+        width: usize,
+        height: usize,
+    ) -> Result<Self> {
+        let r = r_c2w.transpose();
+        let t = -(r * centre);
+        Self::from_w2c(dmat3_rows(&r), t.to_array(), fov_x, fov_y, width, height)
+    }
+
+    /// The world-to-camera rotation `R`.
+    pub fn rotation_matrix(&self) -> DMat3 {
+        dmat3_from_rows(&self.rotation)
+    }
+
+    /// The 4×4 world-to-camera transform `[R | t]` (column-vector convention).
+    pub fn w2c_matrix(&self) -> DMat4 {
+        let r = self.rotation_matrix();
+        DMat4::from_cols(
+            r.x_axis.extend(0.0),
+            r.y_axis.extend(0.0),
+            r.z_axis.extend(0.0),
+            DVec4::new(
+                self.translation[0],
+                self.translation[1],
+                self.translation[2],
+                1.0,
+            ),
+        )
     }
 
     /// The 4×4 world-to-camera matrix (column-vector convention), row-major.
     pub fn w2c(&self) -> [[f64; 4]; 4] {
-        let r = &self.rotation;
-        let t = &self.translation;
-        [
-            [r[0][0], r[0][1], r[0][2], t[0]],
-            [r[1][0], r[1][1], r[1][2], t[1]],
-            [r[2][0], r[2][1], r[2][2], t[2]],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
+        dmat4_rows(&self.w2c_matrix())
     }
 
     /// Camera centre in world space, `-Rᵀ t`.
     pub fn centre(&self) -> [f64; 3] {
-        let r = &self.rotation;
-        let t = &self.translation;
-        let mut c = [0.0; 3];
-        for j in 0..3 {
-            c[j] = -(r[0][j] * t[0] + r[1][j] * t[1] + r[2][j] * t[2]);
-        }
-        c
+        (-(self.rotation_matrix().transpose() * DVec3::from(self.translation))).to_array()
     }
 
+    /// `(tan(fov_x / 2), tan(fov_y / 2))`.
     pub fn tan_half_fov(&self) -> (f64, f64) {
         (libm::tan(self.fov_x * 0.5), libm::tan(self.fov_y * 0.5))
     }
@@ -306,30 +337,19 @@ impl Camera {
         width: usize,
         height: usize,
     ) -> Result<Self> {
-        let sub = |a: [f64; 3], b: [f64; 3]| [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
-        let cross = |a: [f64; 3], b: [f64; 3]| {
-            [
-                a[1] * b[2] - a[2] * b[1],
-                a[2] * b[0] - a[0] * b[2],
-                a[0] * b[1] - a[1] * b[0],
-            ]
-        };
-        let norm = |a: [f64; 3]| {
-            let n = (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]).sqrt();
-            [a[0] / n, a[1] / n, a[2] / n]
-        };
-        let z = norm(sub(target, eye)); // forward
-        let x = norm(cross(z, up)); // right (y down)
-        let y = cross(z, x);
-        if !(x.iter().chain(&y).chain(&z).all(|v| v.is_finite())) {
+        let (eye, target, up) = (DVec3::from(eye), DVec3::from(target), DVec3::from(up));
+        let unit = |a: DVec3| a / a.length();
+        let z = unit(target - eye); // forward
+        let x = unit(z.cross(up)); // right (y down)
+        let y = z.cross(x);
+        if !(x.is_finite() && y.is_finite() && z.is_finite()) {
             return Err(Error::invalid(
                 "look_at",
                 "eye equals target or up is parallel to the view direction",
             ));
         }
         // Camera-to-world columns are the camera axes.
-        let r_c2w = [[x[0], y[0], z[0]], [x[1], y[1], z[1]], [x[2], y[2], z[2]]];
-        Self::from_c2w_opencv(r_c2w, eye, fov_x, fov_y, width, height)
+        Self::from_c2w(DMat3::from_cols(x, y, z), eye, fov_x, fov_y, width, height)
     }
 }
 

@@ -7,7 +7,7 @@
 //! folders) are ignored. Upstream reads only train and test; val is read here too.
 //!
 //! **Images** are converted to RGBA and composited exactly as upstream does
-//! ([`Image8::composite`](super::image::Image8::composite)), then optionally box-downscaled
+//! ([`composite`](super::image::composite)), then optionally box-downscaled
 //! ([`super::image::box_downscale`]), then divided by 255 in f32.
 //!
 //! **Field of view.** Upstream computes `fovy = focal2fov(fov2focal(fovx, W), H)` and then
@@ -24,11 +24,12 @@
 //! when the optical axis passes through the world origin, as in every D-NeRF camera.
 //! [`upstream_w2c`] implements upstream's formula for comparison.
 
-use super::image::{box_downscale, read_png, to_chw};
-use super::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
+use super::image::{box_downscale, composite, read_png, to_chw};
 use super::{json, par_map_ordered, scene_extent, Dataset, DatasetKind, Frame, LoadOptions};
 use crate::camera::{focal2fov, fov2focal, Camera};
 use crate::error::{Error, Result};
+use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
+use crate::math::vec::{dmat4_from_rows, dmat4_rows};
 use std::path::{Path, PathBuf};
 
 /// One frame as described by a transforms file, before its image is read.
@@ -125,7 +126,7 @@ fn load_frames(spec: &SplitSpec, opts: &LoadOptions) -> Result<Vec<Frame>> {
     let r = opts.downscale;
     par_map_ordered(&spec.frames, |f| {
         let img = read_png(&f.image)?;
-        let rgb = img.composite(opts.background);
+        let rgb = composite(&img, opts.background);
         let rgb = box_downscale(&f.image, &rgb, img.width, img.height, r)?;
         let (w, h) = (img.width / r, img.height / r);
         let (fx, fy) = fov_pair(spec.fov, w, h);
@@ -208,7 +209,8 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let points = dir.join("points3d.ply");
     let init = if points.is_file() {
         let pc = crate::gaussians::ply::read_points(&points)?;
-        super::init::check_count(pc.len()).map_err(|w| Error::field(&points, "vertex", w))?;
+        crate::gaussians::init::check_count(pc.len())
+            .map_err(|w| Error::field(&points, "vertex", w))?;
         InitialPoints::Cloud {
             xyz: pc.xyz,
             rgb: pc.rgb,
@@ -233,49 +235,17 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     })
 }
 
-/// Inverse of a 4×4 matrix by Gauss-Jordan elimination with partial pivoting (f64).
-pub fn invert4(m: [[f64; 4]; 4]) -> Option<[[f64; 4]; 4]> {
-    let mut a = m;
-    let mut inv = [[0.0; 4]; 4];
-    for (i, row) in inv.iter_mut().enumerate() {
-        row[i] = 1.0;
-    }
-    for col in 0..4 {
-        let mut piv = col;
-        for r in col + 1..4 {
-            if a[r][col].abs() > a[piv][col].abs() {
-                piv = r;
-            }
-        }
-        if a[piv][col] == 0.0 || !a[piv][col].is_finite() {
-            return None;
-        }
-        a.swap(col, piv);
-        inv.swap(col, piv);
-        let d = a[col][col];
-        for c in 0..4 {
-            a[col][c] /= d;
-            inv[col][c] /= d;
-        }
-        for r in 0..4 {
-            if r != col {
-                let f = a[r][col];
-                for c in 0..4 {
-                    a[r][c] -= f * a[col][c];
-                    inv[r][c] -= f * inv[col][c];
-                }
-            }
-        }
-    }
-    Some(inv)
-}
-
 /// Upstream's D-NeRF camera conversion, for comparison only: returns the world-to-camera
 /// rotation and translation `(diag(1,−1,−1)·Mi[:3,:3], −Mi[:3,3])` with `Mi = inverse(c2w)`.
 /// The translation's x sign is wrong unless the camera looks through the origin; the loader
 /// uses [`Camera::from_c2w_opengl`] instead.
 pub fn upstream_w2c(c2w: [[f64; 4]; 4]) -> Result<([[f64; 3]; 3], [f64; 3])> {
-    let mi = invert4(c2w).ok_or_else(|| Error::invalid("transform_matrix", "not invertible"))?;
+    let m = dmat4_from_rows(&c2w);
+    let det = m.determinant();
+    if det == 0.0 || !det.is_finite() {
+        return Err(Error::invalid("transform_matrix", "not invertible"));
+    }
+    let mi = dmat4_rows(&m.inverse());
     let mut r = [[0.0; 3]; 3];
     for i in 0..3 {
         let s = if i == 0 { 1.0 } else { -1.0 };

@@ -15,16 +15,18 @@
 
 pub mod dnerf;
 pub mod image;
-pub mod init;
 mod json;
 pub mod nerfies;
 pub mod npy;
 pub mod synth;
 
+/// Initial points and Gaussians: [`crate::gaussians::init`], under the name the loaders use.
+pub use crate::gaussians::init;
 pub use init::InitialPoints;
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};
+use glam::DVec3;
 use std::path::Path;
 
 /// One training or evaluation view.
@@ -32,12 +34,15 @@ use std::path::Path;
 pub struct Frame {
     /// The image's name (file stem or id), unique within its split.
     pub name: String,
+    /// The view's camera.
     pub camera: Camera,
     /// Time `fid` in `[0, 1]`.
     pub time: f64,
     /// `[3, H, W]`, channel-major, values `byte / 255`.
     pub image: Vec<f32>,
+    /// Image width, pixels.
     pub width: usize,
+    /// Image height, pixels.
     pub height: usize,
 }
 
@@ -69,6 +74,7 @@ pub enum Background {
     /// Upstream's default (`--white_background` not given).
     #[default]
     Black,
+    /// `--white_background`: 1 in every channel.
     White,
 }
 
@@ -85,8 +91,11 @@ impl Background {
 /// Which splits to decode images for.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Splits {
+    /// Decode the training images.
     pub train: bool,
+    /// Decode the validation images.
     pub val: bool,
+    /// Decode the test images.
     pub test: bool,
 }
 
@@ -154,9 +163,13 @@ impl Default for LoadOptions {
 /// A loaded dataset.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Dataset {
+    /// The layout it was read from.
     pub kind: DatasetKind,
+    /// Training frames, in file order.
     pub train: Vec<Frame>,
+    /// Validation frames, in file order (may be empty).
     pub val: Vec<Frame>,
+    /// Test frames, in file order.
     pub test: Vec<Frame>,
     /// True when images were composited on white (and training should use a white background).
     pub white_background: bool,
@@ -201,21 +214,14 @@ pub fn scene_extent(centres: &[[f64; 3]]) -> f64 {
         return 0.0;
     }
     let n = centres.len() as f64;
-    let mut mean = [0.0; 3];
-    for c in centres {
-        for a in 0..3 {
-            mean[a] += c[a];
-        }
+    let mut mean = DVec3::ZERO;
+    for &c in centres {
+        mean += DVec3::from(c);
     }
-    for m in &mut mean {
-        *m /= n;
-    }
+    mean /= n;
     let mut max = 0.0f64;
-    for c in centres {
-        let d = ((c[0] - mean[0]) * (c[0] - mean[0])
-            + (c[1] - mean[1]) * (c[1] - mean[1])
-            + (c[2] - mean[2]) * (c[2] - mean[2]))
-            .sqrt();
+    for &c in centres {
+        let d = (DVec3::from(c) - mean).length();
         if d > max {
             max = d;
         }

@@ -20,12 +20,14 @@
 //! - Initial points: `points.npy` mapped by `(p − center)·scale`; without it, the random cube.
 
 use super::image::{box_downscale, read_png, to_chw};
-use super::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
 use super::{
     json, par_map_ordered, scene_extent, Dataset, DatasetKind, Frame, LoadOptions, NerfiesSplit,
 };
 use crate::camera::{focal2fov, Camera};
 use crate::error::{Error, Result};
+use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
+use crate::math::vec::dmat3_from_rows;
+use glam::DVec3;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 
@@ -216,9 +218,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             [o[2][0], o[2][1], o[2][2]],
         ];
         crate::camera::check_rotation(&rot).map_err(|w| Error::field(&cp, "orientation", w))?;
-        let t: [f64; 3] = std::array::from_fn(|i| {
-            -(rot[i][0] * pos[0] + rot[i][1] * pos[1] + rot[i][2] * pos[2])
-        });
+        let t = (-(dmat3_from_rows(&rot) * DVec3::from_slice(&pos))).to_array();
         let r = opts.downscale;
         let camera = Camera::from_w2c(
             rot,
@@ -288,7 +288,8 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let npy = dir.join("points.npy");
     let init = if npy.is_file() {
         let mut xyz = super::npy::read_points(&npy)?;
-        super::init::check_count(xyz.len() / 3).map_err(|w| Error::field(&npy, "points", w))?;
+        crate::gaussians::init::check_count(xyz.len() / 3)
+            .map_err(|w| Error::field(&npy, "points", w))?;
         for (k, v) in xyz.iter_mut().enumerate() {
             *v = (*v - center[k % 3]) * scale;
         }

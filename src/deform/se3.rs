@@ -33,56 +33,27 @@
 //! order; `R = (I + sin θ·W) + (1 − cos θ)·W²`; the 3×3 matrix of `p`
 //! likewise; `R·x + p` summed over columns in order, then `+ p`.
 
+use crate::math::vec::{cross, dot, frobenius, mat_mul, mat_t_vec, mat_vec, skew, transpose, Mat3};
 use crate::math::Real;
 
 /// The 1e-5 upstream adds to `w/θ` and `v/θ`.
 pub const OFFSET: f64 = 1e-5;
-
-type M3<T> = [[T; 3]; 3];
-
-fn skew<T: Real>(w: [T; 3]) -> M3<T> {
-    let z = T::ZERO;
-    [[z, -w[2], w[1]], [w[2], z, -w[0]], [-w[1], w[0], z]]
-}
-
-fn mul<T: Real>(a: &M3<T>, b: &M3<T>) -> M3<T> {
-    let mut c = [[T::ZERO; 3]; 3];
-    for i in 0..3 {
-        for j in 0..3 {
-            c[i][j] = a[i][0] * b[0][j] + a[i][1] * b[1][j] + a[i][2] * b[2][j];
-        }
-    }
-    c
-}
-
-fn mul_vec<T: Real>(a: &M3<T>, v: [T; 3]) -> [T; 3] {
-    [0, 1, 2].map(|i| a[i][0] * v[0] + a[i][1] * v[1] + a[i][2] * v[2])
-}
-
-fn cross<T: Real>(a: [T; 3], b: [T; 3]) -> [T; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
 
 /// Everything the forward computes for one Gaussian with θ ≠ 0.
 struct Parts<T> {
     theta: T,
     sin: T,
     cos: T,
-    w1: [T; 3],
     v1: [T; 3],
-    w: M3<T>,
-    w2: M3<T>,
-    r: M3<T>,
-    a: M3<T>,
+    w: Mat3<T>,
+    w2: Mat3<T>,
+    r: Mat3<T>,
+    a: Mat3<T>,
 }
 
 /// `None` when θ = 0 (the limit case).
 fn parts<T: Real>(w: [T; 3], v: [T; 3]) -> Option<Parts<T>> {
-    let theta = (w[0] * w[0] + w[1] * w[1] + w[2] * w[2]).sqrt();
+    let theta = dot(w, w).sqrt();
     if theta == T::ZERO {
         return None;
     }
@@ -91,7 +62,7 @@ fn parts<T: Real>(w: [T; 3], v: [T; 3]) -> Option<Parts<T>> {
     let v1 = v.map(|c| c / theta + eps);
     let (sin, cos) = (theta.sin(), theta.cos());
     let wm = skew(w1);
-    let w2 = mul(&wm, &wm);
+    let w2 = mat_mul(&wm, &wm);
     let mut r = [[T::ZERO; 3]; 3];
     let mut a = [[T::ZERO; 3]; 3];
     for i in 0..3 {
@@ -105,7 +76,6 @@ fn parts<T: Real>(w: [T; 3], v: [T; 3]) -> Option<Parts<T>> {
         theta,
         sin,
         cos,
-        w1,
         v1,
         w: wm,
         w2,
@@ -125,7 +95,7 @@ pub fn transform<T: Real>(w: [T; 3], v: [T; 3]) -> [[T; 4]; 4] {
             }
             (id, v)
         }
-        Some(q) => (q.r, mul_vec(&q.a, q.v1)),
+        Some(q) => (q.r, mat_vec(&q.a, q.v1)),
     };
     let mut m = [[T::ZERO; 4]; 4];
     for i in 0..3 {
@@ -141,8 +111,8 @@ pub fn warp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3]) -> [T; 3] {
     match parts(w, v) {
         None => v,
         Some(q) => {
-            let p = mul_vec(&q.a, q.v1);
-            let rx = mul_vec(&q.r, x);
+            let p = mat_vec(&q.a, q.v1);
+            let rx = mat_vec(&q.r, x);
             [0, 1, 2].map(|i| (rx[i] + p[i]) - x[i])
         }
     }
@@ -172,7 +142,8 @@ pub fn warp_vjp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3], g: [T; 3]) -> WarpGrad
         };
     };
     // (R − I)ᵀ·g.
-    let gx = [0, 1, 2].map(|j| (q.r[0][j] * g[0] + q.r[1][j] * g[1] + q.r[2][j] * g[2]) - g[j]);
+    let rtg = mat_t_vec(&q.r, g);
+    let gx = [0, 1, 2].map(|j| rtg[j] - g[j]);
     // d_xyz = R x + A v' − x.
     let mut g_r = [[T::ZERO; 3]; 3];
     let mut g_a = [[T::ZERO; 3]; 3];
@@ -182,21 +153,12 @@ pub fn warp_vjp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3], g: [T; 3]) -> WarpGrad
             g_a[i][j] = g[i] * q.v1[j];
         }
     }
-    let g_v1 = [0, 1, 2].map(|j| q.a[0][j] * g[0] + q.a[1][j] * g[1] + q.a[2][j] * g[2]);
+    let g_v1 = mat_t_vec(&q.a, g);
     // d⟨G, W·W⟩/dW = G·Wᵀ + Wᵀ·G.
-    let wt = [0, 1, 2].map(|i| [0, 1, 2].map(|j| q.w[j][i]));
-    let sq = |gm: &M3<T>| -> M3<T> {
-        let (a, b) = (mul(gm, &wt), mul(&wt, gm));
+    let wt = transpose(&q.w);
+    let sq = |gm: &Mat3<T>| -> Mat3<T> {
+        let (a, b) = (mat_mul(gm, &wt), mat_mul(&wt, gm));
         [0, 1, 2].map(|i| [0, 1, 2].map(|j| a[i][j] + b[i][j]))
-    };
-    let dot = |a: &M3<T>, b: &M3<T>| -> T {
-        let mut s = T::ZERO;
-        for i in 0..3 {
-            for j in 0..3 {
-                s += a[i][j] * b[i][j];
-            }
-        }
-        s
     };
     let one_m_cos = T::ONE - q.cos;
     let t_m_sin = q.theta - q.sin;
@@ -211,11 +173,11 @@ pub fn warp_vjp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3], g: [T; 3]) -> WarpGrad
         }
     }
     let trace_ga = g_a[0][0] + g_a[1][1] + g_a[2][2];
-    let mut g_theta = q.cos * dot(&g_r, &q.w)
-        + q.sin * dot(&g_r, &q.w2)
+    let mut g_theta = q.cos * frobenius(&g_r, &q.w)
+        + q.sin * frobenius(&g_r, &q.w2)
         + trace_ga
-        + q.sin * dot(&g_a, &q.w)
-        + one_m_cos * dot(&g_a, &q.w2);
+        + q.sin * frobenius(&g_a, &q.w)
+        + one_m_cos * frobenius(&g_a, &q.w2);
     // W = skew(w').
     let g_w1 = [
         g_w[2][1] - g_w[1][2],
@@ -235,7 +197,6 @@ pub fn warp_vjp<T: Real>(w: [T; 3], v: [T; 3], x: [T; 3], g: [T; 3]) -> WarpGrad
     for j in 0..3 {
         gw[j] += g_theta * (w[j] / q.theta);
     }
-    let _ = q.w1;
     WarpGrad {
         w: gw,
         v: gv,
@@ -336,7 +297,7 @@ mod tests {
         let e = 1e-5;
         let w1 = [1.0 + e, e, e];
         let wm = skew(w1);
-        let w2 = mul(&wm, &wm);
+        let w2 = mat_mul(&wm, &wm);
         let (s, c) = (2.0f64.sin(), 2.0f64.cos());
         for i in 0..3 {
             let mut want = 0.0;

@@ -32,6 +32,7 @@ use super::policy::{prune_mask, select_clone, select_split, DensifyConfig};
 use super::stats::DensifyStats;
 use crate::error::{Error, Result};
 use crate::gaussians::{normalize_norm, Gaussians, Group};
+use crate::math::quat::quat_to_rotmat;
 use crate::math::{Real, Rng};
 use crate::optim::GaussianOptimizer;
 
@@ -96,26 +97,7 @@ fn retain<T: Real>(g: &mut Gaussians<T>, opt: &mut GaussianOptimizer<T>, remove:
 /// normalisation, as upstream `build_rotation`.
 fn rotation_matrix<T: Real>(q: &[T]) -> [[T; 3]; 3] {
     let n = normalize_norm(q);
-    let (r, x, y, z) = (q[0] / n, q[1] / n, q[2] / n, q[3] / n);
-    let one = T::ONE;
-    let two = T::from_f64(2.0);
-    [
-        [
-            one - two * (y * y + z * z),
-            two * (x * y - r * z),
-            two * (x * z + r * y),
-        ],
-        [
-            two * (x * y + r * z),
-            one - two * (x * x + z * z),
-            two * (y * z - r * x),
-        ],
-        [
-            two * (x * z - r * y),
-            two * (y * z + r * x),
-            one - two * (x * x + y * y),
-        ],
-    ]
+    quat_to_rotmat([q[0] / n, q[1] / n, q[2] / n, q[3] / n])
 }
 
 /// Append the split children of `selected` (indices into the current set):

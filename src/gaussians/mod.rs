@@ -19,8 +19,10 @@
 //! Activations (done before the rasterizer, as upstream): `scale = exp(scaling)`,
 //! `opacity = sigmoid(opacity)`, `rotation = q / max(|q|, 1e-12)`.
 //!
-//! [`ply`] reads and writes them in the Inria PLY layout.
+//! [`ply`] reads and writes them in the Inria PLY layout; [`init`] makes the
+//! initial Gaussians from a point cloud (3-nearest-neighbour scales).
 
+pub mod init;
 pub mod ply;
 
 use crate::error::{Error, Result};

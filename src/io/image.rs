@@ -1,10 +1,9 @@
-//! Writing renders: 8-bit PNG (quantised as upstream's `save_image`:
+//! Writing renders: 8-bit PNG (through [`crate::io::png`]) (quantised as upstream's `save_image`:
 //! `trunc(clamp(x·255 + 0.5, 0, 255))`) and 32-bit float OpenEXR (linear
 //! values as rendered, unclamped). Inputs are channel-major `[3, H, W]`.
 
 use crate::error::{Error, Result};
 use crate::math::Real;
-use image::ImageEncoder;
 use std::path::Path;
 
 fn check(path: &Path, len: usize, h: usize, w: usize) -> Result<()> {
@@ -26,11 +25,8 @@ pub fn png_bytes<T: Real>(path: &Path, chw: &[T], h: usize, w: usize) -> Result<
             rgb[3 * p + c] = crate::loss::metrics::to_u8(chw[c * h * w + p]);
         }
     }
-    let mut out = Vec::new();
-    image::codecs::png::PngEncoder::new(&mut out)
-        .write_image(&rgb, w as u32, h as u32, image::ExtendedColorType::Rgb8)
-        .map_err(|e| Error::format(path, format!("cannot encode PNG: {e}")))?;
-    Ok(out)
+    crate::io::png::encode(w, h, 3, &rgb)
+        .map_err(|e| Error::format(path, format!("cannot encode PNG: {e}")))
 }
 
 /// Write `[3, H, W]` values as an 8-bit RGB PNG (atomically).
@@ -62,11 +58,12 @@ mod tests {
         let (h, w) = (2, 3);
         let chw: Vec<f32> = (0..18).map(|i| i as f32 / 17.0).collect();
         let bytes = png_bytes(Path::new("x.png"), &chw, h, w).unwrap();
-        let img = image::load_from_memory(&bytes).unwrap().to_rgb8();
+        let img = crate::io::png::decode(Path::new("x.png"), &bytes).unwrap();
+        assert_eq!((img.width, img.height, img.channels), (w, h, 3));
         for c in 0..3 {
             for p in 0..h * w {
                 let want = (chw[c * h * w + p] * 255.0 + 0.5).clamp(0.0, 255.0) as u8;
-                assert_eq!(img.as_raw()[3 * p + c], want);
+                assert_eq!(img.data[3 * p + c], want);
             }
         }
     }

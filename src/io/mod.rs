@@ -1,7 +1,9 @@
-//! File plumbing shared by every stage: atomic writes and named-tensor files
-//! (safetensors with string metadata), and reading PyTorch `.pth` files.
+//! File plumbing shared by every stage: atomic writes, named-tensor files
+//! (safetensors with string metadata), the one PNG codec ([`png`]), render
+//! images ([`image`]), and reading PyTorch `.pth` files.
 
 pub mod image;
+pub mod png;
 pub mod pth;
 pub mod tensor_file;
 

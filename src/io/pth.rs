@@ -33,9 +33,13 @@ use std::path::{Path, PathBuf};
 /// Element type of a storage.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum DType {
+    /// `torch.float32`.
     F32,
+    /// `torch.float64`.
     F64,
+    /// `torch.float16` (IEEE half).
     F16,
+    /// `torch.bfloat16`.
     BF16,
 }
 
@@ -83,7 +87,9 @@ fn f16_to_f64(h: u16) -> f64 {
 /// Which container a file uses.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Container {
+    /// The zip archive `torch.save` writes since PyTorch 1.6.
     Zip,
+    /// The older pickle-stream format (`_use_new_zipfile_serialization=False`).
     Legacy,
 }
 

@@ -174,10 +174,12 @@ pub fn blur<T: Real>(src: &[T], h: usize, w: usize, g: &[T; WINDOW_SIZE]) -> Vec
 
 /// What the SSIM backward needs: the local statistics of every pixel.
 #[derive(Clone, Debug)]
-pub struct SsimForward<T> {
+pub struct SsimSaved<T> {
     /// Mean of the SSIM map over channels and pixels.
     pub value: T,
+    /// Image height, pixels.
     pub h: usize,
+    /// Image width, pixels.
     pub w: usize,
     /// `w*x`, `[C, H, W]`.
     pub mu_x: Vec<T>,
@@ -207,7 +209,7 @@ fn factors<T: Real>(mx: T, my: T, sxx: T, syy: T, sxy: T) -> (T, T, T, T) {
 /// SSIM of `x` against `y`, both `[C, H, W]` with `C = x.len() / (h w)`.
 /// The caller guarantees `x.len() == y.len()` and that it is a multiple of
 /// `h w` (see [`crate::loss::loss_and_grad`] for the checked entry point).
-pub fn ssim<T: Real>(x: &[T], y: &[T], h: usize, w: usize) -> SsimForward<T> {
+pub fn ssim<T: Real>(x: &[T], y: &[T], h: usize, w: usize) -> SsimSaved<T> {
     let g = window::<T>();
     let xx: Vec<T> = x.par_iter().map(|&a| a * a).collect();
     let yy: Vec<T> = y.par_iter().map(|&b| b * b).collect();
@@ -253,7 +255,7 @@ pub fn ssim<T: Real>(x: &[T], y: &[T], h: usize, w: usize) -> SsimForward<T> {
     } else {
         total / T::from_usize(n)
     };
-    SsimForward {
+    SsimSaved {
         value,
         h,
         w,
@@ -266,7 +268,7 @@ pub fn ssim<T: Real>(x: &[T], y: &[T], h: usize, w: usize) -> SsimForward<T> {
 }
 
 /// Backward of [`ssim`] with respect to `x`: `dL/dx` given `grad_out = dL/dSSIM`.
-pub fn ssim_vjp<T: Real>(fwd: &SsimForward<T>, x: &[T], y: &[T], grad_out: T) -> Vec<T> {
+pub fn ssim_vjp<T: Real>(fwd: &SsimSaved<T>, x: &[T], y: &[T], grad_out: T) -> Vec<T> {
     let n = x.len();
     if n == 0 {
         return vec![];

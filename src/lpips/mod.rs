@@ -126,9 +126,13 @@ struct Conv<T> {
 /// A feature map, pixel-major: `data[(y·w + x)·c + channel]`.
 #[derive(Clone, Debug)]
 pub struct FeatureMap<T> {
+    /// Height, pixels.
     pub h: usize,
+    /// Width, pixels.
     pub w: usize,
+    /// Channels.
     pub c: usize,
+    /// `h · w · c` values.
     pub data: Vec<T>,
 }
 
@@ -136,15 +140,18 @@ pub struct FeatureMap<T> {
 pub struct Lpips<T> {
     convs: Vec<Conv<T>>,
     lins: Vec<Vec<T>>,
-    /// The files the weights came from.
+    /// The file the VGG convolution weights came from.
     pub vgg: WeightFile,
+    /// The file the linear-layer weights came from.
     pub lin: WeightFile,
 }
 
 /// LPIPS of one image pair: the total and each layer's term.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct LpipsValue<T> {
+    /// The distance: the sum of the five layer terms.
     pub value: T,
+    /// Each VGG layer's term, shallowest first.
     pub per_layer: [T; 5],
 }
 
@@ -268,16 +275,20 @@ impl<T: Real> Lpips<T> {
 /// reads a saved PNG), under one input convention.
 pub struct Metric {
     net: Lpips<f32>,
+    /// How images are mapped before the network.
     pub convention: Convention,
 }
 
 /// What produced an LPIPS number: convention and weight files.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct MetricInfo {
+    /// How images were mapped before the network.
     pub convention: Convention,
     /// [`Convention::describe`].
     pub description: String,
+    /// The VGG convolution weight file.
     pub vgg: WeightFile,
+    /// The linear-layer weight file.
     pub lin: WeightFile,
 }
 
@@ -292,6 +303,7 @@ impl std::fmt::Debug for Metric {
 }
 
 impl Metric {
+    /// The metric with these weights and input convention.
     pub fn new(weights: &LpipsWeights, convention: Convention) -> Metric {
         Metric {
             net: Lpips::new(weights),
@@ -327,6 +339,7 @@ impl Metric {
             .value as f64)
     }
 
+    /// What produces this metric's numbers (for records and reports).
     pub fn info(&self) -> MetricInfo {
         MetricInfo {
             convention: self.convention,

@@ -51,7 +51,9 @@ pub enum Verify {
 /// published file.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct WeightFile {
+    /// Where it was read from.
     pub path: PathBuf,
+    /// SHA-256 of its bytes, lowercase hex.
     pub sha256: String,
     /// True when the SHA-256 is the published file's.
     pub official: bool,
@@ -64,7 +66,9 @@ pub struct LpipsWeights {
     pub convs: Vec<(Vec<f32>, Vec<f32>)>,
     /// The five linear layers' weights (`[1, C, 1, 1]` flattened to `C`).
     pub lins: Vec<Vec<f32>>,
+    /// The file the convolutions came from.
     pub vgg: WeightFile,
+    /// The file the linear layers came from.
     pub lin: WeightFile,
 }
 

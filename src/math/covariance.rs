@@ -14,56 +14,8 @@
 //! Deviation from upstream, deliberate: the scale gradient is `d/ds` and
 //! includes the factor `modifier` (upstream returns `d/d(modifier·s)`).
 
+use crate::math::quat::{quat_to_rotmat, quat_to_rotmat_vjp};
 use crate::math::Real;
-
-/// `R(q)` (math, row-major) for `q = (r, x, y, z)`, not normalised.
-#[inline]
-pub fn quat_to_rotmat<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {
-    let [r, x, y, z] = q;
-    let one = T::ONE;
-    let two = T::from_f64(2.0);
-    [
-        [
-            one - two * (y * y + z * z),
-            two * (x * y - r * z),
-            two * (x * z + r * y),
-        ],
-        [
-            two * (x * y + r * z),
-            one - two * (x * x + z * z),
-            two * (y * z - r * x),
-        ],
-        [
-            two * (x * z - r * y),
-            two * (y * z + r * x),
-            one - two * (x * x + y * y),
-        ],
-    ]
-}
-
-/// Backward of [`quat_to_rotmat`]: `dL/dq` given `dL/dR` (math layout).
-#[inline]
-pub fn quat_to_rotmat_vjp<T: Real>(q: [T; 4], gr: [[T; 3]; 3]) -> [T; 4] {
-    let [r, x, y, z] = q;
-    let two = T::from_f64(2.0);
-    let four = T::from_f64(4.0);
-    let dr = two * z * (gr[1][0] - gr[0][1])
-        + two * y * (gr[0][2] - gr[2][0])
-        + two * x * (gr[2][1] - gr[1][2]);
-    let dx = two * y * (gr[0][1] + gr[1][0])
-        + two * z * (gr[0][2] + gr[2][0])
-        + two * r * (gr[2][1] - gr[1][2])
-        - four * x * (gr[1][1] + gr[2][2]);
-    let dy = two * x * (gr[0][1] + gr[1][0])
-        + two * r * (gr[0][2] - gr[2][0])
-        + two * z * (gr[1][2] + gr[2][1])
-        - four * y * (gr[0][0] + gr[2][2]);
-    let dz = two * r * (gr[1][0] - gr[0][1])
-        + two * x * (gr[0][2] + gr[2][0])
-        + two * y * (gr[1][2] + gr[2][1])
-        - four * z * (gr[0][0] + gr[1][1]);
-    [dr, dx, dy, dz]
-}
 
 /// `M = S Rᵀ` (math): `M_ij = s'_i R_ji`.
 #[inline]
@@ -150,48 +102,6 @@ pub fn sym3_eigen(a: [[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
     ([a[0][0], a[1][1], a[2][2]], v)
 }
 
-/// The unit quaternion `(r, x, y, z)`, `r ≥ 0`, whose [`quat_to_rotmat`] is
-/// the rotation matrix `m` (`det m = +1`), by Shepperd's method.
-pub fn rotmat_to_quat(m: [[f64; 3]; 3]) -> [f64; 4] {
-    let tr = m[0][0] + m[1][1] + m[2][2];
-    let q = if tr > 0.0 {
-        let s = 2.0 * (tr + 1.0).sqrt();
-        [
-            s / 4.0,
-            (m[2][1] - m[1][2]) / s,
-            (m[0][2] - m[2][0]) / s,
-            (m[1][0] - m[0][1]) / s,
-        ]
-    } else if m[0][0] > m[1][1] && m[0][0] > m[2][2] {
-        let s = 2.0 * (1.0 + m[0][0] - m[1][1] - m[2][2]).sqrt();
-        [
-            (m[2][1] - m[1][2]) / s,
-            s / 4.0,
-            (m[0][1] + m[1][0]) / s,
-            (m[0][2] + m[2][0]) / s,
-        ]
-    } else if m[1][1] > m[2][2] {
-        let s = 2.0 * (1.0 + m[1][1] - m[0][0] - m[2][2]).sqrt();
-        [
-            (m[0][2] - m[2][0]) / s,
-            (m[0][1] + m[1][0]) / s,
-            s / 4.0,
-            (m[1][2] + m[2][1]) / s,
-        ]
-    } else {
-        let s = 2.0 * (1.0 + m[2][2] - m[0][0] - m[1][1]).sqrt();
-        [
-            (m[1][0] - m[0][1]) / s,
-            (m[0][2] + m[2][0]) / s,
-            (m[1][2] + m[2][1]) / s,
-            s / 4.0,
-        ]
-    };
-    let n = (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]).sqrt();
-    let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
-    q.map(|v| sign * v / n)
-}
-
 /// The full symmetric 3×3 from the 6 stored values.
 #[inline]
 pub fn sym3<T: Real>(c: &[T; 6]) -> [[T; 3]; 3] {
@@ -250,6 +160,7 @@ pub fn cov3d_vjp_scaled<T: Real>(
 #[cfg(test)]
 mod decompose_tests {
     use super::*;
+    use crate::math::quat::rotmat_to_quat;
     use crate::math::Rng;
 
     /// `Σ` of random non-unit quaternions and scales of both signs is

@@ -14,17 +14,25 @@
 /// Result of checking one named input group.
 #[derive(Clone, Debug)]
 pub struct GroupReport {
+    /// The group's name.
     pub name: String,
+    /// Entries compared.
     pub count: usize,
+    /// Largest `|analytic − numeric|`.
     pub max_abs: f64,
+    /// Largest `|analytic − numeric| / max(|analytic|, |numeric|, floor)`.
     pub max_rel: f64,
     /// Index of the entry with the largest relative error.
     pub worst: usize,
+    /// The analytic value at [`GroupReport::worst`].
     pub worst_analytic: f64,
+    /// The numeric value at [`GroupReport::worst`].
     pub worst_numeric: f64,
 }
 
 impl GroupReport {
+    /// True when the largest relative error is within `rel_tol` and every
+    /// difference is finite.
     pub fn passes(&self, rel_tol: f64) -> bool {
         self.max_rel <= rel_tol && self.max_abs.is_finite()
     }

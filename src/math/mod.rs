@@ -2,14 +2,19 @@
 //!
 //! - [`real`]: the `Real` scalar trait (f32 / f64) over one pinned math library.
 //! - [`rng`]: the seeded, portable random number generator.
+//! - [`vec`], [`quat`]: small vectors and 3×3 matrices (arrays generic over
+//!   `Real`, glam's f64 types for camera geometry), quaternions and their
+//!   rotation matrices.
 //! - [`sh`], [`covariance`]: spherical-harmonics colour and 3D covariance, each with its vjp.
 //! - [`gradcheck`]: central finite differences in f64 for every hand-written backward.
 
 pub mod covariance;
 pub mod gradcheck;
+pub mod quat;
 pub mod real;
 pub mod rng;
 pub mod sh;
+pub mod vec;
 
 pub use real::{Precision, Real, MATH_LIBRARY};
 pub use rng::Rng;

@@ -23,6 +23,7 @@ fn mix(mut z: u64) -> u64 {
 }
 
 impl Rng {
+    /// The generator seeded with `seed`.
     pub fn new(seed: u64) -> Self {
         Rng { state: seed }
     }
@@ -40,6 +41,7 @@ impl Rng {
         }
     }
 
+    /// The next 64 random bits.
     #[inline]
     pub fn next_u64(&mut self) -> u64 {
         self.state = self.state.wrapping_add(GOLDEN);

@@ -205,9 +205,9 @@ pub fn sh_to_color_vjp<T: Real>(
     let basis = sh_basis(degree, dir);
     let n = coeffs_for_degree(degree);
     let mut g = grad_color;
-    for ch in 0..3 {
-        if fwd.clamped[ch] {
-            g[ch] = T::ZERO;
+    for (gc, &clamped) in g.iter_mut().zip(&fwd.clamped) {
+        if clamped {
+            *gc = T::ZERO;
         }
     }
     for x in grad_coeffs.iter_mut() {

@@ -4,7 +4,6 @@
 //! crate, no transcendental functions: the same input gives the same bytes.
 
 use crate::error::{Error, Result};
-use image::ImageEncoder;
 
 /// One line: a label for the legend, its colour and its (x, y) points in
 /// order. Non-finite points break the line.
@@ -230,13 +229,8 @@ pub fn line_plot_png(title: &str, x_label: &str, series: &[Series]) -> Result<Ve
         let label: String = s.label.chars().take(max_chars).collect();
         cv.text(w - RIGHT + 32, y, &label, ink);
     }
-    let mut out = Vec::new();
-    image::codecs::png::PngEncoder::new(&mut out)
-        .write_image(&cv.rgb, WIDTH, HEIGHT, image::ExtendedColorType::Rgb8)
-        .map_err(|e| {
-            Error::invalid(format!("plot {title:?}"), format!("cannot encode PNG: {e}"))
-        })?;
-    Ok(out)
+    crate::io::png::encode(WIDTH as usize, HEIGHT as usize, 3, &cv.rgb)
+        .map_err(|e| Error::invalid(format!("plot {title:?}"), format!("cannot encode PNG: {e}")))
 }
 
 #[cfg(test)]

@@ -28,7 +28,8 @@
 use super::trainer::Trainer;
 use crate::error::{Error, Result};
 use crate::gaussians::{ply, Gaussians};
-use crate::math::covariance::{cov3d, rotmat_to_quat, sym3, sym3_eigen};
+use crate::math::covariance::{cov3d, sym3, sym3_eigen};
+use crate::math::quat::rotmat_to_quat;
 use crate::math::Real;
 use std::path::{Path, PathBuf};
 

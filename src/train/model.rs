@@ -18,8 +18,8 @@ use crate::loss::{loss_and_grad, LossOutput};
 use crate::math::Real;
 use crate::optim::{AdamState, GaussianOptimizer, StepGroups, StepRates};
 use crate::render::{
-    rasterize, rasterize_vjp, Colors, Covariances, ForwardState, GradientMode, RasterGrads,
-    RasterInput, RasterOutput,
+    rasterize, rasterize_vjp, Colors, Covariances, GradientMode, RasterGrads, RasterInput,
+    RasterOutput, RasterizeSaved,
 };
 use std::time::Instant;
 
@@ -43,7 +43,7 @@ pub struct ModelSaved<T> {
     field: Option<FieldCache<T>>,
     deformed: Deformed<T>,
     camera: RasterCamera<T>,
-    raster: ForwardState<T>,
+    raster: RasterizeSaved<T>,
 }
 
 /// Gradients of a [`Model`]'s parameters for one view ([`Model::backward`]).

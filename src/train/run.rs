@@ -14,9 +14,9 @@
 use super::checkpoint;
 use super::config::TrainConfig;
 use super::trainer::{StepReport, Trainer, View, ViewMetrics};
-use crate::dataset::init::initial_gaussians;
 use crate::dataset::{Dataset, Frame};
 use crate::error::{Error, Result};
+use crate::gaussians::init::initial_gaussians;
 use crate::gaussians::Gaussians;
 use crate::io::{image, write_atomic};
 use crate::math::Real;

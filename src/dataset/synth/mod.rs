@@ -18,11 +18,11 @@ pub mod scene;
 pub use scene::SceneName;
 
 use super::dnerf::fov_pair;
-use super::image::{encode_png, to_chw, Image8};
-use super::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
+use super::image::{composite, encode_png, to_chw, Image8};
 use super::{scene_extent, Background, Dataset, DatasetKind, Frame};
 use crate::camera::Camera;
 use crate::error::{Error, Result};
+use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
 use crate::math::Rng;
 use serde_json::{json, Value};
 use std::path::Path;
@@ -46,7 +46,9 @@ pub struct SynthOptions {
     pub frames: usize,
     /// Frames in each of the val and test splits.
     pub eval_frames: usize,
+    /// Seed of the camera placement and the initial points.
     pub seed: u64,
+    /// How the cameras are placed.
     pub orbit: Orbit,
     /// Camera distance from the origin.
     pub radius: f64,
@@ -72,7 +74,7 @@ impl Default for SynthOptions {
             fov: 0.6911112070083618,
             supersampling: 4,
             background: Background::Black,
-            init_points: super::init::DEFAULT_RANDOM_POINTS,
+            init_points: crate::gaussians::init::DEFAULT_RANDOM_POINTS,
         }
     }
 }
@@ -80,8 +82,11 @@ impl Default for SynthOptions {
 /// Which on-disk layout [`write`](fn@write) produces.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum Layout {
+    /// `transforms_{train,val,test}.json` and RGBA PNGs (see [`super::dnerf`]).
     #[default]
     DNerf,
+    /// `dataset.json`, `metadata.json`, `camera/` and RGB PNGs at 1x, 2x and 4x (see
+    /// [`super::nerfies`]).
     Nerfies,
 }
 
@@ -118,7 +123,7 @@ impl SynthOptions {
                 ),
             ));
         }
-        crate::dataset::init::check_count(self.init_points)
+        crate::gaussians::init::check_count(self.init_points)
             .map_err(|w| Error::invalid("init_points", w))?;
         if self.frames == 0 || self.eval_frames == 0 {
             return Err(Error::invalid(
@@ -132,7 +137,7 @@ impl SynthOptions {
                 format!("{} is not in 1..=16", self.supersampling),
             ));
         }
-        if !(self.fov > 0.0 && self.fov < 3.0) || !(self.radius > 2.0 && self.radius.is_finite()) {
+        if !(self.fov > 0.0 && self.fov < 3.0 && self.radius > 2.0 && self.radius.is_finite()) {
             return Err(Error::invalid(
                 "camera",
                 "fov must be in (0, 3) and radius finite and > 2",
@@ -257,7 +262,7 @@ pub fn builtin(name: &str, opts: &SynthOptions) -> Result<Dataset> {
                 name: f.name,
                 camera: camera_of(f.c2w, opts)?,
                 time: f.time,
-                image: to_chw(&img.composite(opts.background), res, res),
+                image: to_chw(&composite(&img, opts.background), res, res),
                 width: res,
                 height: res,
             });
@@ -360,7 +365,7 @@ fn write_nerfies(scene: SceneName, out: &Path, opts: &SynthOptions) -> Result<()
             channels: 4,
             data: rgba.clone(),
         };
-        let rgb = img.composite(opts.background);
+        let rgb = composite(&img, opts.background);
         for r in [1usize, 2, 4] {
             if res.is_multiple_of(r) {
                 let small = super::image::box_downscale(out, &rgb, res, res, r)?;

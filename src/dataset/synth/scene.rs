@@ -9,51 +9,47 @@
 
 use crate::camera::Camera;
 use crate::math::Rng;
+use glam::DVec3;
 use std::f64::consts::PI;
-
-type V3 = [f64; 3];
-
-fn sub(a: V3, b: V3) -> V3 {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn add(a: V3, b: V3) -> V3 {
-    [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
-}
-fn mul(a: V3, s: f64) -> V3 {
-    [a[0] * s, a[1] * s, a[2] * s]
-}
-fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn normalize(a: V3) -> V3 {
-    mul(a, 1.0 / dot(a, a).sqrt())
-}
 
 /// An analytic shape with a colour.
 #[derive(Clone, Debug, PartialEq)]
+///
+/// Positions and lengths are in world units; `albedo` is linear RGB in `[0, 1]`.
 pub enum Shape {
+    /// A ball.
     Sphere {
-        centre: V3,
+        /// Centre.
+        centre: DVec3,
+        /// Radius.
         radius: f64,
-        albedo: V3,
+        /// Colour.
+        albedo: DVec3,
     },
     /// All points within `radius` of the segment `a`–`b`.
     Capsule {
-        a: V3,
-        b: V3,
+        /// One end of the axis.
+        a: DVec3,
+        /// The other end of the axis.
+        b: DVec3,
+        /// Distance of the surface from the axis.
         radius: f64,
-        albedo: V3,
+        /// Colour.
+        albedo: DVec3,
     },
     /// Axis-aligned box.
     Box {
-        centre: V3,
-        half: V3,
-        albedo: V3,
+        /// Centre.
+        centre: DVec3,
+        /// Half the edge length along each axis.
+        half: DVec3,
+        /// Colour.
+        albedo: DVec3,
     },
 }
 
 impl Shape {
-    fn albedo(&self) -> V3 {
+    fn albedo(&self) -> DVec3 {
         match self {
             Shape::Sphere { albedo, .. }
             | Shape::Capsule { albedo, .. }
@@ -62,42 +58,42 @@ impl Shape {
     }
 
     /// Nearest hit distance along the ray (`dir` unit) with `t > 1e-9`, and the unit normal.
-    fn intersect(&self, o: V3, d: V3) -> Option<(f64, V3)> {
+    fn intersect(&self, o: DVec3, d: DVec3) -> Option<(f64, DVec3)> {
         match *self {
             Shape::Sphere { centre, radius, .. } => {
-                let oc = sub(o, centre);
-                let b = dot(oc, d);
-                let c = dot(oc, oc) - radius * radius;
+                let oc = o - centre;
+                let b = oc.dot(d);
+                let c = oc.dot(oc) - radius * radius;
                 let disc = b * b - c;
                 if disc < 0.0 {
                     return None;
                 }
                 let s = disc.sqrt();
                 let t = if -b - s > 1e-9 { -b - s } else { -b + s };
-                (t > 1e-9).then(|| (t, normalize(sub(add(o, mul(d, t)), centre))))
+                (t > 1e-9).then(|| (t, (o + d * t - centre).normalize()))
             }
             Shape::Capsule { a, b, radius, .. } => {
                 // Cylinder body, then the two end spheres (closest hit wins).
-                let ba = sub(b, a);
-                let oa = sub(o, a);
-                let baba = dot(ba, ba);
-                let bard = dot(ba, d);
-                let baoa = dot(ba, oa);
-                let rdoa = dot(d, oa);
-                let oaoa = dot(oa, oa);
+                let ba = b - a;
+                let oa = o - a;
+                let baba = ba.dot(ba);
+                let bard = ba.dot(d);
+                let baoa = ba.dot(oa);
+                let rdoa = d.dot(oa);
+                let oaoa = oa.dot(oa);
                 let qa = baba - bard * bard;
                 let qb = baba * rdoa - baoa * bard;
                 let qc = baba * oaoa - baoa * baoa - radius * radius * baba;
-                let mut best: Option<(f64, V3)> = None;
+                let mut best: Option<(f64, DVec3)> = None;
                 if qa > 1e-12 {
                     let h = qb * qb - qa * qc;
                     if h >= 0.0 {
                         let t = (-qb - h.sqrt()) / qa;
                         let y = baoa + t * bard;
                         if t > 1e-9 && y > 0.0 && y < baba {
-                            let p = add(o, mul(d, t));
-                            let axis = add(a, mul(ba, y / baba));
-                            best = Some((t, normalize(sub(p, axis))));
+                            let p = o + d * t;
+                            let axis = a + ba * (y / baba);
+                            best = Some((t, (p - axis).normalize()));
                         }
                     }
                 }
@@ -105,7 +101,7 @@ impl Shape {
                     let s = Shape::Sphere {
                         centre: end,
                         radius,
-                        albedo: [0.0; 3],
+                        albedo: DVec3::ZERO,
                     };
                     if let Some(h) = s.intersect(o, d) {
                         if best.is_none_or(|b| h.0 < b.0) {
@@ -145,7 +141,7 @@ impl Shape {
                 if tmin > tmax || tmin <= 1e-9 {
                     return None;
                 }
-                let mut n = [0.0; 3];
+                let mut n = DVec3::ZERO;
                 n[axis] = sign;
                 Some((tmin, n))
             }
@@ -153,23 +149,27 @@ impl Shape {
     }
 
     /// A point on the surface drawn from `r` (roughly uniform; used for seed point clouds).
-    fn sample_surface(&self, r: &mut Rng) -> V3 {
-        let unit = |r: &mut Rng| normalize([r.normal(), r.normal(), r.normal()]);
+    fn sample_surface(&self, r: &mut Rng) -> DVec3 {
+        let unit = |r: &mut Rng| {
+            let (x, y, z) = (r.normal(), r.normal(), r.normal());
+            DVec3::new(x, y, z).normalize()
+        };
         match *self {
-            Shape::Sphere { centre, radius, .. } => add(centre, mul(unit(r), radius)),
+            Shape::Sphere { centre, radius, .. } => centre + unit(r) * radius,
             Shape::Capsule { a, b, radius, .. } => {
-                let ba = sub(b, a);
-                let axis = normalize(ba);
+                let ba = b - a;
+                let axis = ba.normalize();
                 let u = unit(r);
-                let perp = normalize(sub(u, mul(axis, dot(u, axis))));
-                add(add(a, mul(ba, r.uniform())), mul(perp, radius))
+                let perp = (u - axis * u.dot(axis)).normalize();
+                let along = r.uniform();
+                a + ba * along + perp * radius
             }
             Shape::Box { centre, half, .. } => {
                 let face = r.below(6) as usize;
                 let k = face % 3;
-                let mut p = [0.0; 3];
-                for (j, pj) in p.iter_mut().enumerate() {
-                    *pj = if j == k {
+                let mut p = DVec3::ZERO;
+                for j in 0..3 {
+                    p[j] = if j == k {
                         if face < 3 {
                             half[j]
                         } else {
@@ -179,7 +179,7 @@ impl Shape {
                         r.uniform_range(-half[j], half[j])
                     }
                 }
-                add(centre, p)
+                centre + p
             }
         }
     }
@@ -222,9 +222,9 @@ impl SceneName {
             SceneName::Bouncing => {
                 let floor = -0.8;
                 let mut v = vec![Shape::Box {
-                    centre: [0.0, 0.0, floor - 0.06],
-                    half: [0.9, 0.9, 0.06],
-                    albedo: [0.55, 0.55, 0.6],
+                    centre: DVec3::new(0.0, 0.0, floor - 0.06),
+                    half: DVec3::new(0.9, 0.9, 0.06),
+                    albedo: DVec3::new(0.55, 0.55, 0.6),
                 }];
                 let balls = [
                     (0.30, [0.9, 0.2, 0.15], 2.0, 0.0, 0.5),
@@ -235,23 +235,23 @@ impl SceneName {
                     let height = 1.1 * s(PI * freq * t + phase).abs();
                     let ang = 2.0 * PI * t + k as f64 * 2.0;
                     v.push(Shape::Sphere {
-                        centre: [
+                        centre: DVec3::new(
                             x0 + 0.15 * c(ang),
                             0.5 * s(ang + k as f64),
                             floor + radius + height,
-                        ],
+                        ),
                         radius,
-                        albedo,
+                        albedo: DVec3::from(albedo),
                     });
                 }
                 v
             }
             SceneName::Swing => {
-                let top = [0.0, 0.0, 0.95];
+                let top = DVec3::new(0.0, 0.0, 0.95);
                 let mut v = vec![Shape::Box {
-                    centre: [0.0, 0.0, 1.02],
-                    half: [0.3, 0.08, 0.05],
-                    albedo: [0.5, 0.5, 0.5],
+                    centre: DVec3::new(0.0, 0.0, 1.02),
+                    half: DVec3::new(0.3, 0.08, 0.05),
+                    albedo: DVec3::new(0.5, 0.5, 0.5),
                 }];
                 let len = 0.4;
                 let colours = [[0.95, 0.6, 0.1], [0.2, 0.7, 0.9], [0.85, 0.25, 0.6]];
@@ -260,13 +260,13 @@ impl SceneName {
                 for (k, albedo) in colours.into_iter().enumerate() {
                     let f = [3.0, 5.0, 7.0][k];
                     angle += [0.7, 0.8, 1.0][k] * s(2.0 * PI * f * t + k as f64);
-                    let dir = [s(angle) * c(yaw), s(angle) * s(yaw), -c(angle)];
-                    let q = add(p, mul(dir, len));
+                    let dir = DVec3::new(s(angle) * c(yaw), s(angle) * s(yaw), -c(angle));
+                    let q = p + dir * len;
                     v.push(Shape::Capsule {
                         a: p,
                         b: q,
                         radius: 0.09,
-                        albedo,
+                        albedo: DVec3::from(albedo),
                     });
                     p = q;
                 }
@@ -275,16 +275,16 @@ impl SceneName {
             SceneName::Blob => (0..6)
                 .map(|i| {
                     let fi = i as f64;
-                    let dir = [
+                    let dir = DVec3::new(
                         c(2.0 * PI * fi / 6.0) * c(0.5 * fi),
                         s(2.0 * PI * fi / 6.0) * c(0.5 * fi),
                         s(0.5 * fi) - 0.3,
-                    ];
+                    );
                     let reach = 0.35 * (1.0 + 0.4 * s(2.0 * PI * (t + fi / 3.0)));
                     Shape::Sphere {
-                        centre: mul(dir, reach),
+                        centre: dir * reach,
                         radius: 0.35 + 0.12 * s(2.0 * PI * (2.0 * t + fi / 6.0)),
-                        albedo: [0.9 - 0.1 * fi, 0.3 + 0.1 * fi, 0.5 + 0.05 * fi],
+                        albedo: DVec3::new(0.9 - 0.1 * fi, 0.3 + 0.1 * fi, 0.5 + 0.05 * fi),
                     }
                 })
                 .collect(),
@@ -296,21 +296,21 @@ impl SceneName {
         let shapes = self.shapes(0.0);
         let mut r = Rng::new(seed);
         (0..n)
-            .flat_map(|i| shapes[i % shapes.len()].sample_surface(&mut r))
+            .flat_map(|i| shapes[i % shapes.len()].sample_surface(&mut r).to_array())
             .collect()
     }
 }
 
-const LIGHT: V3 = [0.4, 0.3, 0.866];
+const LIGHT: DVec3 = DVec3::new(0.4, 0.3, 0.866);
 const AMBIENT: f64 = 0.3;
 
 /// Render `shapes` through `camera` to interleaved RGBA bytes with `ss × ss` samples a pixel.
 pub fn render(shapes: &[Shape], camera: &Camera, ss: usize) -> Vec<u8> {
     let (w, h) = (camera.width, camera.height);
     let (fx, fy) = camera.focal();
-    let r = camera.rotation;
-    let o = camera.centre();
-    let l = normalize(LIGHT);
+    let rt = camera.rotation_matrix().transpose();
+    let o = DVec3::from(camera.centre());
+    let l = LIGHT.normalize();
     let mut out = Vec::with_capacity(4 * w * h);
     for py in 0..h {
         for px in 0..w {
@@ -320,12 +320,10 @@ pub fn render(shapes: &[Shape], camera: &Camera, ss: usize) -> Vec<u8> {
                 for b in 0..ss {
                     let u = px as f64 + (b as f64 + 0.5) / ss as f64;
                     let v = py as f64 + (a as f64 + 0.5) / ss as f64;
-                    let dc = [(u - w as f64 / 2.0) / fx, (v - h as f64 / 2.0) / fy, 1.0];
+                    let dc = DVec3::new((u - w as f64 / 2.0) / fx, (v - h as f64 / 2.0) / fy, 1.0);
                     // World direction Rᵀ·dc.
-                    let d = normalize(std::array::from_fn(|j| {
-                        r[0][j] * dc[0] + r[1][j] * dc[1] + r[2][j] * dc[2]
-                    }));
-                    let mut best: Option<(f64, V3, V3)> = None;
+                    let d = (rt * dc).normalize();
+                    let mut best: Option<(f64, DVec3, DVec3)> = None;
                     for s in shapes {
                         if let Some((t, n)) = s.intersect(o, d) {
                             if best.is_none_or(|b| t < b.0) {
@@ -334,7 +332,7 @@ pub fn render(shapes: &[Shape], camera: &Camera, ss: usize) -> Vec<u8> {
                         }
                     }
                     if let Some((_, n, alb)) = best {
-                        let shade = AMBIENT + (1.0 - AMBIENT) * dot(n, l).max(0.0);
+                        let shade = AMBIENT + (1.0 - AMBIENT) * n.dot(l).max(0.0);
                         for k in 0..3 {
                             sum[k] += (alb[k] * shade).min(1.0);
                         }
@@ -362,32 +360,32 @@ mod tests {
 
     #[test]
     fn intersections_are_correct() {
-        let o = [0.0, 0.0, -5.0];
-        let d = [0.0, 0.0, 1.0];
+        let o = DVec3::new(0.0, 0.0, -5.0);
+        let d = DVec3::Z;
         let sph = Shape::Sphere {
-            centre: [0.0; 3],
+            centre: DVec3::ZERO,
             radius: 1.0,
-            albedo: [1.0; 3],
+            albedo: DVec3::ONE,
         };
-        assert_eq!(sph.intersect(o, d), Some((4.0, [0.0, 0.0, -1.0])));
+        assert_eq!(sph.intersect(o, d), Some((4.0, DVec3::NEG_Z)));
         let cap = Shape::Capsule {
-            a: [-1.0, 0.0, 0.0],
-            b: [1.0, 0.0, 0.0],
+            a: DVec3::NEG_X,
+            b: DVec3::X,
             radius: 0.5,
-            albedo: [1.0; 3],
+            albedo: DVec3::ONE,
         };
         let (t, n) = cap.intersect(o, d).unwrap();
         assert!((t - 4.5).abs() < 1e-12 && (n[2] + 1.0).abs() < 1e-12);
         // Along the axis the end cap is hit.
-        let (t, _) = cap.intersect([-5.0, 0.0, 0.0], [1.0, 0.0, 0.0]).unwrap();
+        let (t, _) = cap.intersect(DVec3::new(-5.0, 0.0, 0.0), DVec3::X).unwrap();
         assert!((t - 3.5).abs() < 1e-12);
         let bx = Shape::Box {
-            centre: [0.0; 3],
-            half: [1.0, 2.0, 0.5],
-            albedo: [1.0; 3],
+            centre: DVec3::ZERO,
+            half: DVec3::new(1.0, 2.0, 0.5),
+            albedo: DVec3::ONE,
         };
-        assert_eq!(bx.intersect(o, d), Some((4.5, [0.0, 0.0, -1.0])));
-        assert_eq!(bx.intersect([3.0, 0.0, -5.0], d), None);
+        assert_eq!(bx.intersect(o, d), Some((4.5, DVec3::NEG_Z)));
+        assert_eq!(bx.intersect(DVec3::new(3.0, 0.0, -5.0), d), None);
     }
 
     #[test]
@@ -399,7 +397,7 @@ mod tests {
                 for s in name.shapes(t) {
                     for _ in 0..50 {
                         let p = s.sample_surface(&mut r);
-                        assert!(p.iter().all(|v| v.abs() < 1.3), "{name:?} {t} {p:?}");
+                        assert!(p.abs().max_element() < 1.3, "{name:?} {t} {p:?}");
                     }
                 }
             }

@@ -13,9 +13,9 @@
 //! arithmetic). Random initial points come from the project's seeded [`Rng`], not numpy's
 //! MT19937, so the positions differ from upstream's (same distribution).
 
+use super::ply::PointCloud;
+use super::Gaussians;
 use crate::error::{Error, Result};
-use crate::gaussians::ply::PointCloud;
-use crate::gaussians::Gaussians;
 use crate::math::{Real, Rng};
 
 /// Upstream's count of random initial points.
@@ -54,12 +54,20 @@ pub const MAX_SH_DEGREE: usize = 3;
 pub enum InitialPoints {
     /// A point cloud from the dataset (`points3d.ply`, or nerfies' `points.npy` already
     /// transformed by `(p − center)·scale`). Positions `[N, 3]`, optional byte colours.
-    Cloud { xyz: Vec<f64>, rgb: Option<Vec<u8>> },
+    Cloud {
+        /// Positions, `[N, 3]` row-major.
+        xyz: Vec<f64>,
+        /// Colours, `[N, 3]` bytes, if the file has them.
+        rgb: Option<Vec<u8>>,
+    },
     /// `count` points uniform in `[-h, h)³` drawn from `Rng::new(seed)`, three uniforms per
     /// point in x, y, z order: `x = u·2h − h`.
     RandomCube {
+        /// Number of points.
         count: usize,
+        /// `h`: half the side of the cube.
         half_extent: f64,
+        /// Seed of the generator.
         seed: u64,
     },
 }
