@@ -39,12 +39,15 @@ use crate::optim::GaussianOptimizer;
 /// What one densification did.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct DensifyReport {
+    /// Gaussians before densification.
     pub before: usize,
+    /// Gaussians cloned.
     pub cloned: usize,
     /// Gaussians split (each replaced by `split_copies` children).
     pub split: usize,
     /// Gaussians removed by the final prune.
     pub pruned: usize,
+    /// Gaussians after densification.
     pub after: usize,
 }
 

@@ -27,10 +27,12 @@ impl<T: Real> DensifyStats<T> {
         }
     }
 
+    /// Number of Gaussians.
     pub fn len(&self) -> usize {
         self.denom.len()
     }
 
+    /// True when sized for no Gaussians.
     pub fn is_empty(&self) -> bool {
         self.denom.is_empty()
     }

@@ -220,10 +220,9 @@ impl<T: Real> Gaussians<T> {
 
     /// Normalised rotations `q / max(|q|, 1e-12)`, `[N, 4]`.
     pub fn rotations(&self) -> Vec<T> {
-        let mut out = Vec::with_capacity(self.rotation.len());
-        for q in self.rotation.chunks_exact(4) {
-            let n = normalize_norm(q);
-            out.extend(q.iter().map(|&v| v / n));
+        let mut out = vec![T::ZERO; self.rotation.len()];
+        for (q, y) in self.rotation.chunks_exact(4).zip(out.chunks_exact_mut(4)) {
+            normalize(q, y);
         }
         out
     }
@@ -239,7 +238,16 @@ pub fn normalize_norm<T: Real>(q: &[T]) -> T {
     s.sqrt().max(T::from_f64(NORMALIZE_EPS))
 }
 
-/// Backward of `y = q / max(|q|, eps)` for one vector: returns dL/dq given dL/dy.
+/// `y = q / max(|q|, eps)` for one vector (`F.normalize`).
+#[inline]
+pub fn normalize<T: Real>(q: &[T], y: &mut [T]) {
+    let n = normalize_norm(q);
+    for (y, &v) in y.iter_mut().zip(q) {
+        *y = v / n;
+    }
+}
+
+/// Backward of [`normalize`]: `y = q / max(|q|, eps)` for one vector: returns dL/dq given dL/dy.
 /// Where the norm is below eps the map is a plain scaling by 1/eps.
 pub fn normalize_vjp<T: Real>(q: &[T], grad_y: &[T], grad_q: &mut [T]) {
     let mut s = T::ZERO;
@@ -283,6 +291,28 @@ mod tests {
         });
         let r = compare("normalize", &ga, &gn, 1e-9);
         assert!(r.passes(1e-7), "{r}");
+    }
+
+    #[test]
+    fn group_table_matches_the_arrays() {
+        let g = Gaussians::<f64> {
+            max_sh_degree: 2,
+            xyz: vec![0.0; 6],
+            sh: vec![0.0; 54],
+            opacity: vec![0.0; 2],
+            scaling: vec![0.0; 6],
+            rotation: vec![0.0; 8],
+        };
+        g.validate().unwrap();
+        let names: Vec<&str> = Group::ALL.iter().map(|g| g.name()).collect();
+        assert_eq!(names, ["xyz", "sh", "opacity", "scaling", "rotation"]);
+        for group in Group::ALL {
+            let shape = g.shape(group);
+            assert_eq!(shape.iter().product::<usize>(), g.group(group).len());
+            assert_eq!(g.width(group) * g.len(), g.group(group).len());
+        }
+        assert_eq!(g.shape(Group::Sh), [2, 9, 3]);
+        assert_eq!(g.shape(Group::Opacity), [2, 1]);
     }
 
     #[test]

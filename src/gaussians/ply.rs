@@ -16,7 +16,7 @@
 //!
 //! **Point clouds** (`points3d.ply`): `x y z` and optionally `red green blue` (`uchar`).
 
-use super::Gaussians;
+use super::{Gaussians, Group};
 use crate::error::{Error, Result};
 use crate::math::Real;
 use std::path::Path;
@@ -125,7 +125,6 @@ struct Element {
 /// converts to f64 exactly).
 struct VertexTable {
     names: Vec<String>,
-    types: Vec<Scalar>,
     count: usize,
     data: Vec<f64>,
 }
@@ -238,11 +237,7 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<VertexTable> {
         _ => types.iter().map(|t| t.size()).sum::<usize>(),
     };
     if count.saturating_mul(min_row) > body.len() {
-        let row = if min_row == 0 {
-            0
-        } else {
-            body.len() / min_row
-        };
+        let row = body.len().checked_div(min_row).unwrap_or(0);
         return Err(fmt(format!(
             "truncated PLY body at vertex {row} (header declares {count})"
         )));
@@ -334,12 +329,7 @@ fn parse_ply(path: &Path, bytes: &[u8]) -> Result<VertexTable> {
             }
         }
     }
-    Ok(VertexTable {
-        names,
-        types,
-        count,
-        data,
-    })
+    Ok(VertexTable { names, count, data })
 }
 
 fn require(path: &Path, t: &VertexTable, name: &str) -> Result<usize> {
@@ -347,17 +337,45 @@ fn require(path: &Path, t: &VertexTable, name: &str) -> Result<usize> {
         .ok_or_else(|| Error::field(path, format!("vertex.{name}"), "missing property"))
 }
 
+/// The PLY properties of `group` with `k` SH coefficients, in file order:
+/// `x y z`, `f_dc_0..2 f_rest_0..` (channel-major), `opacity`,
+/// `scale_0..2`, `rot_0..3`.
+fn properties(group: Group, k: usize) -> Vec<String> {
+    fn numbered(prefix: &'static str, count: usize) -> impl Iterator<Item = String> {
+        (0..count).map(move |i| format!("{prefix}{i}"))
+    }
+    match group {
+        Group::Xyz => ["x", "y", "z"].map(String::from).to_vec(),
+        Group::Sh => numbered("f_dc_", 3)
+            .chain(numbered("f_rest_", 3 * (k - 1)))
+            .collect(),
+        Group::Opacity => vec!["opacity".to_string()],
+        Group::Scaling => numbered("scale_", 3).collect(),
+        Group::Rotation => numbered("rot_", 4).collect(),
+    }
+}
+
+/// Where the `j`-th property of `group` (in [`properties`]' order) goes in a
+/// Gaussian's row: the identity except for `f_rest`, which the file holds
+/// channel-major and [`Gaussians::sh`] coefficient-major
+/// (`f_rest_{c(K-1) + (k-1)} = sh[i, k, c]`).
+fn row_index(group: Group, k: usize, j: usize) -> usize {
+    if group != Group::Sh || j < 3 {
+        return j;
+    }
+    let (channel, coeff) = ((j - 3) / (k - 1), (j - 3) % (k - 1) + 1);
+    3 * coeff + channel
+}
+
 /// Parse Gaussians from PLY bytes; `path` names the source in errors.
 pub fn decode_gaussians<T: Real>(path: &Path, bytes: &[u8]) -> Result<Gaussians<T>> {
     let t = parse_ply(path, bytes)?;
-    let cols = |names: &[&str]| -> Result<Vec<usize>> {
-        names.iter().map(|n| require(path, &t, n)).collect()
-    };
-    let xyz_c = cols(&["x", "y", "z"])?;
-    let dc_c = cols(&["f_dc_0", "f_dc_1", "f_dc_2"])?;
-    let op_c = cols(&["opacity"])?;
-    let sc_c = cols(&["scale_0", "scale_1", "scale_2"])?;
-    let rot_c = cols(&["rot_0", "rot_1", "rot_2", "rot_3"])?;
+    // Every property but `f_rest` is required (checked in file order).
+    for group in Group::ALL {
+        for name in properties(group, 1) {
+            require(path, &t, &name)?;
+        }
+    }
     let n_rest = (0..)
         .take_while(|i| t.column(&format!("f_rest_{i}")).is_some())
         .count();
@@ -379,8 +397,7 @@ pub fn decode_gaussians<T: Real>(path: &Path, bytes: &[u8]) -> Result<Gaussians<
             format!("{n_rest} properties is not a multiple of 3"),
         ));
     }
-    let per_channel = n_rest / 3;
-    let k = per_channel + 1;
+    let k = n_rest / 3 + 1;
     let degree = (0..=8usize)
         .find(|d| (d + 1) * (d + 1) == k)
         .ok_or_else(|| {
@@ -390,28 +407,24 @@ pub fn decode_gaussians<T: Real>(path: &Path, bytes: &[u8]) -> Result<Gaussians<
                 format!("{n_rest} properties do not make a whole SH degree"),
             )
         })?;
-    let rest_c: Vec<usize> = (0..n_rest)
-        .map(|i| t.column(&format!("f_rest_{i}")).unwrap())
-        .collect();
-    let _ = &t.types;
+    let columns = Group::ALL.map(|group| {
+        properties(group, k)
+            .iter()
+            .map(|name| require(path, &t, name))
+            .collect::<Result<Vec<usize>>>()
+    });
     let n = t.count;
     let np = t.names.len();
     let mut g = Gaussians::<T>::empty(degree);
-    g.xyz.reserve(3 * n);
-    g.sh.reserve(3 * k * n);
-    for i in 0..n {
-        let row = &t.data[i * np..(i + 1) * np];
-        let v = |c: usize| T::from_f64(row[c]);
-        g.xyz.extend(xyz_c.iter().map(|&c| v(c)));
-        g.sh.extend(dc_c.iter().map(|&c| v(c)));
-        for kk in 1..k {
-            for ch in 0..3 {
-                g.sh.push(v(rest_c[ch * per_channel + kk - 1]));
+    for ((group, v), cols) in g.groups_mut().into_iter().zip(columns) {
+        let cols = cols?;
+        *v = vec![T::ZERO; n * cols.len()];
+        for (i, out) in v.chunks_exact_mut(cols.len()).enumerate() {
+            let row = &t.data[i * np..(i + 1) * np];
+            for (j, &c) in cols.iter().enumerate() {
+                out[row_index(group, k, j)] = T::from_f64(row[c]);
             }
         }
-        g.opacity.push(v(op_c[0]));
-        g.scaling.extend(sc_c.iter().map(|&c| v(c)));
-        g.rotation.extend(rot_c.iter().map(|&c| v(c)));
     }
     Ok(g)
 }
@@ -427,15 +440,14 @@ pub fn encode_gaussians<T: Real>(g: &Gaussians<T>) -> Result<Vec<u8>> {
     g.validate()?;
     let k = g.coeffs();
     let ty = if T::SIZE == 4 { "float" } else { "double" };
-    let mut names: Vec<String> = ["x", "y", "z", "nx", "ny", "nz"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-    names.extend((0..3).map(|i| format!("f_dc_{i}")));
-    names.extend((0..3 * (k - 1)).map(|i| format!("f_rest_{i}")));
-    names.push("opacity".into());
-    names.extend((0..3).map(|i| format!("scale_{i}")));
-    names.extend((0..4).map(|i| format!("rot_{i}")));
+    let normals = ["nx", "ny", "nz"];
+    let mut names: Vec<String> = Vec::new();
+    for group in Group::ALL {
+        names.extend(properties(group, k));
+        if group == Group::Xyz {
+            names.extend(normals.map(String::from));
+        }
+    }
     let n = g.len();
     let mut out =
         format!("ply\nformat binary_little_endian 1.0\nelement vertex {n}\n").into_bytes();
@@ -445,27 +457,17 @@ pub fn encode_gaussians<T: Real>(g: &Gaussians<T>) -> Result<Vec<u8>> {
     out.extend(b"end_header\n");
     out.reserve(n * names.len() * T::SIZE);
     for i in 0..n {
-        for &v in &g.xyz[3 * i..3 * i + 3] {
-            v.write_le(&mut out);
-        }
-        for _ in 0..3 {
-            T::ZERO.write_le(&mut out);
-        }
-        let sh = &g.sh[3 * k * i..3 * k * (i + 1)];
-        for c in 0..3 {
-            sh[c].write_le(&mut out);
-        }
-        for c in 0..3 {
-            for kk in 1..k {
-                sh[3 * kk + c].write_le(&mut out);
+        for group in Group::ALL {
+            let w = g.width(group);
+            let row = &g.group(group)[i * w..(i + 1) * w];
+            for j in 0..w {
+                row[row_index(group, k, j)].write_le(&mut out);
             }
-        }
-        g.opacity[i].write_le(&mut out);
-        for &v in &g.scaling[3 * i..3 * i + 3] {
-            v.write_le(&mut out);
-        }
-        for &v in &g.rotation[4 * i..4 * i + 4] {
-            v.write_le(&mut out);
+            if group == Group::Xyz {
+                for _ in normals {
+                    T::ZERO.write_le(&mut out);
+                }
+            }
         }
     }
     Ok(out)

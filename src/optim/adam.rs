@@ -28,8 +28,11 @@ use rayon::prelude::*;
 /// Adam hyper-parameters (the learning rate is passed per step).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdamConfig {
+    /// Decay of the first moment (β1).
     pub beta1: f64,
+    /// Decay of the second moment (β2).
     pub beta2: f64,
+    /// Added to the denominator (ε).
     pub eps: f64,
 }
 
@@ -56,6 +59,7 @@ pub struct AdamState<T> {
     pub v: Vec<T>,
     /// Number of steps taken (`state["step"]`).
     pub step: u64,
+    /// The hyper-parameters.
     pub config: AdamConfig,
 }
 
@@ -65,6 +69,7 @@ impl<T: Real> AdamState<T> {
         Self::with_config(len, AdamConfig::default())
     }
 
+    /// Zero moments for `len` elements, step 0, hyper-parameters `config`.
     pub fn with_config(len: usize, config: AdamConfig) -> Self {
         AdamState {
             m: vec![T::ZERO; len],
@@ -74,10 +79,12 @@ impl<T: Real> AdamState<T> {
         }
     }
 
+    /// Number of elements.
     pub fn len(&self) -> usize {
         self.m.len()
     }
 
+    /// True when the state has no elements.
     pub fn is_empty(&self) -> bool {
         self.m.is_empty()
     }

@@ -127,12 +127,15 @@ pub struct LearningRates {
     pub deform_final: f64,
     /// Deformation network: `deform_lr_max_steps`.
     pub deform_max_steps: u64,
+    /// SH coefficient 0 (`feature_lr`).
     pub f_dc: f64,
     /// `feature_lr / 20`.
     pub f_rest: f64,
+    /// Opacity logits.
     pub opacity: f64,
     /// `scaling_lr · 5`.
     pub scaling: f64,
+    /// Raw quaternions.
     pub rotation: f64,
     /// AST smooth term at step 0.
     pub ast_init: f64,

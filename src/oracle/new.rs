@@ -11,10 +11,12 @@ use super::gsplat::{self as gs, GsplatOptions};
 use super::{deform, loss, rasterize, run_case, step, STAGES};
 use crate::deform::{Field, FieldConfig, FieldKind, Variant};
 use crate::error::{Error, Result};
+use crate::gaussians::{Gaussians, Group};
 use crate::io::{Tensor, TensorFile};
 use crate::math::{Precision, Real, Rng};
 use crate::render::scene::{random_scene, SceneSpec, SCENE_SH_STRIDE};
 use crate::render::GradientMode;
+use crate::train::state;
 
 /// What to generate. Fields a stage does not use are ignored by it; see
 /// [`CaseSpec::new`] for the defaults.
@@ -304,25 +306,26 @@ fn new_step<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
         .iter()
         .map(|&o| libm::log(o / (1.0 - o)))
         .collect();
-    f.insert_real("xyz", vec![n, 3], &to_t::<T>(&scene.means3d));
-    f.insert_real("sh", vec![n, SCENE_SH_STRIDE, 3], &to_t::<T>(&scene.sh));
-    f.insert_real("scaling", vec![n, 3], &to_t::<T>(&scaling));
-    f.insert_real("rotation", vec![n, 4], &to_t::<T>(&scene.rotations));
-    f.insert_real("opacity", vec![n, 1], &to_t::<T>(&opacity));
+    let gaussians = Gaussians {
+        // SCENE_SH_STRIDE (16) coefficients.
+        max_sh_degree: 3,
+        xyz: to_t::<T>(&scene.means3d),
+        sh: to_t::<T>(&scene.sh),
+        opacity: to_t::<T>(&opacity),
+        scaling: to_t::<T>(&scaling),
+        rotation: to_t::<T>(&scene.rotations),
+    };
+    state::write_gaussians(&mut f, "", &gaussians);
     f.insert_real("bg", vec![3], &to_t::<T>(&scene.background));
     let gt = uniforms(spec.seed, STREAM_INPUT + 1, 3 * h * w, 0.0, 1.0);
     f.insert_real("gt", vec![3, h, w], &to_t::<T>(&gt));
 
     // Optimizer state as after a few steps: moments of gradient-like size.
-    let groups: [(&str, Vec<usize>); 6] = [
-        ("xyz", vec![n, 3]),
-        ("sh", vec![n, SCENE_SH_STRIDE, 3]),
-        ("opacity", vec![n, 1]),
-        ("scaling", vec![n, 3]),
-        ("rotation", vec![n, 4]),
-        ("field", vec![field_params]),
-    ];
-    for (k, (group, shape)) in groups.into_iter().enumerate() {
+    let shapes = Group::ALL.map(|g| gaussians.shape(g));
+    let groups = state::adam_groups()
+        .into_iter()
+        .zip(shapes.into_iter().chain([vec![field_params]]));
+    for (k, (group, shape)) in groups.enumerate() {
         let len = shape.iter().product();
         let stream = STREAM_INPUT + 16 + 2 * k as u64;
         let m = normals(spec.seed, stream, len, 1e-3);

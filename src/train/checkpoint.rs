@@ -2,8 +2,9 @@
 //!
 //! A checkpoint is a folder `iteration_NNNNNN/` holding
 //! - `state.safetensors`: canonical Gaussians (raw parameters, run precision),
-//!   Adam moments and step counters, densification statistics, the camera
-//!   sampler and AST generator states, with the iteration, the run
+//!   Adam moments and step counters and densification statistics in the
+//!   layout of [`super::state`] (the oracle's `step` stage uses the same),
+//!   the camera sampler and AST generator states, with the iteration, the run
 //!   configuration's fingerprint and the [state hash](Trainer::state_hash) in
 //!   the metadata;
 //! - `deform.safetensors`: the field weights under their PyTorch `state_dict`

@@ -34,9 +34,13 @@ pub struct Schedule {
     pub warm_up: u64,
     /// The SH degree rises by one at every multiple of this (up to the maximum).
     pub sh_degree_interval: u64,
+    /// First iteration after which densification runs.
     pub densify_from: u64,
+    /// Iteration from which statistics and densification stop.
     pub densify_until: u64,
+    /// Densify at every multiple of this (after `densify_from`).
     pub densification_interval: u64,
+    /// Reset opacities at every multiple of this.
     pub opacity_reset_interval: u64,
     /// Decay length of the position learning rate.
     pub position_lr_steps: u64,
@@ -91,6 +95,7 @@ pub struct TrainConfig {
     /// Seed of the run: camera order, field initialisation, AST noise and
     /// split sampling all derive from it.
     pub seed: u64,
+    /// The deformation field.
     pub field: FieldConfig,
     /// Every iteration count, scaled to `iterations`.
     pub schedule: Schedule,

@@ -27,9 +27,13 @@ pub use crate::deform::Deformation as Offsets;
 /// The activated, deformed Gaussians handed to the rasterizer.
 #[derive(Clone, Debug)]
 pub struct Deformed<T> {
+    /// Means `[N, 3]`.
     pub means: Vec<T>,
+    /// Linear scales `[N, 3]`.
     pub scales: Vec<T>,
+    /// Quaternions `[N, 4]` (not re-normalised).
     pub rotations: Vec<T>,
+    /// Opacities `[N]` in (0, 1).
     pub opacities: Vec<T>,
 }
 

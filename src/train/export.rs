@@ -39,8 +39,11 @@ pub const MIN_SCALE: f64 = 1e-30;
 /// What an export did, per time.
 #[derive(Clone, Debug, PartialEq, serde::Serialize)]
 pub struct ExportReport {
+    /// The time exported.
     pub time: f64,
+    /// The PLY file written.
     pub path: PathBuf,
+    /// Number of Gaussians written.
     pub gaussians: usize,
     /// Gaussians with a deformed linear scale `s' ≤ 0` on some axis.
     pub nonpositive_scales: usize,

@@ -27,6 +27,7 @@ use std::time::Instant;
 /// How a run is driven (not part of its result).
 #[derive(Clone, Debug)]
 pub struct RunOptions {
+    /// The output folder.
     pub out: PathBuf,
     /// Write a checkpoint every this many iterations (0: only at the end).
     pub checkpoint_every: u64,
@@ -47,6 +48,7 @@ pub struct RunOptions {
 /// One point of the training curve.
 #[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct CurvePoint {
+    /// The iteration of this point.
     pub iteration: u64,
     /// Mean training loss over the iterations since the previous point.
     pub loss: f64,
@@ -54,37 +56,54 @@ pub struct CurvePoint {
     /// iteration (LPIPS only with weights).
     pub test_psnr: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Mean test SSIM at an evaluation.
     pub test_ssim: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    /// Mean test LPIPS at an evaluation with weights.
     pub test_lpips: Option<f64>,
+    /// Number of Gaussians.
     pub gaussians: usize,
 }
 
 /// What the caller hears while a run goes on.
 #[derive(Debug)]
 pub enum Event<'a> {
+    /// The run continues from a checkpoint.
     Resumed {
+        /// The checkpoint's iteration.
         iteration: u64,
     },
+    /// An iteration finished.
     Step(&'a StepReport),
+    /// The test views were evaluated.
     Eval {
+        /// The iteration evaluated.
         iteration: u64,
+        /// Mean test PSNR.
         psnr: f64,
+        /// Mean test SSIM.
         ssim: f64,
+        /// Mean test LPIPS (with weights).
         lpips: Option<f64>,
     },
+    /// A checkpoint was written into this folder.
     Checkpoint(&'a Path),
 }
 
 /// The result of a run.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct RunSummary {
+    /// Completed iterations.
     pub iterations: u64,
+    /// Final number of Gaussians.
     pub gaussians: usize,
+    /// Mean test PSNR.
     pub psnr: f64,
+    /// Mean test SSIM.
     pub ssim: f64,
     /// Mean test LPIPS, with [`RunOptions::lpips`] only.
     pub lpips: Option<f64>,
+    /// Metrics of each test view.
     pub per_view: Vec<ViewMetrics>,
     /// [`Trainer::state_hash`] of the final state, hexadecimal.
     pub state_hash: String,
@@ -92,6 +111,7 @@ pub struct RunSummary {
     pub train_seconds: f64,
     /// Iterations run in this process (fewer than `iterations` after a resume).
     pub iterations_run: u64,
+    /// The training curve.
     pub curve: Vec<CurvePoint>,
 }
 
@@ -411,6 +431,7 @@ pub fn write_metrics(
     write_json(&out.join("per_view.json"), &views)
 }
 
+/// Write `v` as pretty JSON to `path`, atomically.
 pub fn write_json(path: &Path, v: &impl serde::Serialize) -> Result<()> {
     write_atomic(path, &json_bytes(path, v)?)
 }

@@ -266,3 +266,126 @@ pub fn read_stats<T: Real>(
     }
     Ok(stats)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Three Gaussians of SH degree 1 with every value distinct, moments
+    /// (and those of 10 field weights) and statistics.
+    fn state() -> (Gaussians<f64>, ModelOptimizer<f64>, DensifyStats<f64>) {
+        let mut g = Gaussians::<f64>::empty(1);
+        let mut x = 0.0;
+        for group in Group::ALL {
+            *g.group_mut(group) = (0..3 * group.width(4))
+                .map(|_| {
+                    x += 0.5;
+                    x
+                })
+                .collect();
+        }
+        g.validate().unwrap();
+        let mut opt = ModelOptimizer {
+            gaussians: GaussianOptimizer::new(&g),
+            field: AdamState::new(10),
+        };
+        for (k, group) in Group::ALL.into_iter().enumerate() {
+            let s = opt.gaussians.state_mut(group);
+            s.m.iter_mut()
+                .enumerate()
+                .for_each(|(i, m)| *m = (k * 100 + i) as f64);
+            s.v.iter_mut()
+                .enumerate()
+                .for_each(|(i, v)| *v = (k * 100 + i) as f64 * 2.0);
+            s.step = 3 + k as u64;
+        }
+        opt.field.m.fill(-1.5);
+        opt.field.step = 9;
+        let mut stats = DensifyStats::new(3);
+        stats.accum = vec![0.25, 0.0, 3.0];
+        stats.denom = vec![1, 0, 4];
+        stats.max_radii = vec![7, 0, 2];
+        (g, opt, stats)
+    }
+
+    #[test]
+    fn round_trip_with_a_prefix() {
+        let (g, opt, stats) = state();
+        let mut f = TensorFile::new("state.safetensors");
+        write_gaussians(&mut f, "new.", &g);
+        write_optimizer(&mut f, "new.", &opt, &g);
+        write_stats(&mut f, "new.", &stats).unwrap();
+        assert_eq!(f.shape("new.sh").unwrap(), [3, 4, 3]);
+        assert_eq!(f.shape("new.opacity").unwrap(), [3, 1]);
+        assert_eq!(f.shape("new.adam.rotation.m").unwrap(), [3, 4]);
+        let bytes = f.to_bytes().unwrap();
+        let back = TensorFile::from_bytes(std::path::Path::new("x"), &bytes).unwrap();
+        for source in [Source::Case, Source::Checkpoint] {
+            let g2 = read_gaussians::<f64>(&back, "new.").unwrap();
+            assert_eq!(g2, g);
+            let o2 = read_optimizer(&back, "new.", &g2, opt.field.len(), source).unwrap();
+            assert_eq!(o2, opt);
+            assert_eq!(read_stats::<f64>(&back, "new.", 3, source).unwrap(), stats);
+        }
+    }
+
+    #[test]
+    fn what_may_be_absent_depends_on_the_source() {
+        let (g, opt, _) = state();
+        let mut f = TensorFile::new("case.safetensors");
+        write_gaussians(&mut f, "", &g);
+        let o = read_optimizer(&f, "", &g, opt.field.len(), Source::Case).unwrap();
+        assert_eq!(
+            o,
+            ModelOptimizer {
+                gaussians: GaussianOptimizer::new(&g),
+                field: AdamState::new(opt.field.len())
+            }
+        );
+        assert_eq!(
+            read_stats::<f64>(&f, "", 3, Source::Case).unwrap(),
+            DensifyStats::new(3)
+        );
+        assert!(read_optimizer(&f, "", &g, opt.field.len(), Source::Checkpoint).is_err());
+        assert!(read_stats::<f64>(&f, "", 3, Source::Checkpoint).is_err());
+        // One moment without the other is an error either way.
+        let s = opt.gaussians.state(Group::Xyz);
+        f.insert_real("adam.xyz.m", vec![3, 3], &s.m);
+        let e = read_optimizer(&f, "", &g, opt.field.len(), Source::Case).unwrap_err();
+        assert!(e.to_string().contains("adam.xyz.v"), "{e}");
+    }
+
+    /// Checkpoints of earlier versions stored moments flat (`[len]`): they
+    /// are still read; a case must give the group's shape.
+    #[test]
+    fn flat_moments_are_read_from_checkpoints_only() {
+        let (g, opt, _) = state();
+        let mut f = TensorFile::new("state.safetensors");
+        write_optimizer(&mut f, "", &opt, &g);
+        for group in Group::ALL {
+            let s = opt.gaussians.state(group);
+            let key = format!("adam.{}", group.name());
+            f.insert_real(&format!("{key}.m"), vec![s.len()], &s.m);
+            f.insert_real(&format!("{key}.v"), vec![s.len()], &s.v);
+        }
+        let o = read_optimizer(&f, "", &g, opt.field.len(), Source::Checkpoint).unwrap();
+        assert_eq!(o, opt);
+        assert!(read_optimizer(&f, "", &g, opt.field.len(), Source::Case).is_err());
+    }
+
+    #[test]
+    fn bad_moments_and_counters_are_errors() {
+        let (g, opt, _) = state();
+        let mut f = TensorFile::new("case.safetensors");
+        write_optimizer(&mut f, "", &opt, &g);
+        let mut v = opt.gaussians.state(Group::Sh).v.clone();
+        v[5] = -1.0;
+        f.insert_real("adam.sh.v", vec![3, 4, 3], &v);
+        let e = read_optimizer(&f, "", &g, opt.field.len(), Source::Case).unwrap_err();
+        assert!(e.to_string().contains("adam.sh.v"), "{e}");
+        let mut f = TensorFile::new("case.safetensors");
+        write_optimizer(&mut f, "", &opt, &g);
+        f.set_meta("adam.field.step", u64::MAX);
+        assert!(read_optimizer(&f, "", &g, opt.field.len(), Source::Case).is_err());
+    }
+}

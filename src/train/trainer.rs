@@ -261,6 +261,9 @@ impl<T: Real> Trainer<T> {
         extent: f64,
     ) -> Result<Self> {
         model.validate()?;
+        if progress.sampler.count() == 0 {
+            return Err(Error::invalid("training views", "the sampler has no views"));
+        }
         let n = model.gaussians.len();
         if !optimizer.gaussians.fits(&model.gaussians)
             || optimizer.field.len() != model.field.param_count()
@@ -344,7 +347,7 @@ impl<T: Real> Trainer<T> {
         {
             self.model.active_sh_degree += 1;
         }
-        let pick = self.sampler.next();
+        let pick = self.sampler.draw();
         let view = views.get(pick.index).ok_or_else(|| {
             Error::invalid(
                 "training views",
