@@ -5,7 +5,6 @@
 //! `eval OUT` and `export OUT` read them back, so they need only the output
 //! folder.
 
-use crate::dataset;
 use crate::error::{Error, Outcome, Result};
 use crate::experiment::{
     self, FieldChoice, FieldSpec, OpenedRun, PrecisionChoice, RunSpec, VariantChoice,
@@ -15,7 +14,7 @@ use crate::math::Real;
 use crate::train::{self, run::file_stem, Event, RunOptions, View, ViewMetrics};
 use clap::Args;
 use std::io::{IsTerminal, Write};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 /// The deformation field's architecture (defaults per kind: MLP D8 W256;
@@ -506,52 +505,9 @@ pub struct EvalArgs {
 /// written to `OUT/results.json` and `OUT/per_view.json`.
 pub fn eval(a: EvalArgs) -> Result<Outcome> {
     let metric = a.lpips.metric()?;
-    let renders = a.out.join("test").join("renders");
-    let gt_dir = a.out.join("test").join("gt");
-    let mut names: Vec<String> = std::fs::read_dir(&renders)
-        .map_err(|e| Error::io(&renders, e))?
-        .filter_map(|e| e.ok())
-        .map(|e| e.file_name().to_string_lossy().to_string())
-        .filter(|n| n.ends_with(".png"))
-        .collect();
-    names.sort();
-    if names.is_empty() {
-        return Err(Error::invalid(
-            "eval",
-            format!("no PNG renders in {}", renders.display()),
-        ));
-    }
-    let mut per_view = Vec::new();
-    for n in &names {
-        let (r, h, w) = read_rgb(&renders.join(n))?;
-        let (g, gh, gw) = read_rgb(&gt_dir.join(n))?;
-        if (h, w) != (gh, gw) {
-            return Err(Error::invalid(
-                "eval",
-                format!("{n}: render is {w}x{h}, ground truth {gw}x{gh}"),
-            ));
-        }
-        let m = train::trainer::view_metrics_with::<f32>(
-            n.trim_end_matches(".png"),
-            &r,
-            &g,
-            h,
-            w,
-            metric.as_deref(),
-        )?;
-        per_view.push(m);
-    }
-    let info = metric.as_ref().map(|m| m.info());
-    train::run::write_metrics(&a.out, &per_view, info.as_ref())?;
+    let per_view = experiment::evaluate_renders(&a.out, metric.as_deref())?;
     print_metrics(&per_view)?;
     Ok(Outcome::Success)
-}
-
-/// A PNG as `[3, H, W]` values `u8 / 255`.
-fn read_rgb(path: &Path) -> Result<(Vec<f32>, usize, usize)> {
-    let img = dataset::image::read_png(path)?;
-    let (w, h) = (img.width, img.height);
-    Ok((dataset::image::to_chw(&img.rgb(), w, h), h, w))
 }
 
 fn print_metrics(per_view: &[ViewMetrics]) -> Result<()> {

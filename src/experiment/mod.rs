@@ -3,8 +3,9 @@
 //! callable from the Python package.
 //!
 //! - [`spec`]: [`RunSpec`], the persisted description of one training run
-//!   (`OUT/run.json`), the resume rule ([`prepare_run`]) and reopening a
-//!   finished run ([`open_run`]).
+//!   (`OUT/run.json`), the resume rule ([`prepare_run`]), training it
+//!   ([`train_run`]), reopening a finished run ([`open_run`]) and scoring its
+//!   saved renders ([`evaluate_renders`]).
 //! - This module: the experiment driver. An [`Experiment`] compares the MLP
 //!   and liquid fields on several scenes with identical seeds and settings
 //!   except the field: [`Experiment::plan`] lists the runs, [`Experiment::run`]
@@ -22,8 +23,8 @@
 pub mod spec;
 
 pub use spec::{
-    open_run, prepare_run, train_run, FieldChoice, FieldSpec, OpenedRun, PrecisionChoice, RunSpec,
-    VariantChoice,
+    evaluate_renders, open_run, prepare_run, train_run, FieldChoice, FieldSpec, OpenedRun,
+    PrecisionChoice, RunSpec, VariantChoice,
 };
 
 use crate::deform::count::{macs_per_gaussian, param_count, MacConvention};

@@ -346,3 +346,58 @@ pub fn open_run<T: Real>(out: &Path) -> Result<OpenedRun<T>> {
         trainer,
     })
 }
+
+/// Score the saved renders of run folder `out`: PSNR, SSIM (and LPIPS with
+/// `metric`) of each `out/test/renders/*.png` against `out/test/gt/` (8-bit
+/// images, as upstream's metrics.py), in file-name order, written to
+/// `out/results.json` and `out/per_view.json`.
+pub fn evaluate_renders(
+    out: &Path,
+    metric: Option<&crate::lpips::Metric>,
+) -> Result<Vec<train::ViewMetrics>> {
+    let renders = out.join("test").join("renders");
+    let gt_dir = out.join("test").join("gt");
+    let mut names: Vec<String> = std::fs::read_dir(&renders)
+        .map_err(|e| Error::io(&renders, e))?
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .filter(|n| n.ends_with(".png"))
+        .collect();
+    names.sort();
+    if names.is_empty() {
+        return Err(Error::invalid(
+            "eval",
+            format!("no PNG renders in {}", renders.display()),
+        ));
+    }
+    let mut per_view = Vec::new();
+    for n in &names {
+        let (r, h, w) = read_rgb(&renders.join(n))?;
+        let (g, gh, gw) = read_rgb(&gt_dir.join(n))?;
+        if (h, w) != (gh, gw) {
+            return Err(Error::invalid(
+                "eval",
+                format!("{n}: render is {w}x{h}, ground truth {gw}x{gh}"),
+            ));
+        }
+        let m = train::trainer::view_metrics_with::<f32>(
+            n.trim_end_matches(".png"),
+            &r,
+            &g,
+            h,
+            w,
+            metric,
+        )?;
+        per_view.push(m);
+    }
+    let info = metric.map(|m| m.info());
+    train::run::write_metrics(out, &per_view, info.as_ref())?;
+    Ok(per_view)
+}
+
+/// A PNG as `[3, H, W]` values `u8 / 255`.
+fn read_rgb(path: &Path) -> Result<(Vec<f32>, usize, usize)> {
+    let img = dataset::image::read_png(path)?;
+    let (w, h) = (img.width, img.height);
+    Ok((dataset::image::to_chw(&img.rgb(), w, h), h, w))
+}
