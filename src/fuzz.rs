@@ -25,9 +25,13 @@ pub const CASE_BUDGET: CaseBudget = CaseBudget {
 /// See [`CASE_BUDGET`].
 #[derive(Clone, Copy, Debug)]
 pub struct CaseBudget {
+    /// Most image pixels (width × height).
     pub pixels: usize,
+    /// Widest field (MLP width or CfC hidden size).
     pub width: usize,
+    /// Deepest field (MLP layers or CfC cells).
     pub depth: usize,
+    /// Most CfC backbone layers.
     pub backbone_layers: usize,
 }
 

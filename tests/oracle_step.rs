@@ -63,7 +63,7 @@ fn check(c: &TensorFile, out: &TensorFile, name: &str, indices: &[usize]) {
 /// Indices of the first `k` rows of width `w` belonging to visible Gaussians,
 /// column `col`.
 fn visible(out: &TensorFile, w: usize, col: usize, k: usize) -> Vec<usize> {
-    let radii = i32s(&out, "radii");
+    let radii = i32s(out, "radii");
     radii
         .iter()
         .enumerate()

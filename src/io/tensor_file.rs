@@ -676,6 +676,35 @@ mod tests {
     }
 
     #[test]
+    fn arrays_keep_their_shapes_and_any_layout_is_written_row_major() {
+        // A transposed (column-major) array holds the same logical tensor as
+        // its row-major copy: the bytes are the same.
+        let a = ndarray::array![[1.0f32, 2.0, 3.0], [4.0, 5.0, 6.0]].into_dyn();
+        let mut t = TensorFile::new("mem");
+        t.insert("a", Tensor::F32(a.t().to_owned()));
+        assert!(!a.t().to_owned().is_standard_layout());
+        let mut r = TensorFile::new("mem");
+        r.insert_real::<f32>("a", vec![3, 2], &[1.0, 4.0, 2.0, 5.0, 3.0, 6.0]);
+        assert_eq!(t.to_bytes().unwrap(), r.to_bytes().unwrap());
+        let back = TensorFile::from_bytes(Path::new("mem"), &t.to_bytes().unwrap()).unwrap();
+        let x = back.real_array::<f64>("a");
+        assert!(x.unwrap_err().to_string().contains("dtype F64"));
+        let x = back.real_array::<f32>("a").unwrap();
+        assert_eq!(x.shape(), &[3, 2]);
+        assert_eq!(x, a.t());
+        assert_eq!(
+            back.get_real::<f32>("a", &[3, 2]).unwrap(),
+            [1.0, 4.0, 2.0, 5.0, 3.0, 6.0]
+        );
+        r.insert_i32("ids", vec![2, 1], vec![7, -1]);
+        let ids = r.i32_array("ids").unwrap();
+        assert_eq!(ids.shape(), &[2, 1]);
+        assert_eq!(ids.iter().copied().collect::<Vec<_>>(), [7, -1]);
+        assert!(r.i32_array("a").is_err());
+        assert_eq!(r.get("ids").unwrap().to_f64().iter().sum::<f64>(), 6.0);
+    }
+
+    #[test]
     fn truncated_file_is_an_error_not_a_panic() {
         let mut f = TensorFile::new("x");
         f.insert_real::<f64>("a", vec![8], &[1.0; 8]);

@@ -719,9 +719,15 @@ fn run_rasterization<T: Real>(
 /// Options of generated gsplat cases.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct GsplatOptions {
+    /// The gsplat version reproduced (metadata `version`).
     pub version: Version,
+    /// The gradient mode (metadata `gradient`).
     pub gradient: GradientMode,
+    /// Antialiased rasterization (projection: `calc_compensations`;
+    /// rasterization: `rasterize_mode=antialiased`).
     pub antialiased: bool,
+    /// Packed `[nnz,·]` rows instead of dense `[C,N,·]` (projection and
+    /// rasterization).
     pub packed: bool,
 }
 

@@ -22,12 +22,16 @@ use crate::train::state;
 /// [`CaseSpec::new`] for the defaults.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CaseSpec {
-    /// `rasterize`, `deform`, `loss` or `step`.
+    /// Any of [`super::STAGES`]: `rasterize`, `deform`, `loss`, `step` or a
+    /// `gsplat_*` stage.
     pub stage: String,
+    /// Precision of every floating-point tensor (F32 or F64).
     pub precision: Precision,
+    /// Seed of the random streams the inputs are drawn from.
     pub seed: u64,
-    /// Image size (rasterize, loss, step).
+    /// Image width in pixels (rasterize, loss, step, gsplat).
     pub width: usize,
+    /// Image height in pixels (rasterize, loss, step, gsplat).
     pub height: usize,
     /// Gaussians (rasterize: in view, plus one beside it whose tangent clamp
     /// is active; deform: points; step: Gaussians).
@@ -361,9 +365,11 @@ fn new_step<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
 /// [`CaseSpec::new`]. Each entry is generated in f32 and f64.
 #[derive(Clone, Copy, Debug)]
 pub struct GoldenEntry {
+    /// The stage name (metadata `stage`).
     pub stage: &'static str,
     /// Appended to the file name after the dtype (`<stage>_<dtype>_<variant>`).
     pub variant: Option<&'static str>,
+    /// Changes the entry makes to [`CaseSpec::new`]'s defaults.
     pub configure: fn(&mut CaseSpec),
 }
 

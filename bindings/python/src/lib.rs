@@ -7,9 +7,12 @@
 //! (`liquid_splat`) builds its stage functions, fields, testing helpers and
 //! torch wrappers on these few functions.
 //!
-//! At the boundary: arrays must be numpy arrays of float32, float64 or int32
-//! in C order (a `TypeError` or `ValueError` names the tensor, what was
-//! expected and what was found); case inputs must be finite; library errors
+//! At the boundary: numpy arrays and the library's tensors
+//! ([`liquid_splat::io::Tensor`], ndarray arrays) convert into each other
+//! directly, shape and dtype kept. Arrays must be numpy arrays of float32,
+//! float64 or int32 in C order (a `TypeError` or `ValueError` names the
+//! tensor, what was expected and what was found); case inputs must be
+//! finite; library errors
 //! become `ValueError` (`TypeError` for a wrong dtype); a panic becomes a
 //! `RuntimeError` instead of crossing the boundary; the GIL is released
 //! during every computation.
