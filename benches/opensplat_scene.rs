@@ -176,13 +176,13 @@ fn main() {
         let (mut fwd, mut bwd, mut fwd_cpu, mut bwd_cpu) = (0.0, 0.0, 0u64, 0u64);
         let reps = reps.max(1);
         pool.install(|| {
-            for k in 0..cams.len() {
+            for (k, grad) in grads.iter().enumerate() {
                 let (mut f, mut b) = (f64::INFINITY, f64::INFINITY);
                 for _ in 0..reps {
                     let (c0, t0) = (cpu_ns(), Instant::now());
                     let (_, saved) = rasterize(&input(k)).expect("rasterize");
                     let (c1, t1) = (cpu_ns(), Instant::now());
-                    rasterize_vjp(&input(k), &saved, &grads[k], None, GradientMode::Exact)
+                    rasterize_vjp(&input(k), &saved, grad, None, GradientMode::Exact)
                         .expect("rasterize_vjp");
                     let (c2, t2) = (cpu_ns(), Instant::now());
                     f = f.min((t1 - t0).as_secs_f64());
