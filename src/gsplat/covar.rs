@@ -110,7 +110,9 @@ fn mat_vjp<T: Real>(q: [T; 4], s: [T; 3], g: &Mat3<T>, inverse: bool) -> ([T; 4]
 /// (`[00, 01, 02, 11, 12, 22]`) with `triu`; empty when not computed.
 #[derive(Clone, Debug, PartialEq)]
 pub struct CovarPreci<T> {
+    /// Covariances `Σ = R·S·Sᵀ·Rᵀ`.
     pub covars: Vec<T>,
+    /// Precision matrices `Σ⁻¹`.
     pub precis: Vec<T>,
 }
 

@@ -50,6 +50,7 @@ pub struct IsectInput<'a, T> {
     pub depths: &'a [T],
     /// `[M, 3]` and `[M]`: required for [`TileRule::AccuTile`].
     pub conics: Option<&'a [T]>,
+    /// `[M]` activated opacities (with `conics`, for [`TileRule::AccuTile`]).
     pub opacities: Option<&'a [T]>,
     /// Image of each entry: `[M]` (packed `camera_ids`); `None` for dense,
     /// where the image is `entry / n`.

@@ -43,11 +43,17 @@ use rayon::prelude::*;
 /// One camera: world-to-camera rotation and translation, pinhole intrinsics.
 #[derive(Clone, Copy, Debug)]
 pub struct Camera<T> {
+    /// World-to-camera rotation.
     pub r: Mat3<T>,
+    /// World-to-camera translation.
     pub t: [T; 3],
+    /// Focal length in x, pixels.
     pub fx: T,
+    /// Focal length in y, pixels.
     pub fy: T,
+    /// Principal point x, pixels.
     pub cx: T,
+    /// Principal point y, pixels.
     pub cy: T,
 }
 
@@ -84,7 +90,12 @@ impl<T: Real> Camera<T> {
 #[derive(Clone, Copy, Debug)]
 pub enum Covars<'a, T> {
     /// `quats [N,4]` (w, x, y, z; normalised inside), activated `scales [N,3]`.
-    QuatScale { quats: &'a [T], scales: &'a [T] },
+    QuatScale {
+        /// `[N, 4]` quaternions (w, x, y, z).
+        quats: &'a [T],
+        /// `[N, 3]` activated scales.
+        scales: &'a [T],
+    },
     /// `covars [N,6]`: `[00, 01, 02, 11, 12, 22]`.
     Triu(&'a [T]),
 }
@@ -92,13 +103,21 @@ pub enum Covars<'a, T> {
 /// The settings of `fully_fused_projection` (gsplat's keyword arguments).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ProjectionSettings {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Blur added to the 2D covariance's diagonal (pixels²).
     pub eps2d: f64,
+    /// Entries with camera-space z at or below this are culled.
     pub near_plane: f64,
+    /// Entries with camera-space z at or above this are culled.
     pub far_plane: f64,
+    /// Entries whose radius is at most this many pixels are culled (0: none).
     pub radius_clip: f64,
+    /// Whether to compute the antialiasing compensations.
     pub calc_compensations: bool,
+    /// The gsplat version whose conventions apply.
     pub version: Version,
 }
 
@@ -124,6 +143,7 @@ impl ProjectionSettings {
 pub struct ProjectionInput<'a, T> {
     /// `[N, 3]`.
     pub means: &'a [T],
+    /// Where the 3D covariances come from.
     pub covars: Covars<'a, T>,
     /// `[N]`, optional: enables the opacity-aware radius and the `1/255` cull.
     pub opacities: Option<&'a [T]>,
@@ -207,7 +227,9 @@ pub mod flags {
 /// Dense outputs `[C, N, ...]`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Projection<T> {
+    /// Number of cameras `C`.
     pub c: usize,
+    /// Number of Gaussians `N`.
     pub n: usize,
     /// `[C, N, 2]` int32; `(0, 0)` for culled entries.
     pub radii: Vec<i32>,
@@ -231,10 +253,15 @@ pub struct Packed<T> {
     pub camera_ids: Vec<i32>,
     /// `[nnz]`.
     pub gaussian_ids: Vec<i32>,
+    /// `[nnz, 2]` int32 radii.
     pub radii: Vec<i32>,
+    /// `[nnz, 2]` pixel-space centres.
     pub means2d: Vec<T>,
+    /// `[nnz]` camera-space z.
     pub depths: Vec<T>,
+    /// `[nnz, 3]` conics.
     pub conics: Vec<T>,
+    /// `[nnz]` compensations, when computed.
     pub compensations: Option<Vec<T>>,
 }
 
@@ -477,9 +504,13 @@ pub fn fully_fused_projection<T: Real>(
 /// `[C,N,3]`, optional `[C,N]`); entries of culled Gaussians are ignored.
 #[derive(Clone, Copy, Debug)]
 pub struct ProjectionCotangents<'a, T> {
+    /// `[C, N, 2]` gradient of `means2d`.
     pub v_means2d: &'a [T],
+    /// `[C, N]` gradient of `depths`.
     pub v_depths: &'a [T],
+    /// `[C, N, 3]` gradient of `conics`.
     pub v_conics: &'a [T],
+    /// `[C, N]` gradient of `compensations`, when computed.
     pub v_compensations: Option<&'a [T]>,
 }
 
@@ -490,6 +521,7 @@ pub struct ProjectionGrads<T> {
     pub v_means: Vec<T>,
     /// `[N, 4]` and `[N, 3]` for quats/scales input; empty for covars.
     pub v_quats: Vec<T>,
+    /// `[N, 3]` scale gradient for quats/scales input; empty for covars.
     pub v_scales: Vec<T>,
     /// `[N, 6]` for covars input (an off-diagonal slot's gradient is w.r.t.
     /// the scalar filling both positions); empty otherwise.

@@ -44,8 +44,11 @@ pub struct RasterInput<'a, T> {
     pub backgrounds: Option<&'a [T]>,
     /// Channels `D`.
     pub channels: usize,
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Tile side in pixels.
     pub tile_size: usize,
     /// `[I, tile_height, tile_width]`.
     pub isect_offsets: &'a [i32],

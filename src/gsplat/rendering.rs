@@ -32,11 +32,19 @@ use crate::math::Real;
 #[derive(Clone, Copy, Debug)]
 pub enum Colors<'a, T> {
     /// Post-activation colours `[N, D]`, used as given.
-    Post { colors: &'a [T], channels: usize },
+    Post {
+        /// `[N, D]` colours.
+        colors: &'a [T],
+        /// Channels `D`.
+        channels: usize,
+    },
     /// SH coefficients `[N, K, 3]` with `sh_degree` (`(degree+1)² ≤ K`).
     Sh {
+        /// `[N, K, 3]` coefficients.
         coeffs: &'a [T],
+        /// Coefficients per Gaussian `K`.
         k: usize,
+        /// SH degree evaluated.
         degree: usize,
     },
 }
@@ -55,18 +63,21 @@ impl<T> Colors<'_, T> {
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum RasterizeMode {
     #[default]
+    /// Opacities used as given.
     Classic,
     /// Opacities multiplied by the EWA-blur compensation (Mip-Splatting's 2D filter).
     Antialiased,
 }
 
 impl RasterizeMode {
+    /// The mode's name as gsplat spells it (`classic`, `antialiased`).
     pub fn name(self) -> &'static str {
         match self {
             RasterizeMode::Classic => "classic",
             RasterizeMode::Antialiased => "antialiased",
         }
     }
+    /// The mode called `s` (see [`RasterizeMode::name`]).
     pub fn from_name(s: &str) -> Result<Self> {
         match s.trim() {
             "classic" => Ok(RasterizeMode::Classic),
@@ -82,15 +93,25 @@ impl RasterizeMode {
 /// `rasterization`'s keyword arguments.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct RasterizationSettings {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
+    /// Entries with camera-space z at or below this are culled.
     pub near_plane: f64,
+    /// Entries with camera-space z at or above this are culled.
     pub far_plane: f64,
+    /// Entries whose radius is at most this many pixels are culled (0: none).
     pub radius_clip: f64,
+    /// Blur added to the 2D covariance's diagonal (pixels²).
     pub eps2d: f64,
+    /// The packed layout (visible entries only) instead of the dense one.
     pub packed: bool,
+    /// Tile side in pixels.
     pub tile_size: usize,
+    /// Classic or antialiased.
     pub rasterize_mode: RasterizeMode,
+    /// The gsplat version whose conventions apply.
     pub version: Version,
 }
 
@@ -136,6 +157,7 @@ pub struct RasterizationInput<'a, T> {
     pub covars: Covars<'a, T>,
     /// `[N]` activated.
     pub opacities: &'a [T],
+    /// Post-activation colours or SH coefficients.
     pub colors: Colors<'a, T>,
     /// `[C, 4, 4]`.
     pub viewmats: &'a [T],
@@ -164,7 +186,9 @@ pub struct Rasterization<T> {
     pub isects: Isects,
     /// `meta["isect_offsets"]` `[C, tile_height, tile_width]`.
     pub isect_offsets: Vec<i32>,
+    /// Tiles per image row.
     pub tile_width: usize,
+    /// Tiles per image column.
     pub tile_height: usize,
     /// The rasterizer's outputs (final transmittance, `last_ids`).
     pub raster: RasterOutput<T>,
@@ -175,10 +199,15 @@ pub struct Rasterization<T> {
 /// Gradients of `rasterization`'s inputs (and of `meta["means2d"]`).
 #[derive(Clone, Debug, PartialEq)]
 pub struct RasterizationGrads<T> {
+    /// `[N, 3]`.
     pub v_means: Vec<T>,
+    /// `[N, 4]` for quats/scales input; empty for covars.
     pub v_quats: Vec<T>,
+    /// `[N, 3]` for quats/scales input; empty for covars.
     pub v_scales: Vec<T>,
+    /// `[N, 6]` for covars input; empty for quats/scales.
     pub v_covars: Vec<T>,
+    /// `[N]`.
     pub v_opacities: Vec<T>,
     /// `[N, D]` or `[N, K, 3]` (zero above the degree).
     pub v_colors: Vec<T>,
@@ -187,6 +216,7 @@ pub struct RasterizationGrads<T> {
     /// Per row `[rows, 2]` (packed `[nnz, 2]`, dense `[C, N, 2]`): the
     /// gradient of `meta["means2d"]`, in pixels, and its `absgrad`.
     pub v_means2d: Vec<T>,
+    /// Per row, like `v_means2d`: gsplat's `absgrad` (sums of absolute per-pixel gradients).
     pub v_means2d_abs: Vec<T>,
 }
 

@@ -73,9 +73,13 @@ pub fn decisions<T: Real>(input: &RasterInput<T>, ndc_offset: Option<&[T]>) -> R
 /// Which scene variant a check uses.
 #[derive(Clone, Debug)]
 pub struct CheckCase {
+    /// Case name in reports.
     pub name: String,
+    /// The random scene drawn.
     pub spec: SceneSpec,
+    /// Colour input variant.
     pub colors: ColorSource,
+    /// Covariance input variant.
     pub cov: CovSource,
     /// Include a depth cotangent.
     pub depth: bool,
@@ -84,9 +88,13 @@ pub struct CheckCase {
 /// Result of one case: the scene seed actually used and one report per input group.
 #[derive(Clone, Debug)]
 pub struct CaseReport {
+    /// Case name.
     pub name: String,
+    /// Seed of the scene actually used.
     pub seed: u64,
+    /// One report per input group.
     pub groups: Vec<GroupReport>,
+    /// Which rasterizer features the scene exercised.
     pub features: Features,
 }
 

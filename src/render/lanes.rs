@@ -202,6 +202,8 @@ mod x86 {
                 type Output = Self;
                 #[inline(always)]
                 fn $f(self, o: Self) -> Self {
+                    // SAFETY: AVX-512F is present (this type only lives in functions
+                    // compiled with it, reached after run-time detection).
                     Avx512(unsafe { $intr(self.0, o.0) })
                 }
             }
@@ -215,6 +217,8 @@ mod x86 {
         type Output = Self;
         #[inline(always)]
         fn neg(self) -> Self {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe {
                 Avx512(_mm512_castsi512_ps(_mm512_xor_si512(
                     _mm512_castps_si512(self.0),
@@ -229,26 +233,40 @@ mod x86 {
         type M = u16;
         #[inline(always)]
         fn splat(v: f32) -> Self {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             Avx512(unsafe { _mm512_set1_ps(v) })
         }
         #[inline(always)]
         fn load(a: &[f32; LANES]) -> Self {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection); the pointer
+            // addresses a 16-element array.
             Avx512(unsafe { _mm512_loadu_ps(a.as_ptr()) })
         }
         #[inline(always)]
         fn store(self, a: &mut [f32; LANES]) {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection); the pointer
+            // addresses a 16-element array.
             unsafe { _mm512_storeu_ps(a.as_mut_ptr(), self.0) }
         }
         #[inline(always)]
         fn lt(self, o: Self) -> u16 {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe { _mm512_cmp_ps_mask::<_CMP_LT_OQ>(self.0, o.0) }
         }
         #[inline(always)]
         fn gt(self, o: Self) -> u16 {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe { _mm512_cmp_ps_mask::<_CMP_GT_OQ>(self.0, o.0) }
         }
         #[inline(always)]
         fn select(m: u16, a: Self, b: Self) -> Self {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             Avx512(unsafe { _mm512_mask_blend_ps(m, b.0, a.0) })
         }
         #[inline(always)]
@@ -269,6 +287,8 @@ mod x86 {
         }
         #[inline(always)]
         fn tree_sum(self) -> f32 {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe {
                 let lo = _mm512_castps512_ps256(self.0);
                 let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(self.0)));
@@ -277,6 +297,8 @@ mod x86 {
         }
         #[inline(always)]
         fn exp(self) -> Self {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe {
                 // clamp(x, −104, 89) as f32::clamp: NaN stays NaN (max/min
                 // return their second operand when one is NaN).
@@ -319,6 +341,8 @@ mod x86 {
                 type Output = Self;
                 #[inline(always)]
                 fn $f(self, o: Self) -> Self {
+                    // SAFETY: AVX2 is present (this type only lives in functions
+                    // compiled with it, reached after run-time detection).
                     unsafe { Avx2([$intr(self.0[0], o.0[0]), $intr(self.0[1], o.0[1])]) }
                 }
             }
@@ -332,6 +356,8 @@ mod x86 {
         type Output = Self;
         #[inline(always)]
         fn neg(self) -> Self {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe {
                 let m = _mm256_set1_ps(-0.0);
                 Avx2([_mm256_xor_ps(self.0[0], m), _mm256_xor_ps(self.0[1], m)])
@@ -342,6 +368,8 @@ mod x86 {
     /// [`crate::kernels::fastmath::exp_f32`] on 8 lanes.
     #[inline(always)]
     fn exp8(x: __m256) -> __m256 {
+        // SAFETY: AVX2 is present (only called from `Avx2` methods, which run in
+        // functions compiled with it, reached after run-time detection).
         unsafe {
             let xc = _mm256_min_ps(
                 _mm256_set1_ps(89.0),
@@ -378,6 +406,8 @@ mod x86 {
     /// The last three levels of [`Lanes::tree_sum`] on `a[l] = v[l] + v[l + 8]`.
     #[inline(always)]
     fn sum8(a: __m256) -> f32 {
+        // SAFETY: AVX2 is present (only called from `Avx2` and `Avx512` methods, which run in
+        // functions compiled with it, reached after run-time detection).
         unsafe {
             // b[l] = a[l] + a[l + 4]
             let b = _mm_add_ps(_mm256_castps256_ps128(a), _mm256_extractf128_ps::<1>(a));
@@ -392,6 +422,8 @@ mod x86 {
     /// All-ones in the lanes of `h`'s low 8 bits.
     #[inline(always)]
     fn mask8(h: i32) -> __m256 {
+        // SAFETY: AVX2 is present (only called from `Avx2` methods, which run in
+        // functions compiled with it, reached after run-time detection).
         unsafe {
             let sel = _mm256_setr_epi32(1, 2, 4, 8, 16, 32, 64, 128);
             let v = _mm256_and_si256(_mm256_set1_epi32(h), sel);
@@ -405,10 +437,15 @@ mod x86 {
         type M = [__m256; 2];
         #[inline(always)]
         fn splat(v: f32) -> Self {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe { Avx2([_mm256_set1_ps(v); 2]) }
         }
         #[inline(always)]
         fn load(a: &[f32; LANES]) -> Self {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection); the pointer
+            // addresses a 16-element array.
             unsafe {
                 Avx2([
                     _mm256_loadu_ps(a.as_ptr()),
@@ -418,6 +455,9 @@ mod x86 {
         }
         #[inline(always)]
         fn store(self, a: &mut [f32; LANES]) {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection); the pointer
+            // addresses a 16-element array.
             unsafe {
                 _mm256_storeu_ps(a.as_mut_ptr(), self.0[0]);
                 _mm256_storeu_ps(a.as_mut_ptr().add(8), self.0[1]);
@@ -425,6 +465,8 @@ mod x86 {
         }
         #[inline(always)]
         fn lt(self, o: Self) -> Self::M {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe {
                 [
                     _mm256_cmp_ps::<_CMP_LT_OQ>(self.0[0], o.0[0]),
@@ -434,6 +476,8 @@ mod x86 {
         }
         #[inline(always)]
         fn gt(self, o: Self) -> Self::M {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe {
                 [
                     _mm256_cmp_ps::<_CMP_GT_OQ>(self.0[0], o.0[0]),
@@ -443,6 +487,8 @@ mod x86 {
         }
         #[inline(always)]
         fn select(m: Self::M, a: Self, b: Self) -> Self {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe {
                 Avx2([
                     _mm256_blendv_ps(b.0[0], a.0[0], m[0]),
@@ -452,15 +498,21 @@ mod x86 {
         }
         #[inline(always)]
         fn and(a: Self::M, b: Self::M) -> Self::M {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe { [_mm256_and_ps(a[0], b[0]), _mm256_and_ps(a[1], b[1])] }
         }
         #[inline(always)]
         fn andnot(a: Self::M, b: Self::M) -> Self::M {
             // _mm256_andnot_ps(x, y) = !x & y.
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe { [_mm256_andnot_ps(b[0], a[0]), _mm256_andnot_ps(b[1], a[1])] }
         }
         #[inline(always)]
         fn bits(m: Self::M) -> u16 {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe { (_mm256_movemask_ps(m[0]) as u16) | ((_mm256_movemask_ps(m[1]) as u16) << 8) }
         }
         #[inline(always)]
@@ -469,6 +521,8 @@ mod x86 {
         }
         #[inline(always)]
         fn tree_sum(self) -> f32 {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
             unsafe { sum8(_mm256_add_ps(self.0[0], self.0[1])) }
         }
         #[inline(always)]

@@ -77,8 +77,11 @@ pub enum Colors<'a, T> {
     /// SH coefficients `[N, stride, 3]`, evaluated up to `degree` (≤ 3,
     /// `(degree+1)² ≤ stride`).
     Sh {
+        /// `[N, stride, 3]` coefficients.
         coeffs: &'a [T],
+        /// Coefficients per Gaussian.
         stride: usize,
+        /// SH degree evaluated.
         degree: usize,
     },
     /// RGB per Gaussian, `[N, 3]`, used as given (no clamp).
@@ -91,8 +94,11 @@ pub enum Covariances<'a, T> {
     /// Activated scales `[N, 3]`, unnormalised quaternions `[N, 4]` (w, x, y, z)
     /// and the global `scale_modifier`.
     ScaleRotation {
+        /// `[N, 3]` activated scales.
         scales: &'a [T],
+        /// `[N, 4]` quaternions (w, x, y, z), normalised inside.
         rotations: &'a [T],
+        /// Global factor on every scale.
         scale_modifier: T,
     },
     /// `[N, 6]`: `[Σ00, Σ01, Σ02, Σ11, Σ12, Σ22]`.
@@ -104,11 +110,15 @@ pub enum Covariances<'a, T> {
 pub struct RasterInput<'a, T> {
     /// `[N, 3]` world-space means.
     pub means3d: &'a [T],
+    /// Where colours come from.
     pub colors: Colors<'a, T>,
     /// `[N]` activated opacities.
     pub opacities: &'a [T],
+    /// Where 3D covariances come from.
     pub covariances: Covariances<'a, T>,
+    /// The camera.
     pub camera: &'a RasterCamera<T>,
+    /// Background colour composited behind the Gaussians.
     pub background: [T; 3],
 }
 

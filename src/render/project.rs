@@ -139,6 +139,7 @@ fn ewa<T: Real>(k: &Intrinsics<T>, t: [T; 3]) -> Ewa<T> {
     let j12 = -(k.fy * ty) / tz2;
     // glm: T = W·J, element (r, c) = Σ_k Wr(k, r)·J(c, k); the zero entries of J are skipped.
     let mut a = [[T::ZERO; 3]; 2];
+    #[allow(clippy::needless_range_loop)] // indices as in the formula
     for r in 0..3 {
         a[0][r] = k.wr(0, r) * j00 + k.wr(2, r) * j02;
         a[1][r] = k.wr(1, r) * j11 + k.wr(2, r) * j12;
@@ -178,6 +179,7 @@ pub(crate) fn project<T: Real>(
     let v = sym3(cov3d);
     // X = A·V (rows 0, 1), cov(r, c) = Σ_k X(r, k)·A(c, k).
     let mut x = [[T::ZERO; 3]; 2];
+    #[allow(clippy::needless_range_loop)] // indices as in the formula
     for r in 0..2 {
         for c in 0..3 {
             x[r][c] = e.a[r][0] * v[0][c] + e.a[r][1] * v[1][c] + e.a[r][2] * v[2][c];

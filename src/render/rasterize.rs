@@ -407,6 +407,7 @@ pub(crate) fn path<T: Real>() -> Path {
 /// `T` is `f32`.
 #[cfg(target_arch = "x86_64")]
 pub(crate) unsafe fn as_f32<X, Y>(x: &mut X) -> &mut Y {
+    // SAFETY: the caller guarantees `T` is `f32`, so `X` and `Y` are the same type.
     unsafe { &mut *(x as *mut X as *mut Y) }
 }
 

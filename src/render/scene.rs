@@ -11,21 +11,27 @@ use crate::math::{Real, Rng};
 /// Which colour input a scene feeds the rasterizer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ColorSource {
+    /// SH coefficients.
     Sh,
+    /// Precomputed RGB colours.
     Precomputed,
 }
 
 /// Which covariance input a scene feeds the rasterizer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum CovSource {
+    /// Scales and rotations.
     ScaleRotation,
+    /// Precomputed 3D covariances.
     Precomputed,
 }
 
 /// How to draw a random scene.
 #[derive(Clone, Debug)]
 pub struct SceneSpec {
+    /// Image width in pixels.
     pub width: usize,
+    /// Image height in pixels.
     pub height: usize,
     /// Gaussians inside the view volume.
     pub count: usize,
@@ -43,6 +49,7 @@ pub struct SceneSpec {
     pub sh_degree: usize,
     /// Horizontal field of view in radians.
     pub fov_x: f64,
+    /// Seed of every random draw.
     pub seed: u64,
 }
 
@@ -83,21 +90,29 @@ impl SceneSpec {
 /// A scene's camera and per-Gaussian parameters (every input variant).
 #[derive(Clone, Debug)]
 pub struct Scene<T> {
+    /// The camera.
     pub camera: Camera,
+    /// The camera as the rasterizer receives it.
     pub raster_camera: RasterCamera<T>,
+    /// `[N, 3]` world-space means.
     pub means3d: Vec<T>,
     /// `[N, 16, 3]`.
     pub sh: Vec<T>,
+    /// SH degree the scene evaluates.
     pub sh_degree: usize,
     /// `[N, 3]`.
     pub colors: Vec<T>,
+    /// `[N]` activated opacities.
     pub opacities: Vec<T>,
+    /// `[N, 3]` activated scales.
     pub scales: Vec<T>,
     /// Unnormalised quaternions.
     pub rotations: Vec<T>,
     /// `cov3d` of the scales and rotations, `[N, 6]`.
     pub cov3d: Vec<T>,
+    /// Global factor on every scale.
     pub scale_modifier: T,
+    /// Background colour.
     pub background: [T; 3],
 }
 
