@@ -188,10 +188,7 @@ pub fn save<T: Real>(
         ),
     );
     f.set_meta("crate_version", env!("CARGO_PKG_VERSION"));
-    trainer
-        .field
-        .to_tensor_file()
-        .save(&partial.join(FIELD_FILE))?;
+    crate::oracle::field::field_to_tensor_file(&trainer.field).save(&partial.join(FIELD_FILE))?;
     f.set_meta("field_hash", format!("{:016x}", field_hash(&trainer.field)));
     let ply_path = partial.join(PLY_FILE);
     ply::write_gaussians(&ply_path, g)?;
@@ -292,7 +289,7 @@ fn load_checked<T: Real>(
     gaussians.validate()?;
     let field_path = ckpt.join(FIELD_FILE);
     let field_file = TensorFile::load(&field_path)?;
-    let field = Field::<T>::from_tensor_file(config.field, &field_file)?;
+    let field = crate::oracle::field::field_from_tensor_file::<T>(config.field, &field_file)?;
     let hex = |key: &str| -> Result<u64> {
         let s = f.meta(key)?;
         u64::from_str_radix(s, 16).map_err(|_| {

@@ -15,7 +15,7 @@ use super::cameras::CameraSampler;
 use super::config::TrainConfig;
 use super::deformed::{deform_gaussians, deform_gaussians_vjp, Offsets};
 use crate::camera::{Camera, RasterCamera};
-use crate::deform::{Field, FieldCache};
+use crate::deform::{Field, FieldSaved};
 use crate::densify::{densify_and_prune, reset_opacity, DensifyReport, DensifyStats};
 use crate::error::{Error, Result};
 use crate::gaussians::Gaussians;
@@ -182,7 +182,7 @@ pub struct Gradients<T> {
 
 /// The forward pass of one view, kept for the backward.
 struct Forward<T> {
-    offsets: Option<(Offsets<T>, FieldCache<T>)>,
+    offsets: Option<(Offsets<T>, FieldSaved<T>)>,
     scales: Vec<T>,
     rotations: Vec<T>,
     means: Vec<T>,
