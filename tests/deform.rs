@@ -75,7 +75,7 @@ fn clear_relu_kinks(field: &mut Field<f64>, xyz: &[f64], t: &[f64], margin: f64)
         scalar_cfc
     };
     for _ in 0..64 {
-        let file = field.to_tensor_file();
+        let file = liquid_splat::oracle::field::field_to_tensor_file(field);
         RELU_PRE.with(|r| r.borrow_mut().clear());
         let mut per_row = Vec::new();
         for i in 0..t.len() {
@@ -219,7 +219,7 @@ fn warp_heads(field: &Field<f64>, xyz: &[f64], t: &[f64]) -> Vec<f64> {
     if !cfg.is_6dof {
         return Vec::new();
     }
-    let file = field.to_tensor_file();
+    let file = liquid_splat::oracle::field::field_to_tensor_file(field);
     (0..t.len())
         .flat_map(|i| {
             let h = mlp_trunk(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
@@ -363,7 +363,7 @@ fn mlp_6dof_theta_zero_is_finite_and_defined() {
     let (xyz, t) = inputs(41, n);
     let (d, cache) = field.forward(&xyz, &t).unwrap();
     // d_xyz is the branch_v output itself (R = I, p = v).
-    let file = field.to_tensor_file();
+    let file = liquid_splat::oracle::field::field_to_tensor_file(&field);
     for i in 0..n {
         let h = mlp_trunk(&file, &cfg, &xyz[3 * i..3 * i + 3], t[i]);
         let v = lin(&file, "branch_v", &h);
@@ -543,7 +543,7 @@ fn forward_matches_scalar_reimplementation() {
         ),
     ] {
         let field = Field::<f64>::new(cfg, 3).unwrap();
-        let file = field.to_tensor_file();
+        let file = liquid_splat::oracle::field::field_to_tensor_file(&field);
         let (xyz, t) = inputs(4, n);
         let (d, _) = field.forward(&xyz, &t).unwrap();
         for i in 0..n {
@@ -648,31 +648,36 @@ fn fields_are_bit_identical_across_thread_counts() {
 fn weight_file_round_trip_and_errors() {
     let cfg = config(FieldKind::Cfc, Variant::Synthetic, 2, 8, Activation::Gelu);
     let field = Field::<f32>::new(cfg, 1).unwrap();
-    let bytes = field.to_tensor_file().to_bytes().unwrap();
+    let bytes = liquid_splat::oracle::field::field_to_tensor_file(&field)
+        .to_bytes()
+        .unwrap();
     let file = TensorFile::from_bytes(std::path::Path::new("w.safetensors"), &bytes).unwrap();
-    assert_eq!(FieldConfig::from_meta(&file).unwrap(), cfg);
-    let back = Field::<f32>::from_tensor_file(cfg, &file).unwrap();
+    assert_eq!(
+        liquid_splat::oracle::field::config_from_meta(&file).unwrap(),
+        cfg
+    );
+    let back = liquid_splat::oracle::field::field_from_tensor_file::<f32>(cfg, &file).unwrap();
     let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
     assert_eq!(bits(back.params()), bits(field.params()));
     assert_eq!(back.layout(), field.layout());
 
     let mut missing = file.clone();
     missing.tensors.remove("cells.1.time_b.bias");
-    let e = Field::<f32>::from_tensor_file(cfg, &missing)
+    let e = liquid_splat::oracle::field::field_from_tensor_file::<f32>(cfg, &missing)
         .unwrap_err()
         .to_string();
     assert!(e.contains("cells.1.time_b.bias"), "{e}");
 
     let mut extra = file.clone();
     extra.insert_real::<f32>("cells.2.ff1.weight", vec![1], &[0.0]);
-    let e = Field::<f32>::from_tensor_file(cfg, &extra)
+    let e = liquid_splat::oracle::field::field_from_tensor_file::<f32>(cfg, &extra)
         .unwrap_err()
         .to_string();
     assert!(e.contains("cells.2.ff1.weight"), "{e}");
 
     let mut bad = file.clone();
     bad.insert_real::<f32>("skip.weight", vec![93, 8], &[0.0; 93 * 8]);
-    let e = Field::<f32>::from_tensor_file(cfg, &bad)
+    let e = liquid_splat::oracle::field::field_from_tensor_file::<f32>(cfg, &bad)
         .unwrap_err()
         .to_string();
     assert!(
@@ -680,7 +685,7 @@ fn weight_file_round_trip_and_errors() {
         "{e}"
     );
 
-    let e = Field::<f64>::from_tensor_file(cfg, &file)
+    let e = liquid_splat::oracle::field::field_from_tensor_file::<f64>(cfg, &file)
         .unwrap_err()
         .to_string();
     assert!(e.contains("F64"), "{e}");
@@ -815,7 +820,7 @@ fn oracle_stage_matches_direct_calls() {
             d_rotation: cotangent(2, 4 * n),
             d_scaling: cotangent(3, 3 * n),
         };
-        let mut case = field.to_tensor_file();
+        let mut case = liquid_splat::oracle::field::field_to_tensor_file(&field);
         case.set_meta("stage", "deform");
         case.insert_real("xyz", vec![n, 3], &xyz);
         case.insert_real("t", vec![n, 1], &t);

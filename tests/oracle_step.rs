@@ -145,8 +145,8 @@ fn adam_update_and_statistics_match_hand_computation() {
         );
         // Field state is flat in layout order; find the weight's offset.
         let offset = if group == "field" {
-            let spec = liquid_splat::deform::Field::<f64>::from_tensor_file(
-                liquid_splat::deform::FieldConfig::from_meta(&c).unwrap(),
+            let spec = liquid_splat::oracle::field::field_from_tensor_file::<f64>(
+                liquid_splat::oracle::field::config_from_meta(&c).unwrap(),
                 &field_weights(&c),
             )
             .unwrap();

@@ -37,8 +37,8 @@ use super::encoding::{encode, encoded_dim};
 use super::linear::InputGrad;
 use super::profile;
 use super::{
-    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
-    XYZ_LEVELS,
+    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
+    TimeEmbeddingSaved, XYZ_LEVELS,
 };
 use crate::kernels::fastmath::{self, multiversion};
 use crate::kernels::matmul::{column_sums, matmul, matmul_from_parts_then, matmul_tn, MatRef};
@@ -89,7 +89,7 @@ struct CellCache<T> {
 
 /// What the CfC field's backward needs.
 pub(crate) struct CfcCache<T> {
-    time: TimeCache<T>,
+    time: TimeEmbeddingSaved<T>,
     /// `u = [γ(x) | t_feat]` `[n, |u|]`.
     u: Vec<T>,
     cells: Vec<CellCache<T>>,

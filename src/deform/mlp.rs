@@ -18,8 +18,8 @@ use super::linear::InputGrad;
 use super::profile;
 use super::se3;
 use super::{
-    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
-    XYZ_LEVELS,
+    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
+    TimeEmbeddingSaved, XYZ_LEVELS,
 };
 use crate::math::Real;
 
@@ -40,7 +40,7 @@ pub(crate) struct MlpNet {
 
 /// What the MLP's backward needs.
 pub(crate) struct MlpCache<T> {
-    time: TimeCache<T>,
+    time: TimeEmbeddingSaved<T>,
     /// `γ(x)` `[n, 63]` and `t_feat`: the two blocks of `h₀`, kept apart
     /// (layer 0 and the layer after the skip read them as column blocks of
     /// their input, so `h₀` and the skip's concatenation are never built).

@@ -49,10 +49,14 @@
 use crate::math::Real;
 use std::sync::atomic::{AtomicU8, Ordering};
 
-/// Maximum errors in ulp asserted by the tests (see the module docs).
+/// Maximum error of [`exp_f32`] in ulp, asserted by the tests (see the
+/// module docs).
 pub const EXP_MAX_ULP: u32 = 1;
+/// Maximum error of [`tanh_f32`] in ulp.
 pub const TANH_MAX_ULP: u32 = 1;
+/// Maximum error of [`sigmoid_f32`] in ulp.
 pub const SIGMOID_MAX_ULP: u32 = 2;
+/// Maximum error of [`erf_f32`] in ulp (normal results).
 pub const ERF_MAX_ULP: u32 = 2;
 
 /// `e^x` in f32.
@@ -394,6 +398,8 @@ macro_rules! multiversion {
                 match $crate::kernels::fastmath::isa() {
                     // SAFETY: the CPU supports the feature (checked by isa()).
                     $crate::kernels::fastmath::Isa::Avx512 => return unsafe { avx512::<T>($($arg),*) },
+                    // SAFETY: as above (isa() returns Avx2 only where AVX2
+                    // and FMA are present).
                     $crate::kernels::fastmath::Isa::Avx2 => return unsafe { avx2::<T>($($arg),*) },
                     $crate::kernels::fastmath::Isa::Baseline => {}
                 }

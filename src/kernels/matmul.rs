@@ -39,10 +39,15 @@ const ROW_BLOCK: usize = 48;
 /// A read-only matrix view with arbitrary row and column strides.
 #[derive(Clone, Copy, Debug)]
 pub struct MatRef<'a, T> {
+    /// The elements; `(r, c)` is at `r·row_stride + c·col_stride`.
     pub data: &'a [T],
+    /// Number of rows.
     pub rows: usize,
+    /// Number of columns.
     pub cols: usize,
+    /// Distance in elements between consecutive rows.
     pub row_stride: usize,
+    /// Distance in elements between consecutive columns.
     pub col_stride: usize,
 }
 
@@ -452,8 +457,11 @@ enum ASource<'a, T> {
 /// Which compiled version of the micro-kernel runs.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum KernelPath {
+    /// The AVX-512F tile (12 rows × 2 vectors).
     Avx512,
+    /// The AVX2 + FMA tile (6 rows × 2 vectors).
     Avx2,
+    /// The portable loop (4 × 8), the build target's baseline.
     Baseline,
 }
 

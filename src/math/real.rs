@@ -17,7 +17,9 @@ use std::ops::{Add, AddAssign, Div, DivAssign, Mul, MulAssign, Neg, Sub, SubAssi
 /// Element type of a tensor file, selected by the precision of the data.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Precision {
+    /// IEEE binary32.
     F32,
+    /// IEEE binary64.
     F64,
 }
 
@@ -54,41 +56,65 @@ pub trait Real:
     + Sum
     + 'static
 {
+    /// `0.0`.
     const ZERO: Self;
+    /// `1.0`.
     const ONE: Self;
+    /// Which of the two types this is.
     const PRECISION: Precision;
     /// Bytes per element.
     const SIZE: usize;
 
     /// Round an `f64` to the nearest representable value.
     fn from_f64(x: f64) -> Self;
+    /// The value as an `f64` (exact).
     fn to_f64(self) -> f64;
+    /// From an `f32` (exact).
     fn from_f32(x: f32) -> Self;
     /// Exact for integers below 2^24 (f32) / 2^53 (f64).
     fn from_usize(x: usize) -> Self {
         Self::from_f64(x as f64)
     }
+    /// The value stored little-endian in the first [`SIZE`](Self::SIZE) bytes.
     fn from_bits_le(bytes: &[u8]) -> Self;
+    /// Append the value's little-endian bytes.
     fn write_le(self, out: &mut Vec<u8>);
     /// Raw IEEE bits widened to u64 (for hashing and bit comparisons).
     fn bits(self) -> u64;
 
+    /// `e^self`.
     fn exp(self) -> Self;
+    /// Natural logarithm.
     fn ln(self) -> Self;
+    /// Square root (correctly rounded).
     fn sqrt(self) -> Self;
+    /// Sine (radians).
     fn sin(self) -> Self;
+    /// Cosine (radians).
     fn cos(self) -> Self;
+    /// Tangent (radians).
     fn tan(self) -> Self;
+    /// Arc tangent (radians).
     fn atan(self) -> Self;
+    /// Hyperbolic tangent.
     fn tanh(self) -> Self;
+    /// Error function.
     fn erf(self) -> Self;
+    /// Base-10 logarithm.
     fn log10(self) -> Self;
+    /// `self^e`.
     fn powf(self, e: Self) -> Self;
+    /// Smallest integer not below `self`.
     fn ceil(self) -> Self;
+    /// Largest integer not above `self`.
     fn floor(self) -> Self;
+    /// The integer part (rounded toward zero).
     fn trunc(self) -> Self;
+    /// Absolute value.
     fn abs(self) -> Self;
+    /// Neither infinite nor NaN.
     fn is_finite(self) -> bool;
+    /// Whether the value is NaN.
     fn is_nan(self) -> bool;
     /// `self · a + b` rounded once (IEEE 754 fusedMultiplyAdd). The result
     /// is exactly specified, so the hardware instruction (used where the
@@ -125,6 +151,7 @@ pub trait Real:
         }
     }
     #[inline(always)]
+    /// `min` as CUDA's `fminf` for non-NaN inputs: the smaller value.
     fn min(self, o: Self) -> Self {
         if o < self {
             o
@@ -133,15 +160,18 @@ pub trait Real:
         }
     }
     #[inline(always)]
+    /// `min(hi, max(lo, self))`.
     fn clamp(self, lo: Self, hi: Self) -> Self {
         // min(hi, max(lo, v)), the order the Inria code uses.
         self.max(lo).min(hi)
     }
     #[inline(always)]
+    /// `1 / self`.
     fn recip(self) -> Self {
         Self::ONE / self
     }
     #[inline(always)]
+    /// `1 / (1 + e^(−self))` with the pinned `exp`.
     fn sigmoid(self) -> Self {
         Self::ONE / (Self::ONE + (-self).exp())
     }

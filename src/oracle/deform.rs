@@ -16,7 +16,7 @@
 //! `(R − I)ᵀ·grad_d_xyz` (PyTorch: `x.grad` of
 //! `from_homogenous(T @ to_homogenous(x)) − x` with the network fed `x.detach()`).
 
-use crate::deform::{Deformation, Field, FieldConfig};
+use crate::deform::Deformation;
 use crate::error::{Error, Result};
 use crate::io::tensor_file::into_row_major;
 use crate::io::TensorFile;
@@ -52,7 +52,7 @@ pub fn run(case: &TensorFile) -> Result<TensorFile> {
 }
 
 fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
-    let config = FieldConfig::from_meta(case)?;
+    let config = crate::oracle::field::config_from_meta(case)?;
     // Weights: every tensor that is not one of the inputs.
     let mut weights = TensorFile::new(&case.path);
     for (name, t) in &case.tensors {
@@ -60,7 +60,7 @@ fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
             weights.tensors.insert(name.clone(), t.clone());
         }
     }
-    let field = Field::<T>::from_tensor_file(config, &weights)?;
+    let field = crate::oracle::field::field_from_tensor_file::<T>(config, &weights)?;
     let xyz = case.real_array::<T>("xyz")?;
     let n = match *xyz.shape() {
         [n, 3] => n,
@@ -84,7 +84,7 @@ fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     let fg = field.backward(&cache, &grad)?;
     let mut out = TensorFile::new(&case.path);
     out.set_meta("stage", "deform");
-    config.to_meta(&mut out);
+    crate::oracle::field::config_to_meta(&config, &mut out);
     out.insert_real("d_xyz", vec![n, 3], &d.d_xyz);
     out.insert_real("d_rotation", vec![n, 4], &d.d_rotation);
     out.insert_real("d_scaling", vec![n, 3], &d.d_scaling);

@@ -14,6 +14,8 @@
 //!
 //! - [`rasterize`]: the Inria rasterizer's forward and backward.
 //! - [`deform`]: the MLP and CfC deformation fields' forward and backward.
+//! - [`field`](mod@field): deformation fields in tensor files (configuration
+//!   metadata and `state_dict` weights), for the case files and checkpoints.
 //! - [`loss`]: L1 + SSIM training loss and its gradient.
 //! - [`step`]: one whole training iteration (field, rasterizer, loss,
 //!   backward, densification statistics, Adam).
@@ -29,6 +31,7 @@
 
 pub mod compare;
 pub mod deform;
+pub mod field;
 pub mod gsplat;
 pub mod loss;
 pub mod new;

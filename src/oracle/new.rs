@@ -229,7 +229,7 @@ fn small_field(spec: &CaseSpec) -> FieldConfig {
 /// `T`) and the configuration as metadata.
 fn field_case<T: Real>(spec: &CaseSpec, config: FieldConfig) -> Result<TensorFile> {
     let field = Field::<f64>::new(config, spec.seed)?;
-    let weights = field.to_tensor_file();
+    let weights = crate::oracle::field::field_to_tensor_file(&field);
     let mut f = TensorFile::new(format!("{}.safetensors", spec.stage));
     f.metadata = weights.metadata.clone();
     for (name, t) in &weights.tensors {

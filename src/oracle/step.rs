@@ -35,7 +35,6 @@
 //! Tensor names, shapes and conventions are in `docs/ORACLE.md`.
 
 use super::rasterize::{read_camera, CAMERA_TENSORS};
-use crate::deform::{Field, FieldConfig};
 use crate::densify::DensifyStats;
 use crate::error::{Error, Result};
 use crate::gaussians::Group;
@@ -97,7 +96,7 @@ fn known_tensors() -> Vec<String> {
 }
 
 fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
-    let field_config = FieldConfig::from_meta(case)?;
+    let field_config = crate::oracle::field::config_from_meta(case)?;
     let gaussians = state::read_gaussians::<T>(case, "")?;
     let n = gaussians.len();
     if n == 0 {
@@ -157,7 +156,7 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
             weights.tensors.insert(name.clone(), t.clone());
         }
     }
-    let field = Field::<T>::from_tensor_file(field_config, &weights)?;
+    let field = crate::oracle::field::field_from_tensor_file::<T>(field_config, &weights)?;
     let mut optimizer =
         state::read_optimizer(case, "", &gaussians, field.param_count(), Source::Case)?;
     let mut stats: DensifyStats<T> = state::read_stats(case, "", n, Source::Case)?;
@@ -185,7 +184,7 @@ fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
 
     let mut out = TensorFile::new(&case.path);
     out.set_meta("stage", STAGE);
-    field_config.to_meta(&mut out);
+    crate::oracle::field::config_to_meta(&field_config, &mut out);
     out.set_meta("active_sh_degree", active_sh_degree);
     out.set_meta("field_on", field_on);
     out.set_meta("time", format!("{time:?}"));

@@ -174,10 +174,7 @@ pub fn save<T: Real>(
     let hash = checkpoint_hash(state_hash, trainer.extent(), model.background, binding);
     f.set_meta("checkpoint_hash", format!("{hash:016x}"));
     f.set_meta("crate_version", env!("CARGO_PKG_VERSION"));
-    model
-        .field
-        .to_tensor_file()
-        .save(&partial.join(FIELD_FILE))?;
+    crate::oracle::field::field_to_tensor_file(&model.field).save(&partial.join(FIELD_FILE))?;
     f.set_meta("field_hash", format!("{:016x}", field_hash(&model.field)));
     let ply_path = partial.join(PLY_FILE);
     ply::write_gaussians(&ply_path, g)?;
@@ -261,7 +258,7 @@ fn load_checked<T: Real>(
     }
     let field_path = ckpt.join(FIELD_FILE);
     let field_file = TensorFile::load(&field_path)?;
-    let field = Field::<T>::from_tensor_file(config.field, &field_file)?;
+    let field = crate::oracle::field::field_from_tensor_file::<T>(config.field, &field_file)?;
     let hex = |key: &str| -> Result<u64> {
         let s = f.meta(key)?;
         u64::from_str_radix(s, 16).map_err(|_| {

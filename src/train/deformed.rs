@@ -15,7 +15,7 @@
 //! [`FieldGradients::xyz`] (the 6-DoF warp's `(R − I)ᵀ·g`; zero for the
 //! additive fields).
 
-use crate::deform::{Field, FieldCache, FieldGradients};
+use crate::deform::{Field, FieldGradients, FieldSaved};
 use crate::error::Result;
 use crate::gaussians::{normalize_vjp, Gaussians};
 use crate::math::Real;
@@ -72,7 +72,7 @@ pub fn deform_gaussians<T: Real>(g: &Gaussians<T>, offsets: Option<&Offsets<T>>)
 /// [`FieldGradients::xyz`].
 pub fn deform_gaussians_vjp<T: Real>(
     g: &Gaussians<T>,
-    field: Option<(&Field<T>, &FieldCache<T>)>,
+    field: Option<(&Field<T>, &FieldSaved<T>)>,
     rg: &RasterGrads<T>,
 ) -> Result<(Gaussians<T>, Option<FieldGradients<T>>)> {
     let (mut gaussians, offsets) = activations_vjp(g, rg);

@@ -11,7 +11,7 @@
 use super::deformed::{deform_gaussians, deform_gaussians_vjp, Deformed, Offsets};
 use super::trainer::{Lap, StageTimes, View};
 use crate::camera::RasterCamera;
-use crate::deform::{Field, FieldCache};
+use crate::deform::{Field, FieldSaved};
 use crate::error::{Error, Result};
 use crate::gaussians::Gaussians;
 use crate::loss::{loss_and_grad, LossOutput};
@@ -40,7 +40,7 @@ pub struct Model<T> {
 /// What [`Model::forward`] keeps for [`Model::backward`].
 pub struct ModelSaved<T> {
     /// The field's forward state, `None` with the field off.
-    field: Option<FieldCache<T>>,
+    field: Option<FieldSaved<T>>,
     deformed: Deformed<T>,
     camera: RasterCamera<T>,
     raster: RasterizeSaved<T>,
@@ -99,7 +99,7 @@ impl<T: Real> Model<T> {
         &self,
         time: f64,
         field_on: bool,
-    ) -> Result<Option<(Offsets<T>, FieldCache<T>)>> {
+    ) -> Result<Option<(Offsets<T>, FieldSaved<T>)>> {
         if !field_on {
             return Ok(None);
         }
@@ -113,7 +113,7 @@ impl<T: Real> Model<T> {
         &self,
         time: f64,
         field_on: bool,
-    ) -> Result<(Deformed<T>, Option<FieldCache<T>>)> {
+    ) -> Result<(Deformed<T>, Option<FieldSaved<T>>)> {
         let (offsets, cache) = match self.field_forward(time, field_on)? {
             Some((o, cache)) => (Some(o), Some(cache)),
             None => (None, None),
@@ -165,7 +165,7 @@ impl<T: Real> Model<T> {
     fn raster_forward(
         &self,
         deformed: Deformed<T>,
-        field: Option<FieldCache<T>>,
+        field: Option<FieldSaved<T>>,
         camera: &RasterCamera<T>,
     ) -> Result<(RasterOutput<T>, ModelSaved<T>)> {
         let (out, raster) = rasterize(&self.raster_input(&deformed, camera))?;

@@ -334,7 +334,7 @@ fn field_counts<'py>(
 ) -> PyResult<Bound<'py, PyDict>> {
     let file = tensor_file("metadata", &PyDict::new(py), Some(metadata), false)?;
     let (params, aten, pytorch, no_functional) = compute(py, None, move || {
-        let config = FieldConfig::from_meta(&file)?;
+        let config = liquid_splat::oracle::field::config_from_meta(&file)?;
         Ok((
             param_count(&config)?,
             macs_per_gaussian(&config, MacConvention::Aten)?,
@@ -372,11 +372,11 @@ fn field_init<'py>(
         }
     };
     let weights = compute(py, None, move || {
-        let config = FieldConfig::from_meta(&file)?;
+        let config = liquid_splat::oracle::field::config_from_meta(&file)?;
         Ok(if f64_weights {
-            Field::<f64>::new(config, seed)?.to_tensor_file()
+            liquid_splat::oracle::field::field_to_tensor_file(&Field::<f64>::new(config, seed)?)
         } else {
-            Field::<f32>::new(config, seed)?.to_tensor_file()
+            liquid_splat::oracle::field::field_to_tensor_file(&Field::<f32>::new(config, seed)?)
         })
     })?;
     Ok(to_dicts(py, weights)?.0)

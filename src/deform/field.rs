@@ -1,0 +1,311 @@
+//! A deformation field: its configuration, its network and one flat
+//! parameter vector, with the forward ([`Field::forward`]) and the backward
+//! ([`Field::backward`]) that returns every gradient of the field.
+
+use super::config::{FieldConfig, FieldKind, MAX_FIELD_PARAMS};
+use super::layers::{Init, LayoutBuilder, ParamSpec};
+use super::linear::LinearShape;
+use super::{cfc, mlp};
+use crate::error::{Error, Result};
+use crate::math::{Real, Rng};
+
+/// The output of a field: per-Gaussian offsets.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Deformation<T> {
+    /// `[N, 3]`, added to the canonical means.
+    pub d_xyz: Vec<T>,
+    /// `[N, 4]` (w, x, y, z), added to the normalised quaternion.
+    pub d_rotation: Vec<T>,
+    /// `[N, 3]`, added to the activated (linear) scales.
+    pub d_scaling: Vec<T>,
+}
+
+impl<T: Real> Deformation<T> {
+    /// All zeros for `n` Gaussians.
+    pub fn zeros(n: usize) -> Self {
+        Deformation {
+            d_xyz: vec![T::ZERO; 3 * n],
+            d_rotation: vec![T::ZERO; 4 * n],
+            d_scaling: vec![T::ZERO; 3 * n],
+        }
+    }
+    /// Number of Gaussians.
+    pub fn len(&self) -> usize {
+        self.d_xyz.len() / 3
+    }
+    /// Whether there are no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.d_xyz.is_empty()
+    }
+    /// Split a `[n, 10]` head output (3 | 4 | 3).
+    pub(crate) fn from_head(out: &[T]) -> Self {
+        let n = out.len() / 10;
+        let mut d = Self::zeros(n);
+        for i in 0..n {
+            let r = &out[i * 10..i * 10 + 10];
+            d.d_xyz[i * 3..i * 3 + 3].copy_from_slice(&r[0..3]);
+            d.d_rotation[i * 4..i * 4 + 4].copy_from_slice(&r[3..7]);
+            d.d_scaling[i * 3..i * 3 + 3].copy_from_slice(&r[7..10]);
+        }
+        d
+    }
+    /// Join into `[n, 10]` (inverse of `from_head`).
+    pub(crate) fn to_head(&self) -> Vec<T> {
+        let n = self.len();
+        let mut out = vec![T::ZERO; n * 10];
+        for i in 0..n {
+            let r = &mut out[i * 10..i * 10 + 10];
+            r[0..3].copy_from_slice(&self.d_xyz[i * 3..i * 3 + 3]);
+            r[3..7].copy_from_slice(&self.d_rotation[i * 4..i * 4 + 4]);
+            r[7..10].copy_from_slice(&self.d_scaling[i * 3..i * 3 + 3]);
+        }
+        out
+    }
+}
+
+/// Every gradient of one field backward ([`Field::backward`]), given the
+/// gradient `g` of the outputs ([`Deformation`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FieldGradients<T> {
+    /// The parameters, flat in [`Field::layout`] order.
+    pub params: Vec<T>,
+    /// The per-Gaussian times `t` `[N]`.
+    pub t: Vec<T>,
+    /// The canonical positions `xyz` `[N, 3]` through the field itself,
+    /// beyond the identity path of `means = xyz + d_xyz` (which the caller
+    /// adds: [`crate::train::deformed::deform_gaussians_vjp`]). The network
+    /// reads `xyz` stop-gradient, so this is all zeros for the additive
+    /// fields. The 6-DoF MLP moves the non-detached mean to `R·x + p`
+    /// (upstream's renderer), so `d_xyz = R·x + p − x` depends on `x`
+    /// explicitly: `(R − I)ᵀ·g.d_xyz` per Gaussian, and the total gradient of
+    /// the canonical mean is `Rᵀ·g.d_xyz`.
+    pub xyz: Vec<T>,
+}
+
+/// The network of a field.
+#[derive(Clone, Debug)]
+pub(super) enum Net {
+    Mlp(mlp::MlpNet),
+    Cfc(cfc::CfcNet),
+}
+
+/// What [`Field::backward`] needs from [`Field::forward`].
+pub struct FieldSaved<T> {
+    n: usize,
+    t: Vec<T>,
+    inner: SavedInner<T>,
+}
+
+enum SavedInner<T> {
+    Mlp(mlp::MlpCache<T>),
+    Cfc(cfc::CfcCache<T>),
+}
+
+impl<T> FieldSaved<T> {
+    /// Number of Gaussians of the forward pass.
+    pub fn len(&self) -> usize {
+        self.n
+    }
+    /// Whether the forward pass had no Gaussians.
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+}
+
+/// A deformation field: architecture plus one flat parameter vector.
+#[derive(Clone, Debug)]
+pub struct Field<T> {
+    config: FieldConfig,
+    params: Vec<T>,
+    layout: Vec<ParamSpec>,
+    net: Net,
+}
+
+impl<T: Real> Field<T> {
+    /// The network and the parameter layout of `config` (validated, and
+    /// within [`MAX_FIELD_PARAMS`]), before any parameter is allocated.
+    pub(super) fn build(config: FieldConfig) -> Result<(Net, LayoutBuilder)> {
+        config.validate()?;
+        let mut lb = LayoutBuilder::default();
+        let net = match config.kind {
+            FieldKind::Mlp => Net::Mlp(mlp::MlpNet::build(&config, &mut lb)),
+            FieldKind::Cfc => Net::Cfc(cfc::CfcNet::build(&config, &mut lb)),
+        };
+        if lb.len > MAX_FIELD_PARAMS {
+            return Err(Error::invalid(
+                "field size",
+                format!(
+                    "{} D{} W{} has {} parameters, more than the limit {MAX_FIELD_PARAMS}",
+                    config.kind, config.depth, config.width, lb.len
+                ),
+            ));
+        }
+        Ok((net, lb))
+    }
+
+    /// A field with seeded initial weights (docs/DECISIONS.md §2): one generator
+    /// `Rng::new(seed)` draws, in layout order, each weight then its bias;
+    /// CfC cell weights are xavier-uniform, every other weight and every bias
+    /// is `U(±1/√fan_in)` (PyTorch's default Linear init).
+    pub fn new(config: FieldConfig, seed: u64) -> Result<Self> {
+        let (net, lb) = Self::build(config)?;
+        let total = lb.specs.iter().map(|s| s.len()).sum();
+        let mut params = vec![T::ZERO; total];
+        let mut rng = Rng::new(seed);
+        for l in &lb.linears {
+            let LinearShape { in_dim, out_dim } = l.shape;
+            let wb = match l.init {
+                Init::TorchDefault => 1.0 / (in_dim as f64).sqrt(),
+                Init::Xavier => (6.0 / (in_dim + out_dim) as f64).sqrt(),
+            };
+            for v in &mut params[l.w..l.w + in_dim * out_dim] {
+                *v = T::from_f64(rng.uniform_range(-wb, wb));
+            }
+            let bb = 1.0 / (in_dim as f64).sqrt();
+            for v in &mut params[l.b..l.b + out_dim] {
+                *v = T::from_f64(rng.uniform_range(-bb, bb));
+            }
+        }
+        Ok(Field {
+            config,
+            params,
+            layout: lb.specs,
+            net,
+        })
+    }
+
+    /// Each tensor's name, shape and offset for a field of `config`, in
+    /// `state_dict` order, without allocating the parameters (errors as
+    /// [`new`](Self::new)).
+    pub fn layout_of(config: FieldConfig) -> Result<Vec<ParamSpec>> {
+        Ok(Self::build(config)?.1.specs)
+    }
+
+    /// A field of `config` with the given parameters, flat in
+    /// [`layout`](Self::layout) order; their count must match the layout.
+    pub fn from_params(config: FieldConfig, params: Vec<T>) -> Result<Self> {
+        let (net, lb) = Self::build(config)?;
+        if params.len() != lb.len {
+            return Err(Error::invalid(
+                "field parameters",
+                format!(
+                    "{} values, expected {} for {} D{} W{}",
+                    params.len(),
+                    lb.len,
+                    config.kind,
+                    config.depth,
+                    config.width
+                ),
+            ));
+        }
+        Ok(Field {
+            config,
+            params,
+            layout: lb.specs,
+            net,
+        })
+    }
+
+    /// The architecture.
+    pub fn config(&self) -> &FieldConfig {
+        &self.config
+    }
+    /// All parameters, flat, in [`layout`](Self::layout) order.
+    pub fn params(&self) -> &[T] {
+        &self.params
+    }
+    /// All parameters, flat, for the optimizer to update in place.
+    pub fn params_mut(&mut self) -> &mut [T] {
+        &mut self.params
+    }
+    /// Each tensor's name, shape and offset, in `state_dict` order.
+    pub fn layout(&self) -> &[ParamSpec] {
+        &self.layout
+    }
+    /// Number of learned parameters.
+    pub fn param_count(&self) -> usize {
+        self.params.len()
+    }
+
+    /// Evaluate the field for `xyz` `[N, 3]` and per-Gaussian times `t` `[N]`.
+    pub fn forward(&self, xyz: &[T], t: &[T]) -> Result<(Deformation<T>, FieldSaved<T>)> {
+        let n = t.len();
+        if xyz.len() != 3 * n {
+            return Err(Error::invalid(
+                "field input",
+                format!(
+                    "xyz has {} values, expected 3 × {n} (one time per Gaussian)",
+                    xyz.len()
+                ),
+            ));
+        }
+        let (d, inner) = match &self.net {
+            Net::Mlp(m) => {
+                let (d, c) = m.forward(&self.params, xyz, t);
+                (d, SavedInner::Mlp(c))
+            }
+            Net::Cfc(m) => {
+                let (d, c) = m.forward(&self.params, xyz, t);
+                (d, SavedInner::Cfc(c))
+            }
+        };
+        Ok((
+            d,
+            FieldSaved {
+                n,
+                t: t.to_vec(),
+                inner,
+            },
+        ))
+    }
+
+    /// Backward: every gradient of the field given the gradient `grad` of
+    /// its outputs ([`FieldGradients`]).
+    pub fn backward(
+        &self,
+        cache: &FieldSaved<T>,
+        grad: &Deformation<T>,
+    ) -> Result<FieldGradients<T>> {
+        let n = cache.n;
+        if grad.d_xyz.len() != 3 * n
+            || grad.d_rotation.len() != 4 * n
+            || grad.d_scaling.len() != 3 * n
+        {
+            return Err(Error::invalid(
+                "field output gradient",
+                format!("expected [{n},3], [{n},4], [{n},3] values"),
+            ));
+        }
+        let mut params = vec![T::ZERO; self.params.len()];
+        let (t, xyz) = match (&self.net, &cache.inner) {
+            (Net::Mlp(m), SavedInner::Mlp(c)) => {
+                m.backward(&self.params, &cache.t, c, grad, &mut params)
+            }
+            (Net::Cfc(m), SavedInner::Cfc(c)) => (
+                m.backward(&self.params, &cache.t, c, grad, &mut params),
+                None,
+            ),
+            _ => {
+                return Err(Error::invalid(
+                    "field cache",
+                    "the cache comes from a different kind of field",
+                ))
+            }
+        };
+        Ok(FieldGradients {
+            params,
+            t,
+            xyz: xyz.unwrap_or_else(|| vec![T::ZERO; 3 * n]),
+        })
+    }
+
+    /// 6-DoF MLP: upstream's per-Gaussian SE(3) transforms `[N, 4, 4]`
+    /// (row-major, `[[R, p], [0, 0, 0, 1]]`) of the last forward; `None` for
+    /// the other fields.
+    pub fn se3_transforms(&self, cache: &FieldSaved<T>) -> Option<Vec<T>> {
+        match (&self.net, &cache.inner) {
+            (Net::Mlp(m), SavedInner::Mlp(c)) => m.se3_transforms(c),
+            _ => None,
+        }
+    }
+}
