@@ -166,7 +166,7 @@ fn main() {
     println!(
         "liquid-splat: {n} Gaussians, {w}x{h}, {} cameras, f32, SH degree {SH_DEGREE}, instruction set {:?}",
         cams.len(),
-        liquid_splat::deform::fastmath::isa()
+        liquid_splat::kernels::fastmath::isa()
     );
     for threads in [1usize, 2] {
         let pool = rayon::ThreadPoolBuilder::new()
