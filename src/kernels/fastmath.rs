@@ -46,7 +46,7 @@
 // digits than f32 holds; the compiler rounds each to the nearest f32.
 #![allow(clippy::excessive_precision)]
 
-use crate::math::Real;
+use crate::math::{Precision, Real};
 use std::sync::atomic::{AtomicU8, Ordering};
 
 /// Maximum error of [`exp_f32`] in ulp, asserted by the tests (see the
@@ -294,26 +294,42 @@ pub fn sin_cos_slices<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) {
 /// `e^x` as the fields compute it: this module's f32 function, libm in f64.
 #[inline(always)]
 pub fn exp<T: Real>(x: T) -> T {
-    x.per_precision(exp_f32, libm::exp)
+    match T::PRECISION {
+        // Exact round trips: T is f32 here, and the conversions fold away.
+        Precision::F32 => T::from_f64(exp_f32(x.to_f64() as f32) as f64),
+        Precision::F64 => x.exp(),
+    }
 }
 
 /// `erf x` as the fields compute it: this module's f32 function, libm in f64.
 #[inline(always)]
 pub fn erf<T: Real>(x: T) -> T {
-    x.per_precision(erf_f32, libm::erf)
+    match T::PRECISION {
+        // Exact round trips: T is f32 here, and the conversions fold away.
+        Precision::F32 => T::from_f64(erf_f32(x.to_f64() as f32) as f64),
+        Precision::F64 => x.erf(),
+    }
 }
 
 /// `tanh x` as the fields compute it: this module's f32 function, libm in f64.
 #[inline(always)]
 pub fn tanh<T: Real>(x: T) -> T {
-    x.per_precision(tanh_f32, libm::tanh)
+    match T::PRECISION {
+        // Exact round trips: T is f32 here, and the conversions fold away.
+        Precision::F32 => T::from_f64(tanh_f32(x.to_f64() as f32) as f64),
+        Precision::F64 => x.tanh(),
+    }
 }
 
 /// `sigmoid x` as the fields compute it: this module's f32 function,
 /// `1/(1 + exp(−x))` with libm's exp in f64.
 #[inline(always)]
 pub fn sigmoid<T: Real>(x: T) -> T {
-    x.per_precision(sigmoid_f32, Real::sigmoid)
+    match T::PRECISION {
+        // Exact round trips: T is f32 here, and the conversions fold away.
+        Precision::F32 => T::from_f64(sigmoid_f32(x.to_f64() as f32) as f64),
+        Precision::F64 => x.sigmoid(),
+    }
 }
 
 /// Which instruction set the element-wise loops and the matrix kernels of
@@ -415,7 +431,14 @@ multiversion!(fn sin_cos_loop<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) =>
 #[inline(always)]
 fn sin_cos_body<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) {
     for ((&v, s), c) in x.iter().zip(sin.iter_mut()).zip(cos.iter_mut()) {
-        (*s, *c) = v.per_precision_pair(sin_cos_f32, |v| (libm::sin(v), libm::cos(v)));
+        (*s, *c) = match T::PRECISION {
+            // Exact round trips: T is f32 here, and the conversions fold away.
+            Precision::F32 => {
+                let (a, b) = sin_cos_f32(v.to_f64() as f32);
+                (T::from_f64(a as f64), T::from_f64(b as f64))
+            }
+            Precision::F64 => (v.sin(), v.cos()),
+        };
     }
 }
 

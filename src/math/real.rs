@@ -122,21 +122,6 @@ pub trait Real:
     /// version (used otherwise) give the same bits.
     fn mul_add(self, a: Self, b: Self) -> Self;
 
-    /// `f32_version(self)` when `Self` is `f32`, `f64_version(self)` when it
-    /// is `f64`: how a kernel with a separate version per precision (the
-    /// deformation fields' fast `exp`, `tanh`, … in [`crate::kernels::fastmath`])
-    /// picks its version. Each type calls its own argument directly, so the
-    /// choice costs nothing at run time.
-    fn per_precision<F32, F64>(self, f32_version: F32, f64_version: F64) -> Self
-    where
-        F32: FnOnce(f32) -> f32,
-        F64: FnOnce(f64) -> f64;
-    /// As [`per_precision`](Self::per_precision), for a function with two
-    /// results (`sin` and `cos`).
-    fn per_precision_pair<F32, F64>(self, f32_version: F32, f64_version: F64) -> (Self, Self)
-    where
-        F32: FnOnce(f32) -> (f32, f32),
-        F64: FnOnce(f64) -> (f64, f64);
     /// The slice as `&mut [f32]` when `Self` is `f32`, `None` when it is
     /// `f64` (for a pass that only the f32 version of a kernel needs).
     fn as_f32_slice_mut(x: &mut [Self]) -> Option<&mut [f32]>;
@@ -178,14 +163,6 @@ pub trait Real:
 }
 
 macro_rules! impl_real {
-    (@pick first, $a:ident, $b:ident) => {{
-        let _ = $b;
-        $a
-    }};
-    (@pick second, $a:ident, $b:ident) => {{
-        let _ = $a;
-        $b
-    }};
     (@slice first, $x:ident) => {
         Some($x)
     };
@@ -294,22 +271,6 @@ macro_rules! impl_real {
             #[inline(always)]
             fn is_nan(self) -> bool {
                 <$t>::is_nan(self)
-            }
-            #[inline(always)]
-            fn per_precision<F32, F64>(self, f32_version: F32, f64_version: F64) -> Self
-            where
-                F32: FnOnce(f32) -> f32,
-                F64: FnOnce(f64) -> f64,
-            {
-                impl_real!(@pick $pick, f32_version, f64_version)(self)
-            }
-            #[inline(always)]
-            fn per_precision_pair<F32, F64>(self, f32_version: F32, f64_version: F64) -> (Self, Self)
-            where
-                F32: FnOnce(f32) -> (f32, f32),
-                F64: FnOnce(f64) -> (f64, f64),
-            {
-                impl_real!(@pick $pick, f32_version, f64_version)(self)
             }
             #[inline(always)]
             fn as_f32_slice_mut(x: &mut [Self]) -> Option<&mut [f32]> {
