@@ -165,6 +165,14 @@ impl Activation {
         apply_uninit(self, pre, out);
     }
 
+    /// [`backward_in_place`](Self::backward_in_place) on one block of
+    /// values, sequential (for a chunk of an output gradient produced inside
+    /// a linear layer's backward).
+    pub fn backward_block<T: Real>(self, pre: &[T], g: &mut [T]) {
+        assert_eq!(pre.len(), g.len(), "activation backward: sizes differ");
+        scale_by_derivative(self, pre, g);
+    }
+
     /// vjp: `g ⊙ f'(pre)`, in place on `g`.
     pub fn backward_in_place<T: Real>(self, pre: &[T], g: &mut [T]) {
         if g.len() <= 4096 {
@@ -186,6 +194,13 @@ pub fn relu_backward_from_output<T: Real>(out: &[T], g: &mut [T]) {
     g.par_chunks_mut(4096)
         .zip(out.par_chunks(4096))
         .for_each(|(g, o)| relu_mask_row(o, g));
+}
+
+/// [`relu_backward_from_output`] on one block of rows, sequential (for a
+/// chunk of an output gradient produced inside a linear layer's backward).
+pub fn relu_backward_from_output_block<T: Real>(out: &[T], g: &mut [T]) {
+    assert_eq!(out.len(), g.len(), "relu backward: sizes differ");
+    relu_mask_row(out, g)
 }
 
 multiversion!(fn relu_mask_row<T: Real>(out: &[T], g: &mut [T]) => relu_mask_row_body);

@@ -12,7 +12,7 @@
 //! - Every cell's first backbone layer and the skip read the same `u`, so
 //!   their `u` columns are one product `[N, |u|]·[|u|, D·U + W]` per pass;
 //!   each cell's first layer then continues those sums over its state
-//!   columns ([`matmul_from_parts_then`]), the same bits as one sum over
+//!   columns ([`Input::continuing`]), the same bits as one sum over
 //!   `[u; h]` in order. The backward collects the gradients of those outputs
 //!   of all cells and of the skip, and computes their weight gradients over
 //!   `u` as one product `[D·U + W, N]·[N, |u|]` and their bias gradients as
@@ -25,9 +25,13 @@
 //! - The four heads of a cell run as one stacked product `4W` wide, and the
 //!   gate, both tanh's and the new state are computed in its epilogue on each
 //!   block of rows while it is in cache, which keeps what the backward needs
-//!   (tanh(ff1), tanh(ff2), time_a(z) and σ); the backward runs the heads'
-//!   weight gradient and input gradient as one product each. tanh and
-//!   sigmoid are [`fastmath`]'s (vectorised in f32).
+//!   (tanh(ff1), tanh(ff2), time_a(z) and σ). In the backward, the gate and
+//!   update vjp produces the heads' output gradient chunk by chunk inside
+//!   the heads' backward ([`OutputGrad::Produced`]), where the weight, bias
+//!   and input gradients read each chunk while it is in cache (the `[n, 4W]`
+//!   gradient is never stored whole); the backbone layers' activation vjps
+//!   are produced the same way. tanh and sigmoid are [`fastmath`]'s
+//!   (vectorised in f32).
 //!
 //! Every product and element-wise pass is timed by [`profile`] when it is on
 //! (`liquid-splat bench deform`).
@@ -35,8 +39,8 @@
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
 use super::fastmath::{self, multiversion};
-use super::linear::InputGrad;
-use super::matmul::{column_sums, matmul, matmul_from_parts_then, matmul_tn, MatRef};
+use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
+use super::matmul::{column_sums, matmul, matmul_tn, MatRef};
 use super::profile;
 use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
@@ -241,7 +245,14 @@ impl CfcNet {
             h = cc.1;
             cells.push(cc.0);
         }
-        let out = profile::layer(|| "head".into(), || self.head.forward(p, &h, n));
+        let out = profile::layer(
+            || "head".into(),
+            || {
+                self.head
+                    .linear(p)
+                    .forward(Input::blocks(&[(&h, w)]), n, Epilogue::none())
+            },
+        );
         (
             Deformation::from_head(&out),
             CfcCache {
@@ -277,37 +288,22 @@ impl CfcNet {
             let units = lin.shape.out_dim;
             let mut out: Vec<T> = Vec::with_capacity(n * units);
             let ob = &mut out.spare_capacity_mut()[..n * units];
+            let act = self.act;
+            let apply = |_: usize, blk: &mut [T], ob: &mut [MaybeUninit<T>]| {
+                act.apply_block_uninit(blk, ob)
+            };
             let pre = if j == 0 {
-                // The u sums continued over the state columns, then the
-                // bias and the activation.
-                let wt = MatRef::row_major(lin.weight(p), units, lin.shape.in_dim).t();
+                // The u sums continued over the state columns (none before
+                // the first cell, see reads_state), then the bias and the
+                // activation.
                 let k = if self.reads_state(l) { w } else { 0 };
-                let hm = MatRef::row_major(&h, n, k);
-                let bias = lin.bias(p);
                 profile::layer(
-                    || "backbone.0".into(),
+                    || format!("backbone.0, u sums continued, {} in the epilogue", self.act),
                     || {
-                        profile::product(
-                            || format!("(u sums) + h·Wₕᵀ + b, {} in the epilogue", self.act),
+                        lin.linear(p).forward(
+                            Input::continuing(pu, ud, &[(&h, k)]),
                             n,
-                            k,
-                            units,
-                            || {
-                                matmul_from_parts_then(
-                                    Some(pu),
-                                    &[(hm, wt.rows(ud, k))],
-                                    ob,
-                                    units,
-                                    |_, blk, ob| {
-                                        for row in blk.chunks_exact_mut(units) {
-                                            for (v, &b) in row.iter_mut().zip(bias) {
-                                                *v += b;
-                                            }
-                                        }
-                                        self.act.apply_block_uninit(blk, ob)
-                                    },
-                                )
-                            },
+                            Epilogue::none().then(ob, units, &apply),
                         )
                     },
                 )
@@ -315,9 +311,11 @@ impl CfcNet {
                 profile::layer(
                     || format!("backbone.{j}, {} in the epilogue", self.act),
                     || {
-                        lin.forward_then(p, &cur, n, ob, units, |_, blk, ob| {
-                            self.act.apply_block_uninit(blk, ob)
-                        })
+                        lin.linear(p).forward(
+                            Input::blocks(&[(&cur, lin.shape.in_dim)]),
+                            n,
+                            Epilogue::none().then(ob, units, &apply),
+                        )
                     },
                 )
             };
@@ -336,13 +334,18 @@ impl CfcNet {
         // (never zeroed).
         let mut h_next: Vec<T> = Vec::with_capacity(n * w);
         let hb = &mut h_next.spare_capacity_mut()[..n * w];
+        let pass = |r0: usize, g: &mut [T], hb: &mut [MaybeUninit<T>]| {
+            let rows = hb.len() / w;
+            cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
+        };
         let gate = profile::layer(
             || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
             || {
-                Stacked(&cell.heads).forward_then(p, &z, n, hb, w, |r0, g, hb| {
-                    let rows = hb.len() / w;
-                    cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
-                })
+                Stacked(&cell.heads).linear(p).forward(
+                    Input::blocks(&[(&z, cell.heads[0].shape.in_dim)]),
+                    n,
+                    Epilogue::none().then(hb, w, &pass),
+                )
             },
         );
         // SAFETY: the cell pass wrote every value of every block of rows.
@@ -374,8 +377,14 @@ impl CfcNet {
         let mut dh = profile::layer(
             || "head".into(),
             || {
-                self.head
-                    .backward(p, &c.head_in, &g.to_head(), n, InputGrad::From(0), gp)
+                let mut r = self.head.linear(p).backward(
+                    &[(&c.head_in, w)],
+                    OutputGrad::Given(&g.to_head()),
+                    n,
+                    InputGrad::From(0),
+                );
+                self.head.store(&r, gp);
+                r.take_input(0)
             },
         )
         .expect("input gradient requested");
@@ -390,47 +399,69 @@ impl CfcNet {
             profile::layer(
                 || format!("cell {l}"),
                 || {
-                    let g_heads = profile::elementwise(
-                        || "gate and update vjp".into(),
-                        n,
-                        4 * w,
-                        || cell_backward_fused(&cc.gate, &dh, t, w, &mut gate_dt),
-                    );
+                    // The gate and update vjp produces the heads' output
+                    // gradient chunk by chunk, read there by the heads'
+                    // weight, bias and input gradients while in cache.
+                    let produce = |r0: usize, chunk: &mut [T], dt: &mut [T]| {
+                        let rows = dt.len();
+                        let mut prod = vec![T::ZERO; w];
+                        cell_backward_rows(
+                            chunk,
+                            &cc.gate[r0 * 4 * w..(r0 + rows) * 4 * w],
+                            &dh[r0 * w..(r0 + rows) * w],
+                            &t[r0..r0 + rows],
+                            dt,
+                            &mut prod,
+                            w,
+                        )
+                    };
                     let mut dz = profile::layer(
-                        || "heads ff1|ff2|time_a|time_b".into(),
+                        || "heads ff1|ff2|time_a|time_b, gate and update vjp producing G".into(),
                         || {
-                            Stacked(&cell.heads).backward(
-                                p,
-                                &cc.z,
-                                &g_heads,
+                            let heads = Stacked(&cell.heads);
+                            let mut r = heads.linear(p).backward(
+                                &[(&cc.z, units)],
+                                OutputGrad::Produced {
+                                    produce: &produce,
+                                    side: &mut gate_dt,
+                                    side_w: 1,
+                                },
                                 n,
                                 InputGrad::From(0),
-                                gp,
-                            )
+                            );
+                            heads.store(&r, gp);
+                            r.take_input(0)
                         },
                     )
                     .expect("input gradient requested");
                     for j in (1..cell.backbone.len()).rev() {
-                        dz = profile::layer(
-                            || format!("backbone.{j}"),
+                        // The activation's vjp produces the layer's output
+                        // gradient chunk by chunk inside its backward.
+                        let (pre, g_out, act) = (&cc.pres[j], &dz, self.act);
+                        let produce = |r0: usize, chunk: &mut [T], _: &mut [T]| {
+                            let rows = chunk.len() / units;
+                            chunk.copy_from_slice(&g_out[r0 * units..(r0 + rows) * units]);
+                            act.backward_block(&pre[r0 * units..(r0 + rows) * units], chunk)
+                        };
+                        let lin = &cell.backbone[j];
+                        let next = profile::layer(
+                            || format!("backbone.{j}, {} vjp producing G", self.act),
                             || {
-                                profile::elementwise(
-                                    || format!("{} vjp", self.act),
-                                    n,
-                                    units,
-                                    || self.act.backward_in_place(&cc.pres[j], &mut dz),
-                                );
-                                cell.backbone[j].backward(
-                                    p,
-                                    &cc.inputs[j - 1],
-                                    &dz,
+                                let mut r = lin.linear(p).backward(
+                                    &[(&cc.inputs[j - 1], units)],
+                                    OutputGrad::Produced {
+                                        produce: &produce,
+                                        side: &mut [],
+                                        side_w: 0,
+                                    },
                                     n,
                                     InputGrad::From(0),
-                                    gp,
-                                )
+                                );
+                                lin.store(&r, gp);
+                                r.take_input(0)
                             },
-                        )
-                        .expect("input gradient requested");
+                        );
+                        dz = next.expect("input gradient requested");
                     }
                     // The first layer's input is [γ(x) | t_feat | h]: γ(x) is
                     // stop-gradient; t_feat's gradient is collected, h's
@@ -630,34 +661,18 @@ fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], t: &[T
     }
 }
 
-/// vjp of [`cell_forward_rows`]: the gradient of the four head outputs
-/// `[n, 4W]` given the state gradient `dh` `[n, W]`; adds each row's
-/// gradient with respect to τ (summed over j in order) to `dt`.
-fn cell_backward_fused<T: Real>(gate: &[T], dh: &[T], t: &[T], w: usize, dt: &mut [T]) -> Vec<T> {
-    // Every value is written once below (never zeroed first).
-    let mut out: Vec<T> = Vec::with_capacity(gate.len());
-    out.spare_capacity_mut()[..gate.len()]
-        .par_chunks_mut(4 * w * ROWS_PER_TASK)
-        .zip(gate.par_chunks(4 * w * ROWS_PER_TASK))
-        .zip(dh.par_chunks(w * ROWS_PER_TASK))
-        .zip(t.par_chunks(ROWS_PER_TASK))
-        .zip(dt.par_chunks_mut(ROWS_PER_TASK))
-        .for_each(|((((o, g), dh), t), dt)| {
-            let mut prod = vec![T::ZERO; w];
-            cell_backward_rows(o, g, dh, t, dt, &mut prod, w)
-        });
-    // SAFETY: cell_backward_rows wrote all 4W values of every row.
-    unsafe { out.set_len(gate.len()) };
-    out
-}
+// vjp of `cell_forward_rows` on a block of rows: the gradient of the four
+// head outputs `o` (`[rows, 4W]`) given the cell pass's saved values `g`
+// (tanh(ff1) | tanh(ff2) | time_a | σ) and the state gradient `dh`
+// `[rows, W]`; adds each row's gradient with respect to τ (summed over j in
+// order) to `dt`. `prod` is scratch, W long.
+multiversion!(fn cell_backward_rows<T: Real>(o: &mut [T], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
 
-multiversion!(fn cell_backward_rows<T: Real>(o: &mut [MaybeUninit<T>], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
-
-/// Rows of [`cell_backward_fused`]. The per-row sum for τ runs in its own
-/// loop over `prod` (j ascending), so the element-wise loop vectorises.
+// The per-row sum for τ runs in its own loop over `prod` (j ascending), so
+// the element-wise loop vectorises.
 #[inline(always)]
 fn cell_backward_rows_body<T: Real>(
-    o: &mut [MaybeUninit<T>],
+    o: &mut [T],
     g: &[T],
     dh: &[T],
     t: &[T],
@@ -694,10 +709,10 @@ fn cell_backward_rows_body<T: Real>(
             let db = gh * s;
             let ds = gh * (b - a);
             let dpre = ds * (s * (T::ONE - s));
-            o1.write(da * (T::ONE - a * a));
-            o2.write(db * (T::ONE - b * b));
-            o3.write(dpre * tau);
-            o4.write(dpre);
+            *o1 = da * (T::ONE - a * a);
+            *o2 = db * (T::ONE - b * b);
+            *o3 = dpre * tau;
+            *o4 = dpre;
             *pr = dpre * ta;
         }
         let mut sum = T::ZERO;
