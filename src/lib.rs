@@ -41,7 +41,7 @@
 //! The same inputs give the same bits whatever the thread count, run or CPU:
 //! work is split into fixed pieces, every floating-point reduction has a fixed
 //! order, transcendental functions come from one pinned pure-Rust library
-//! (`libm`; in f32 the fields' activations use [`deform::fastmath`], plain
+//! (`libm`; in f32 the fields' activations use [`kernels::fastmath`], plain
 //! arithmetic with the same bits on every instruction set), and all
 //! randomness comes from explicit seeds.
 //!
@@ -71,6 +71,7 @@ pub mod fuzz;
 pub mod gaussians;
 pub mod gsplat;
 pub mod io;
+pub mod kernels;
 pub mod loss;
 pub mod lpips;
 pub mod math;

@@ -561,7 +561,7 @@ fn forward_matches_scalar_reimplementation() {
 /// f32 transcendental functions (exp, erf, tanh, sigmoid).
 #[test]
 fn fields_are_bit_identical_across_cpu_paths() {
-    use liquid_splat::deform::fastmath::{force_isa, Isa};
+    use liquid_splat::kernels::fastmath::{force_isa, Isa};
     let n = 700;
     for cfg in [
         config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu),

@@ -3,7 +3,7 @@
 //! and backward gradients in both gradient modes, f32, on scenes with partial
 //! tiles, stopped pixels and clamped alphas.
 
-use liquid_splat::deform::fastmath::{force_isa, Isa};
+use liquid_splat::kernels::fastmath::{force_isa, Isa};
 use liquid_splat::render::scene::{random_scene, ColorSource, CovSource, SceneSpec};
 use liquid_splat::render::{rasterize, rasterize_backward, GradientMode};
 

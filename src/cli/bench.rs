@@ -203,7 +203,7 @@ fn bench_raster(reps: usize) -> crate::Result<ExitCode> {
     }
     println!(
         "instruction set of the row functions: {:?}",
-        crate::deform::fastmath::isa()
+        crate::kernels::fastmath::isa()
     );
     println!(
         "{:<16} {:>3} {:>10} {:>10} {:>12} {:>11} {:>11} {:>6} {:>6}",
@@ -482,7 +482,7 @@ fn bench_deform<T: Real>(
     );
     println!(
         "matrix kernel path: {:?}",
-        crate::deform::matmul::kernel_path()
+        crate::kernels::matmul::kernel_path()
     );
     println!(
         "{:<16} {:>11} {:>10} {:>16} {:>11} {:>12} {:>18} {:>22}",
@@ -498,7 +498,7 @@ fn bench_deform<T: Real>(
     let (xyz, t, g) = deform_inputs::<T>(n);
     {
         // One trunk-layer-sized product alone: the matrix kernel's rate.
-        use crate::deform::matmul::{matmul, MatRef};
+        use crate::kernels::matmul::{matmul, MatRef};
         let (k, w) = (256, 256);
         let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
         let (a, b) = (cast(cotangent(15, n * k)), cast(cotangent(16, k * w)));
@@ -600,13 +600,13 @@ fn bench_deform<T: Real>(
 /// epilogue): `[N, K]·[K, M]` as in a forward or an input gradient, and
 /// `Gᵀ·X` (`[M, N]·[N, K]`) as in a weight gradient.
 fn kernel_shapes<T: Real>(n: usize, reps: usize) {
-    use crate::deform::matmul::{matmul, matmul_tn, MatRef};
+    use crate::kernels::matmul::{matmul, matmul_tn, MatRef};
     let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
     println!();
     println!(
         "matrix kernels alone on the fields' shapes, {} threads, path {:?}, median of {} (fastest)",
         rayon::current_num_threads(),
-        crate::deform::matmul::kernel_path(),
+        crate::kernels::matmul::kernel_path(),
         reps.max(1)
     );
     println!(

@@ -11,8 +11,9 @@
 //! derivative alike. The slice loops are compiled for AVX-512, AVX2 and the
 //! baseline and picked at run time (same bits on every path).
 
-use super::fastmath::{self, multiversion};
 use crate::error::{Error, Result};
+use crate::kernels::fastmath::{self, multiversion};
+use crate::kernels::{par_blocks_written, vec_written_by};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::fmt;
@@ -132,14 +133,13 @@ impl Activation {
     /// `f` applied to every element of `pre` (parallel, element-wise).
     pub fn forward<T: Real>(self, pre: &[T]) -> Vec<T> {
         // Every value is written once (the output is never zeroed first).
-        let mut out: Vec<T> = Vec::with_capacity(pre.len());
-        out.spare_capacity_mut()[..pre.len()]
-            .par_chunks_mut(4096)
-            .zip(pre.par_chunks(4096))
-            .for_each(|(o, p)| apply_uninit(self, p, o));
-        // SAFETY: apply_uninit wrote every value of every chunk.
-        unsafe { out.set_len(pre.len()) };
-        out
+        vec_written_by(pre.len(), |out| {
+            par_blocks_written(out, 4096, &mut [(); 0], 0, |i, o, _| {
+                apply_uninit(self, &pre[i * 4096..i * 4096 + o.len()], o);
+                // SAFETY: apply_uninit wrote every value of `o`.
+                unsafe { &mut *(o as *mut [MaybeUninit<T>] as *mut [T]) }
+            })
+        })
     }
 
     /// `row = f(row + bias)` element-wise on each row of a row-major block

@@ -38,14 +38,15 @@
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
-use super::fastmath::{self, multiversion};
 use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
-use super::matmul::{column_sums, matmul, matmul_tn, MatRef};
 use super::profile;
 use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
     XYZ_LEVELS,
 };
+use crate::kernels::fastmath::{self, multiversion};
+use crate::kernels::matmul::{column_sums, matmul, matmul_tn, MatRef};
+use crate::kernels::vec_written_by;
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -286,42 +287,43 @@ impl CfcNet {
             // written into `out` (which is never zeroed: every value is
             // written once).
             let units = lin.shape.out_dim;
-            let mut out: Vec<T> = Vec::with_capacity(n * units);
-            let ob = &mut out.spare_capacity_mut()[..n * units];
             let act = self.act;
             let apply = |_: usize, blk: &mut [T], ob: &mut [MaybeUninit<T>]| {
                 act.apply_block_uninit(blk, ob)
             };
-            let pre = if j == 0 {
-                // The u sums continued over the state columns (none before
-                // the first cell, see reads_state), then the bias and the
-                // activation.
-                let k = if self.reads_state(l) { w } else { 0 };
-                profile::layer(
-                    || format!("backbone.0, u sums continued, {} in the epilogue", self.act),
-                    || {
-                        lin.linear(p).forward(
-                            Input::continuing(pu, ud, &[(&h, k)]),
-                            n,
-                            Epilogue::none().then(ob, units, &apply),
-                        )
-                    },
-                )
-            } else {
-                profile::layer(
-                    || format!("backbone.{j}, {} in the epilogue", self.act),
-                    || {
-                        lin.linear(p).forward(
-                            Input::blocks(&[(&cur, lin.shape.in_dim)]),
-                            n,
-                            Epilogue::none().then(ob, units, &apply),
-                        )
-                    },
-                )
-            };
-            // SAFETY: the epilogue ran once on every block of rows and wrote
-            // every value of its rows of `out`.
-            unsafe { out.set_len(n * units) };
+            let mut pre = Vec::new();
+            let out = vec_written_by(n * units, |ob| {
+                pre = if j == 0 {
+                    // The u sums continued over the state columns (none before
+                    // the first cell, see reads_state), then the bias and the
+                    // activation.
+                    let k = if self.reads_state(l) { w } else { 0 };
+                    profile::layer(
+                        || format!("backbone.0, u sums continued, {} in the epilogue", self.act),
+                        || {
+                            lin.linear(p).forward(
+                                Input::continuing(pu, ud, &[(&h, k)]),
+                                n,
+                                Epilogue::none().then(ob, units, &apply),
+                            )
+                        },
+                    )
+                } else {
+                    profile::layer(
+                        || format!("backbone.{j}, {} in the epilogue", self.act),
+                        || {
+                            lin.linear(p).forward(
+                                Input::blocks(&[(&cur, lin.shape.in_dim)]),
+                                n,
+                                Epilogue::none().then(ob, units, &apply),
+                            )
+                        },
+                    )
+                };
+                // SAFETY: the epilogue ran once on every block of rows and wrote
+                // every value of its rows of `ob`.
+                unsafe { &mut *(ob as *mut [MaybeUninit<T>] as *mut [T]) }
+            });
             let prev = std::mem::replace(&mut cur, out);
             if j > 0 {
                 inputs.push(prev);
@@ -332,24 +334,25 @@ impl CfcNet {
         // The four heads as one product 4W wide, then the fused cell pass on
         // each block of rows while it is in cache, writing the new state
         // (never zeroed).
-        let mut h_next: Vec<T> = Vec::with_capacity(n * w);
-        let hb = &mut h_next.spare_capacity_mut()[..n * w];
         let pass = |r0: usize, g: &mut [T], hb: &mut [MaybeUninit<T>]| {
             let rows = hb.len() / w;
             cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
         };
-        let gate = profile::layer(
-            || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
-            || {
-                Stacked(&cell.heads).linear(p).forward(
-                    Input::blocks(&[(&z, cell.heads[0].shape.in_dim)]),
-                    n,
-                    Epilogue::none().then(hb, w, &pass),
-                )
-            },
-        );
-        // SAFETY: the cell pass wrote every value of every block of rows.
-        unsafe { h_next.set_len(n * w) };
+        let mut gate = Vec::new();
+        let h_next = vec_written_by(n * w, |hb| {
+            gate = profile::layer(
+                || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
+                || {
+                    Stacked(&cell.heads).linear(p).forward(
+                        Input::blocks(&[(&z, cell.heads[0].shape.in_dim)]),
+                        n,
+                        Epilogue::none().then(hb, w, &pass),
+                    )
+                },
+            );
+            // SAFETY: the cell pass wrote every value of every block of rows.
+            unsafe { &mut *(hb as *mut [MaybeUninit<T>] as *mut [T]) }
+        });
         (
             CellCache {
                 h_in: h,

@@ -7,9 +7,10 @@
 //! powers of two (so the argument `2^k · p` is exact). Output width
 //! `d + 2·d·L`.
 
-use super::fastmath;
+use crate::kernels::{fastmath, par_blocks_written, vec_written_by};
 use crate::math::Real;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// Output width of γ_L for `d` input dimensions.
 pub fn encoded_dim(d: usize, levels: usize) -> usize {
@@ -47,11 +48,9 @@ pub fn encode<T: Real>(x: &[T], d: usize, levels: usize) -> Vec<T> {
     // Every value of every row is written once (never zeroed first). Per
     // block of rows, the arguments 2^k·p first, then all their sines and
     // cosines in one vector loop (libm's bits, see `sin_cos_slices`).
-    let mut out: Vec<T> = Vec::with_capacity(n * w);
-    out.spare_capacity_mut()[..n * w]
-        .par_chunks_mut(w * 256)
-        .zip(x.par_chunks(d * 256))
-        .for_each(|(o, xi)| {
+    vec_written_by(n * w, |out| {
+        par_blocks_written(out, w * 256, &mut [(); 0], 0, |blk, o, _| {
+            let xi = &x[blk * d * 256..(blk * d * 256 + d * 256).min(x.len())];
             let m = d * levels;
             let (sin, cos) = sin_cos_of_arguments(xi, d, levels);
             for (i, (row, p)) in o.chunks_exact_mut(w).zip(xi.chunks_exact(d)).enumerate() {
@@ -72,11 +71,11 @@ pub fn encode<T: Real>(x: &[T], d: usize, levels: usize) -> Vec<T> {
                     }
                 }
             }
-        });
-    // SAFETY: the loop above wrote the d inputs and the 2·d·levels sines
-    // and cosines of each of the n rows, i.e. all n·w values.
-    unsafe { out.set_len(n * w) };
-    out
+            // SAFETY: the loop above wrote the d inputs and the 2·d·levels
+            // sines and cosines of each row of the block, i.e. all its values.
+            unsafe { &mut *(o as *mut [MaybeUninit<T>] as *mut [T]) }
+        })
+    })
 }
 
 /// Vector-Jacobian product of [`encode`]: the gradient with respect to `x`

@@ -13,11 +13,11 @@
 //! from each chunk while it is in cache.
 
 use super::activation::Activation;
-use super::matmul::{
+use super::profile;
+use crate::kernels::matmul::{
     column_sums, matmul_block_into, matmul_from_parts_then, matmul_tn, pack, MatRef, Packed,
     REDUCTION_CHUNK,
 };
-use super::profile;
 use crate::math::Real;
 use rayon::prelude::*;
 use std::borrow::Cow;

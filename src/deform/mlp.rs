@@ -21,6 +21,7 @@ use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeCache, TimeEmbedding,
     XYZ_LEVELS,
 };
+use crate::kernels::vec_written_by;
 use crate::math::Real;
 use std::mem::MaybeUninit;
 
@@ -109,7 +110,7 @@ impl MlpNet {
         let chain = |_: usize, blk: &mut [T], out: &mut [MaybeUninit<T>]| {
             heads.forward_block_into(blk, out.len() / hw.max(1), out)
         };
-        let mut head_out: Vec<T> = Vec::with_capacity(n * hw);
+        let mut head_out: Vec<T> = Vec::new();
         let last = self.layers.len() - 1;
         for (i, l) in self.layers.iter().enumerate() {
             // Layer 0 reads h₀ = [γ(x) | t_feat], the layer after the skip
@@ -123,24 +124,23 @@ impl MlpNet {
                 vec![(&cur, self.width)]
             };
             let out = if i == last {
-                let out = profile::layer(
-                    || format!("linear.{i} + ReLU, heads in its epilogue"),
-                    || {
-                        l.linear(p).forward(
-                            Input::blocks(&xs),
-                            n,
-                            Epilogue::act(Activation::Relu).then(
-                                &mut head_out.spare_capacity_mut()[..n * hw],
-                                hw,
-                                &chain,
-                            ),
-                        )
-                    },
-                );
-                // SAFETY: the epilogue wrote every row of `head_out` (each
-                // block of rows is visited once, and forward_block_into
-                // writes all of its output).
-                unsafe { head_out.set_len(n * hw) };
+                let mut out = Vec::new();
+                head_out = vec_written_by(n * hw, |y| {
+                    out = profile::layer(
+                        || format!("linear.{i} + ReLU, heads in its epilogue"),
+                        || {
+                            l.linear(p).forward(
+                                Input::blocks(&xs),
+                                n,
+                                Epilogue::act(Activation::Relu).then(y, hw, &chain),
+                            )
+                        },
+                    );
+                    // SAFETY: the epilogue wrote every row of `y` (each block
+                    // of rows is visited once, and forward_block_into writes
+                    // all of its output).
+                    unsafe { &mut *(y as *mut [MaybeUninit<T>] as *mut [T]) }
+                });
                 out
             } else {
                 profile::layer(

@@ -21,9 +21,9 @@
 //!   `d_scaling` `[N,3]`, applied as `xyz + d_xyz`, `normalize(q) + d_rotation`,
 //!   `exp(s) + d_scaling` by the caller.
 //! - Linear layers compute `(x·Wᵀ, summed over inputs in order) + b` with the
-//!   deterministic products of [`matmul`]: the same bits for any thread count.
+//!   deterministic products of [`crate::kernels::matmul`]: the same bits for any thread count.
 //! - In f32, every `exp`, `erf`, `tanh` and `sigmoid` of the fields (forward
-//!   and backward) is [`fastmath`]'s vectorisable plain-arithmetic version
+//!   and backward) is [`crate::kernels::fastmath`]'s vectorisable plain-arithmetic version
 //!   (≤ 2 ulp); f64 uses the pinned libm. Both are the same bits on every CPU
 //!   path (AVX-512, AVX2, baseline) and thread count.
 //!
@@ -45,9 +45,7 @@ pub mod activation;
 pub mod cfc;
 pub mod count;
 pub mod encoding;
-pub mod fastmath;
 pub mod linear;
-pub mod matmul;
 pub mod mlp;
 pub mod profile;
 pub mod se3;
@@ -56,6 +54,7 @@ pub use activation::Activation;
 
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
+use crate::kernels::vec_written_by;
 use crate::math::{Real, Rng};
 use linear::{Epilogue, Input, InputGrad, Linear, LinearGradients, LinearShape, OutputGrad};
 use std::fmt;
@@ -477,28 +476,26 @@ impl TimeEmbedding {
                 // timenet.0 (bias, ReLU), while the block is in cache.
                 let next = l1.linear(p).packed();
                 let nw = next.out_dim();
-                let mut feat: Vec<T> = Vec::with_capacity(n * nw);
                 let chain = |_: usize, blk: &mut [T], out: &mut [MaybeUninit<T>]| {
                     next.forward_block_into(blk, out.len() / nw.max(1), out)
                 };
-                let hidden = profile::layer(
-                    || "timenet.0 + ReLU, timenet.2 in its epilogue".into(),
-                    || {
-                        l0.linear(p).forward(
-                            Input::blocks(&[(&enc, l0.shape.in_dim)]),
-                            n,
-                            Epilogue::act(Activation::Relu).then(
-                                &mut feat.spare_capacity_mut()[..n * nw],
-                                nw,
-                                &chain,
-                            ),
-                        )
-                    },
-                );
-                // SAFETY: the epilogue wrote every row of `feat` (each block
-                // of rows is visited once, and forward_block_into writes all
-                // of its output).
-                unsafe { feat.set_len(n * nw) };
+                let mut hidden = Vec::new();
+                let feat = vec_written_by(n * nw, |feat| {
+                    hidden = profile::layer(
+                        || "timenet.0 + ReLU, timenet.2 in its epilogue".into(),
+                        || {
+                            l0.linear(p).forward(
+                                Input::blocks(&[(&enc, l0.shape.in_dim)]),
+                                n,
+                                Epilogue::act(Activation::Relu).then(feat, nw, &chain),
+                            )
+                        },
+                    );
+                    // SAFETY: the epilogue wrote every row of `feat` (each
+                    // block of rows is visited once, and forward_block_into
+                    // writes all of its output).
+                    unsafe { &mut *(feat as *mut [MaybeUninit<T>] as *mut [T]) }
+                });
                 (feat, TimeCache::Timenet { enc, hidden })
             }
             TimeEmbedding::Encoded => (encoding::encode(t, 1, T_LEVELS_REAL), TimeCache::Encoded),

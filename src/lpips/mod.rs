@@ -26,7 +26,7 @@
 //! Dropout in the linear layers is inactive (the package's eval mode).
 //!
 //! **Determinism.** Every convolution is an im2col product through the
-//! project's matrix kernels ([`crate::deform::matmul`]): each output is one
+//! project's matrix kernels ([`crate::kernels::matmul`]): each output is one
 //! fused multiply-add sum over `(tap, input channel)` in a fixed order, the
 //! same on every instruction-set path and for every thread count. The
 //! pixel blocks that run in parallel are disjoint. Channel sums run in
@@ -41,8 +41,9 @@ pub mod weights;
 
 pub use weights::{LpipsWeights, Verify, WeightFile};
 
-use crate::deform::matmul::{matmul_block_into, pack, MatRef, Packed};
 use crate::error::{Error, Result};
+use crate::kernels::matmul::{matmul_block_into, pack, MatRef, Packed};
+use crate::kernels::{par_blocks_written, vec_written_by};
 use crate::loss::check_image_pair;
 use crate::math::Real;
 use rayon::prelude::*;
@@ -343,11 +344,8 @@ fn conv3x3_relu<T: Real>(x: &FeatureMap<T>, conv: &Conv<T>) -> FeatureMap<T> {
     let (h, w, cin, cout) = (x.h, x.w, conv.cin, conv.cout);
     let k = 9 * cin;
     let n = h * w;
-    let mut data: Vec<T> = Vec::with_capacity(n * cout);
-    data.spare_capacity_mut()[..n * cout]
-        .par_chunks_mut(PIXEL_BLOCK * cout)
-        .enumerate()
-        .for_each(|(blk, ob)| {
+    let data = vec_written_by(n * cout, |data| {
+        par_blocks_written(data, PIXEL_BLOCK * cout, &mut [(); 0], 0, |blk, ob, _| {
             let p0 = blk * PIXEL_BLOCK;
             let rows = ob.len() / cout;
             // im2col rows of this block: [rows, 9·cin], taps in (dy, dx) order.
@@ -378,9 +376,9 @@ fn conv3x3_relu<T: Real>(x: &FeatureMap<T>, conv: &Conv<T>) -> FeatureMap<T> {
                     *v = if s < T::ZERO { T::ZERO } else { s };
                 }
             }
-        });
-    // SAFETY: matmul_block_into wrote every element of every block.
-    unsafe { data.set_len(n * cout) };
+            c
+        })
+    });
     FeatureMap {
         h,
         w,

@@ -1,5 +1,5 @@
 use super::*;
-use crate::deform::fastmath::{force_isa, Isa};
+use crate::kernels::fastmath::{force_isa, Isa};
 use crate::math::Rng;
 
 fn random_weights(seed: u64) -> LpipsWeights {

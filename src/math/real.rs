@@ -96,6 +96,25 @@ pub trait Real:
     /// version (used otherwise) give the same bits.
     fn mul_add(self, a: Self, b: Self) -> Self;
 
+    /// `f32_version(self)` when `Self` is `f32`, `f64_version(self)` when it
+    /// is `f64`: how a kernel with a separate version per precision (the
+    /// deformation fields' fast `exp`, `tanh`, … in [`crate::kernels::fastmath`])
+    /// picks its version. Each type calls its own argument directly, so the
+    /// choice costs nothing at run time.
+    fn per_precision<F32, F64>(self, f32_version: F32, f64_version: F64) -> Self
+    where
+        F32: FnOnce(f32) -> f32,
+        F64: FnOnce(f64) -> f64;
+    /// As [`per_precision`](Self::per_precision), for a function with two
+    /// results (`sin` and `cos`).
+    fn per_precision_pair<F32, F64>(self, f32_version: F32, f64_version: F64) -> (Self, Self)
+    where
+        F32: FnOnce(f32) -> (f32, f32),
+        F64: FnOnce(f64) -> (f64, f64);
+    /// The slice as `&mut [f32]` when `Self` is `f32`, `None` when it is
+    /// `f64` (for a pass that only the f32 version of a kernel needs).
+    fn as_f32_slice_mut(x: &mut [Self]) -> Option<&mut [f32]>;
+
     /// `max` as CUDA's `fmaxf` for non-NaN inputs: the larger value.
     #[inline(always)]
     fn max(self, o: Self) -> Self {
@@ -129,9 +148,24 @@ pub trait Real:
 }
 
 macro_rules! impl_real {
+    (@pick first, $a:ident, $b:ident) => {{
+        let _ = $b;
+        $a
+    }};
+    (@pick second, $a:ident, $b:ident) => {{
+        let _ = $a;
+        $b
+    }};
+    (@slice first, $x:ident) => {
+        Some($x)
+    };
+    (@slice second, $x:ident) => {{
+        let _ = $x;
+        None
+    }};
     ($t:ty, $prec:expr, $size:expr, $exp:path, $ln:path, $sin:path, $cos:path, $tan:path,
      $atan:path, $tanh:path, $erf:path, $log10:path, $pow:path, $ceil:path, $floor:path, $trunc:path,
-     $fma:path) => {
+     $fma:path, $pick:ident) => {
         impl Real for $t {
             const ZERO: Self = 0.0;
             const ONE: Self = 1.0;
@@ -232,6 +266,26 @@ macro_rules! impl_real {
                 <$t>::is_nan(self)
             }
             #[inline(always)]
+            fn per_precision<F32, F64>(self, f32_version: F32, f64_version: F64) -> Self
+            where
+                F32: FnOnce(f32) -> f32,
+                F64: FnOnce(f64) -> f64,
+            {
+                impl_real!(@pick $pick, f32_version, f64_version)(self)
+            }
+            #[inline(always)]
+            fn per_precision_pair<F32, F64>(self, f32_version: F32, f64_version: F64) -> (Self, Self)
+            where
+                F32: FnOnce(f32) -> (f32, f32),
+                F64: FnOnce(f64) -> (f64, f64),
+            {
+                impl_real!(@pick $pick, f32_version, f64_version)(self)
+            }
+            #[inline(always)]
+            fn as_f32_slice_mut(x: &mut [Self]) -> Option<&mut [f32]> {
+                impl_real!(@slice $pick, x)
+            }
+            #[inline(always)]
             fn mul_add(self, a: Self, b: Self) -> Self {
                 #[cfg(any(target_feature = "fma", target_arch = "aarch64"))]
                 {
@@ -263,7 +317,8 @@ impl_real!(
     libm::ceilf,
     libm::floorf,
     libm::truncf,
-    libm::fmaf
+    libm::fmaf,
+    first
 );
 impl_real!(
     f64,
@@ -282,7 +337,8 @@ impl_real!(
     libm::ceil,
     libm::floor,
     libm::trunc,
-    libm::fma
+    libm::fma,
+    second
 );
 
 /// Version string of the pinned math library, recorded beside every

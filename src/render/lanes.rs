@@ -11,7 +11,7 @@
 //! operation by operation (libm's `exp` per lane in f64).
 
 use super::rasterize::LANES;
-use crate::deform::fastmath;
+use crate::kernels::fastmath;
 use crate::math::Real;
 use std::ops::{Add, Div, Mul, Neg, Sub};
 
@@ -339,7 +339,7 @@ mod x86 {
         }
     }
 
-    /// [`crate::deform::fastmath::exp_f32`] on 8 lanes.
+    /// [`crate::kernels::fastmath::exp_f32`] on 8 lanes.
     #[inline(always)]
     fn exp8(x: __m256) -> __m256 {
         unsafe {

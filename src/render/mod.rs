@@ -34,9 +34,9 @@
 //! ## Determinism and speed
 //! The per-pixel stages work on one row of a tile (16 pixels) at a time, as
 //! one vector: AVX-512, two AVX2 halves or portable scalar lanes, chosen at
-//! run time ([`crate::deform::fastmath::force_isa`] pins it), with the same
+//! run time ([`crate::kernels::fastmath::force_isa`] pins it), with the same
 //! bits on every path (see the private modules `lanes` and `rasterize`). In f32
-//! the rasterizer's `exp` is [`crate::deform::fastmath::exp_f32`] (≤ 1 ulp);
+//! the rasterizer's `exp` is [`crate::kernels::fastmath::exp_f32`] (≤ 1 ulp);
 //! f64 uses the pinned libm.
 //! Forward: parallel over Gaussians (independent) and over image rows (each
 //! row owns its pixels). Backward: each tile accumulates into a buffer

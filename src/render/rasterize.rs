@@ -9,7 +9,7 @@
 //! `T ← T·(1 − alpha)`. Output `C + T·bg`, `D` (no background), final `T` and
 //! the 1-based position of the last blended entry.
 //!
-//! `exp` is [`crate::deform::fastmath::exp`]: in f32 the crate's vectorisable
+//! `exp` is [`crate::kernels::fastmath::exp`]: in f32 the crate's vectorisable
 //! `exp_f32` (at most 1 ulp from the correctly rounded value, measured against
 //! libm by its tests), in f64 the pinned libm.
 //!
@@ -22,7 +22,7 @@
 //! comparisons and selects; Rust never contracts `a·b + c` into an FMA), so a
 //! lane of a 16-wide AVX-512 loop, of two 8-wide AVX2 halves or of the
 //! portable loop gives the same bits. The row functions are compiled for each
-//! instruction set and picked at run time ([`crate::deform::fastmath::isa`]).
+//! instruction set and picked at run time ([`crate::kernels::fastmath::isa`]).
 //!
 //! A pair whose `power` is below the splat's `power_min` is skipped before
 //! the `exp`: `power_min = ln(alpha_min / o) − 0.01` (computed in f64), so
@@ -35,7 +35,7 @@
 
 use super::lanes::{Lanes, Scalar};
 use super::BLOCK;
-use crate::deform::fastmath;
+use crate::kernels::fastmath;
 use crate::math::Real;
 
 /// Pixels per row group (one tile row).
@@ -349,7 +349,7 @@ pub(crate) enum Path {
 }
 
 pub(crate) fn path<T: Real>() -> Path {
-    if std::any::TypeId::of::<T>() != std::any::TypeId::of::<f32>() {
+    if T::PRECISION != crate::math::Precision::F32 {
         return Path::Portable;
     }
     match fastmath::isa() {

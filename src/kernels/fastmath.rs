@@ -47,7 +47,6 @@
 #![allow(clippy::excessive_precision)]
 
 use crate::math::Real;
-use std::any::TypeId;
 use std::sync::atomic::{AtomicU8, Ordering};
 
 /// Maximum errors in ulp asserted by the tests (see the module docs).
@@ -277,73 +276,40 @@ pub fn sin_cos_slices<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) {
         "sin_cos_slices: sizes differ"
     );
     sin_cos_loop(x, sin, cos);
-    if is_f32::<T>() {
-        for (i, &v) in x.iter().enumerate() {
-            let v = to_f32(v);
+    if let (Some(sin), Some(cos)) = (T::as_f32_slice_mut(sin), T::as_f32_slice_mut(cos)) {
+        for ((&v, s), c) in x.iter().zip(sin).zip(cos) {
+            let v = v.to_f64() as f32; // exact: T is f32 here
             if v.to_bits() & 0x7fff_ffff >= 0x4dc9_0fdb {
-                sin[i] = from_f32(libm::sinf(v));
-                cos[i] = from_f32(libm::cosf(v));
+                *s = libm::sinf(v);
+                *c = libm::cosf(v);
             }
         }
     }
 }
 
-#[inline(always)]
-fn is_f32<T: 'static>() -> bool {
-    TypeId::of::<T>() == TypeId::of::<f32>()
-}
-
-#[inline(always)]
-fn to_f32<T: Real>(x: T) -> f32 {
-    // SAFETY: only called when T is f32 (checked by the caller).
-    unsafe { std::mem::transmute_copy::<T, f32>(&x) }
-}
-
-#[inline(always)]
-fn from_f32<T: Real>(x: f32) -> T {
-    // SAFETY: only called when T is f32 (checked by the caller).
-    unsafe { std::mem::transmute_copy::<f32, T>(&x) }
-}
-
 /// `e^x` as the fields compute it: this module's f32 function, libm in f64.
 #[inline(always)]
 pub fn exp<T: Real>(x: T) -> T {
-    if is_f32::<T>() {
-        from_f32(exp_f32(to_f32(x)))
-    } else {
-        x.exp()
-    }
+    x.per_precision(exp_f32, libm::exp)
 }
 
 /// `erf x` as the fields compute it: this module's f32 function, libm in f64.
 #[inline(always)]
 pub fn erf<T: Real>(x: T) -> T {
-    if is_f32::<T>() {
-        from_f32(erf_f32(to_f32(x)))
-    } else {
-        x.erf()
-    }
+    x.per_precision(erf_f32, libm::erf)
 }
 
 /// `tanh x` as the fields compute it: this module's f32 function, libm in f64.
 #[inline(always)]
 pub fn tanh<T: Real>(x: T) -> T {
-    if is_f32::<T>() {
-        from_f32(tanh_f32(to_f32(x)))
-    } else {
-        x.tanh()
-    }
+    x.per_precision(tanh_f32, libm::tanh)
 }
 
 /// `sigmoid x` as the fields compute it: this module's f32 function,
 /// `1/(1 + exp(−x))` with libm's exp in f64.
 #[inline(always)]
 pub fn sigmoid<T: Real>(x: T) -> T {
-    if is_f32::<T>() {
-        from_f32(sigmoid_f32(to_f32(x)))
-    } else {
-        x.sigmoid()
-    }
+    x.per_precision(sigmoid_f32, Real::sigmoid)
 }
 
 /// Which instruction set the element-wise loops and the matrix kernels of
@@ -425,11 +391,11 @@ macro_rules! multiversion {
                 unsafe fn avx2<T: Real>($($arg: $ty),*) {
                     $body($($arg),*)
                 }
-                match $crate::deform::fastmath::isa() {
+                match $crate::kernels::fastmath::isa() {
                     // SAFETY: the CPU supports the feature (checked by isa()).
-                    $crate::deform::fastmath::Isa::Avx512 => return unsafe { avx512::<T>($($arg),*) },
-                    $crate::deform::fastmath::Isa::Avx2 => return unsafe { avx2::<T>($($arg),*) },
-                    $crate::deform::fastmath::Isa::Baseline => {}
+                    $crate::kernels::fastmath::Isa::Avx512 => return unsafe { avx512::<T>($($arg),*) },
+                    $crate::kernels::fastmath::Isa::Avx2 => return unsafe { avx2::<T>($($arg),*) },
+                    $crate::kernels::fastmath::Isa::Baseline => {}
                 }
             }
             $body($($arg),*)
@@ -443,14 +409,7 @@ multiversion!(fn sin_cos_loop<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) =>
 #[inline(always)]
 fn sin_cos_body<T: Real>(x: &[T], sin: &mut [T], cos: &mut [T]) {
     for ((&v, s), c) in x.iter().zip(sin.iter_mut()).zip(cos.iter_mut()) {
-        if is_f32::<T>() {
-            let (a, b) = sin_cos_f32(to_f32(v));
-            *s = from_f32(a);
-            *c = from_f32(b);
-        } else {
-            *s = v.sin();
-            *c = v.cos();
-        }
+        (*s, *c) = v.per_precision_pair(sin_cos_f32, |v| (libm::sin(v), libm::cos(v)));
     }
 }
 

@@ -24,7 +24,8 @@
 //! partial sum is computed in row order, and the partials are added in chunk
 //! order (`((p0 + p1) + p2) + ...`).
 
-use crate::math::Real;
+use super::{par_blocks_written, vec_written_by};
+use crate::math::{Precision, Real};
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 
@@ -168,54 +169,45 @@ where
     }
     let packed: Vec<PackedB<T>> = parts.iter().map(|&(_, b)| pack_b(b)).collect();
     // The output is written once, tile by tile, without being zeroed first
-    // (zeroing cost as much as a tenth of a product).
-    let mut c: Vec<T> = Vec::with_capacity(m * n);
-    let out = &mut c.spare_capacity_mut()[..m * n];
-    let run = |blk: usize, cb: &mut [MaybeUninit<T>], sb: &mut [S]| {
-        let r0 = blk * ROW_BLOCK;
-        let rows = cb.len() / n;
-        if let Some(s) = init {
-            for (r, dst) in cb.chunks_exact_mut(n).enumerate() {
-                if s.col_stride == 1 {
-                    let o = (r0 + r) * s.row_stride;
-                    for (d, &v) in dst.iter_mut().zip(&s.data[o..o + n]) {
-                        d.write(v);
-                    }
-                } else {
-                    for (q, d) in dst.iter_mut().enumerate() {
-                        d.write(s.at(r0 + r, q));
+    // (zeroing cost as much as a tenth of a product), in parallel blocks of
+    // rows (one block runs on the calling thread).
+    vec_written_by(m * n, |out| {
+        par_blocks_written(
+            out,
+            ROW_BLOCK * n,
+            side,
+            ROW_BLOCK * side_w,
+            |blk, cb, sb| {
+                let r0 = blk * ROW_BLOCK;
+                let rows = cb.len() / n;
+                if let Some(s) = init {
+                    for (r, dst) in cb.chunks_exact_mut(n).enumerate() {
+                        if s.col_stride == 1 {
+                            let o = (r0 + r) * s.row_stride;
+                            for (d, &v) in dst.iter_mut().zip(&s.data[o..o + n]) {
+                                d.write(v);
+                            }
+                        } else {
+                            for (q, d) in dst.iter_mut().enumerate() {
+                                d.write(s.at(r0 + r, q));
+                            }
+                        }
                     }
                 }
-            }
-        }
-        for (i, ((a, _), pb)) in parts.iter().zip(&packed).enumerate() {
-            // The first part writes the block (unless it starts from
-            // `init`); the others continue its sums.
-            let resume = i > 0 || init.is_some();
-            block_product(ASource::View(a.rows(r0, rows)), pb, a.cols, n, cb, resume);
-        }
-        // SAFETY: `init` or the first block_product call wrote every element
-        // of cb.
-        let cb = unsafe { &mut *(cb as *mut [MaybeUninit<T>] as *mut [T]) };
-        epilogue(r0, cb, sb);
-    };
-    if m <= ROW_BLOCK {
-        // One block: no task to share.
-        run(0, out, side);
-    } else if side_w == 0 {
-        out.par_chunks_mut(ROW_BLOCK * n)
-            .enumerate()
-            .for_each(|(blk, cb)| run(blk, cb, &mut []));
-    } else {
-        out.par_chunks_mut(ROW_BLOCK * n)
-            .zip(side.par_chunks_mut(ROW_BLOCK * side_w))
-            .enumerate()
-            .for_each(|(blk, (cb, sb))| run(blk, cb, sb));
-    }
-    // SAFETY: block_product wrote every one of the m·n elements (each block
-    // of rows is visited exactly once above).
-    unsafe { c.set_len(m * n) };
-    c
+                for (i, ((a, _), pb)) in parts.iter().zip(&packed).enumerate() {
+                    // The first part writes the block (unless it starts from
+                    // `init`); the others continue its sums.
+                    let resume = i > 0 || init.is_some();
+                    block_product(ASource::View(a.rows(r0, rows)), pb, a.cols, n, cb, resume);
+                }
+                // SAFETY: `init` or the first block_product call wrote every element
+                // of cb.
+                let cb = unsafe { &mut *(cb as *mut [MaybeUninit<T>] as *mut [T]) };
+                epilogue(r0, cb, sb);
+                cb
+            },
+        )
+    })
 }
 
 /// `B` `[k, n]` packed once for products with many blocks of rows of `A`
@@ -268,38 +260,45 @@ pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
         .map(|c| {
             let r0 = c * REDUCTION_CHUNK;
             let rows = REDUCTION_CHUNK.min(r - r0);
-            let mut out: Vec<T> = Vec::with_capacity(m * n);
-            let o = &mut out.spare_capacity_mut()[..m * n];
             // The chunk's rows in blocks of KC, each block's sums resumed
             // from the previous one's (exact), so that both packed operands
             // of a block stay in cache.
-            let mut s0 = 0;
-            while s0 < rows {
-                let kc = KC.min(rows - s0);
-                let packed = pack_b(b.rows(r0 + s0, kc));
-                let mr = tile_shape::<T>(packed.path).0;
-                // Rows of Aᵀ are columns of A, far apart in memory: pack them
-                // into the kernel's strips, reading A row by row.
-                let strips = pack_a_transposed(a.rows(r0 + s0, kc), mr);
-                let resume = s0 > 0;
-                // Parallel over output rows inside a chunk too (helps when
-                // there are fewer chunks than threads); results do not
-                // depend on it.
-                o.par_chunks_mut(ROW_BLOCK * n)
-                    .enumerate()
-                    .for_each(|(blk, cb)| {
-                        let o0 = blk * ROW_BLOCK;
+            let passes: Vec<(PackedB<T>, Vec<T>, usize, usize)> = (0..rows)
+                .step_by(KC)
+                .map(|s0| {
+                    let kc = KC.min(rows - s0);
+                    let packed = pack_b(b.rows(r0 + s0, kc));
+                    let mr = tile_shape::<T>(packed.path).0;
+                    // Rows of Aᵀ are columns of A, far apart in memory: pack
+                    // them into the kernel's strips, reading A row by row.
+                    let strips = pack_a_transposed(a.rows(r0 + s0, kc), mr);
+                    (packed, strips, kc, mr)
+                })
+                .collect();
+            let (last, earlier) = passes.split_last().expect("a chunk has rows");
+            // Parallel over output rows inside a chunk too (helps when there
+            // are fewer chunks than threads); results do not depend on it.
+            vec_written_by(m * n, |o| {
+                par_blocks_written(o, ROW_BLOCK * n, &mut [(); 0], 0, |blk, cb, _| {
+                    let o0 = blk * ROW_BLOCK;
+                    let rows = cb.len() / n;
+                    // The first pass writes the block, the others resume it.
+                    for (i, (packed, data, kc, mr)) in earlier.iter().enumerate() {
                         let a = ASource::Strips {
-                            data: &strips[o0 / mr * kc * mr..],
-                            rows: cb.len() / n,
+                            data: &data[o0 / mr * kc * mr..],
+                            rows,
                         };
-                        block_product(a, &packed, kc, n, cb, resume);
-                    });
-                s0 += kc;
-            }
-            // SAFETY: every block of output rows was written by block_product.
-            unsafe { out.set_len(m * n) };
-            out
+                        block_product(a, packed, *kc, n, cb, i > 0);
+                    }
+                    let (packed, data, kc, mr) = last;
+                    let resume = !earlier.is_empty();
+                    let a = ASource::Strips {
+                        data: &data[o0 / mr * kc * mr..],
+                        rows,
+                    };
+                    block_product(a, packed, *kc, n, cb, resume)
+                })
+            })
         })
         .collect();
     sum_in_order(partials)
@@ -462,10 +461,10 @@ pub enum KernelPath {
 /// widest this CPU supports, unless pinned by
 /// [`fastmath::force_isa`](super::fastmath::force_isa).
 pub fn kernel_path() -> KernelPath {
-    match super::fastmath::isa() {
-        super::fastmath::Isa::Avx512 => KernelPath::Avx512,
-        super::fastmath::Isa::Avx2 => KernelPath::Avx2,
-        super::fastmath::Isa::Baseline => KernelPath::Baseline,
+    match crate::kernels::fastmath::isa() {
+        crate::kernels::fastmath::Isa::Avx512 => KernelPath::Avx512,
+        crate::kernels::fastmath::Isa::Avx2 => KernelPath::Avx2,
+        crate::kernels::fastmath::Isa::Baseline => KernelPath::Baseline,
     }
 }
 
@@ -475,14 +474,12 @@ pub fn kernel_path() -> KernelPath {
 /// serves 12 rows of `A` (measured: the f32 MLP forward 6% faster than with
 /// 6 rows); AVX2's 16 registers hold a 6 × 2-vector tile.
 fn tile_shape<T: Real>(path: KernelPath) -> (usize, usize) {
-    let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
-    let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
-    match (path, f32, f64) {
-        (KernelPath::Avx512, true, _) => (12, 32),
-        (KernelPath::Avx512, _, true) => (12, 16),
-        (KernelPath::Avx2, true, _) => (6, 16),
-        (KernelPath::Avx2, _, true) => (6, 8),
-        _ => (4, 8),
+    match (path, T::PRECISION) {
+        (KernelPath::Avx512, Precision::F32) => (12, 32),
+        (KernelPath::Avx512, Precision::F64) => (12, 16),
+        (KernelPath::Avx2, Precision::F32) => (6, 16),
+        (KernelPath::Avx2, Precision::F64) => (6, 8),
+        (KernelPath::Baseline, _) => (4, 8),
     }
 }
 
@@ -508,22 +505,20 @@ fn block_product<'c, T: Real>(
     debug_assert_eq!(b.width, tile_shape::<T>(b.path).1);
     #[cfg(target_arch = "x86_64")]
     {
-        let f32 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f32>();
-        let f64 = std::any::TypeId::of::<T>() == std::any::TypeId::of::<f64>();
-        match (b.path, f32, f64) {
-            (KernelPath::Avx512, true, _) => {
+        match (b.path, T::PRECISION) {
+            (KernelPath::Avx512, Precision::F32) => {
                 block_body::<T, 12, 32>(a, b, k, n, c, resume, Some(simd::f32_avx512))
             }
-            (KernelPath::Avx512, _, true) => {
+            (KernelPath::Avx512, Precision::F64) => {
                 block_body::<T, 12, 16>(a, b, k, n, c, resume, Some(simd::f64_avx512))
             }
-            (KernelPath::Avx2, true, _) => {
+            (KernelPath::Avx2, Precision::F32) => {
                 block_body::<T, 6, 16>(a, b, k, n, c, resume, Some(simd::f32_avx2))
             }
-            (KernelPath::Avx2, _, true) => {
+            (KernelPath::Avx2, Precision::F64) => {
                 block_body::<T, 6, 8>(a, b, k, n, c, resume, Some(simd::f64_avx2))
             }
-            _ => block_body::<T, 4, 8>(a, b, k, n, c, resume, None),
+            (KernelPath::Baseline, _) => block_body::<T, 4, 8>(a, b, k, n, c, resume, None),
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
@@ -1017,7 +1012,7 @@ mod tests {
     /// automatic choice. Results are the same on all paths by design, so
     /// pinning the path here cannot change what other tests compute.
     fn on_every_path(check: impl Fn()) {
-        use crate::deform::fastmath::{force_isa, Isa};
+        use crate::kernels::fastmath::{force_isa, Isa};
         for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
             if force_isa(Some(isa)) {
                 check();

@@ -1,0 +1,135 @@
+//! Numeric kernels shared by the stages: the dense matrix products
+//! ([`matmul`]) and the fast-math functions ([`fastmath`]) of the
+//! deformation fields, the rasterizer and LPIPS.
+//!
+//! Each kernel is compiled for several instruction sets (AVX-512, AVX2 and
+//! the build target's baseline) and picks one at run time
+//! ([`fastmath::isa`], which tests and benchmarks can pin with
+//! [`fastmath::force_isa`]). Every path gives the same bits, on every CPU
+//! and for any thread count: the kernels fix the order of every sum and use
+//! only correctly rounded or exact operations, so the instruction set only
+//! changes speed.
+//!
+//! [`vec_written_by`] and [`par_blocks_written`] build output vectors that
+//! are written once, in place, without being zeroed first (zeroing cost as
+//! much as a tenth of a matrix product).
+
+pub mod fastmath;
+pub mod matmul;
+
+use rayon::prelude::*;
+use std::mem::MaybeUninit;
+
+/// A vector of `len` values written in place by `write`, never zeroed
+/// first.
+///
+/// `write` receives the `len` uninitialised slots and returns them written,
+/// as an initialised slice of the same memory: code can only hold such a
+/// slice once every value in it has been written (for example the one
+/// [`par_blocks_written`] returns, or a block that a matrix product
+/// returns). Panics when the returned slice is not the whole buffer.
+pub fn vec_written_by<T>(
+    len: usize,
+    write: impl FnOnce(&mut [MaybeUninit<T>]) -> &mut [T],
+) -> Vec<T> {
+    let mut v: Vec<T> = Vec::with_capacity(len);
+    let buf = &mut v.spare_capacity_mut()[..len];
+    let start = buf.as_ptr() as *const T;
+    let written = write(buf);
+    assert!(
+        std::ptr::eq(written.as_ptr(), start) && written.len() == len,
+        "vec_written_by: the writer returned another slice than its buffer"
+    );
+    // SAFETY: `written` is an initialised `&mut [T]` over exactly the first
+    // `len` slots of the capacity (checked above), so those are initialised.
+    unsafe { v.set_len(len) };
+    v
+}
+
+/// `buf` written in parallel blocks of `block` values: `write(i, dst, side)`
+/// receives block `i` (uninitialised; the last one may be shorter) with the
+/// matching block of `side_block` values of `side`, and returns the block
+/// written, as an initialised slice of the same memory (checked: panics
+/// otherwise). Every block is visited exactly once; a single block runs on
+/// the calling thread. Returns the whole buffer, initialised.
+pub fn par_blocks_written<'a, T, S, F>(
+    buf: &'a mut [MaybeUninit<T>],
+    block: usize,
+    side: &mut [S],
+    side_block: usize,
+    write: F,
+) -> &'a mut [T]
+where
+    T: Send,
+    S: Send,
+    F: for<'b> Fn(usize, &'b mut [MaybeUninit<T>], &mut [S]) -> &'b mut [T] + Sync,
+{
+    let block = block.max(1);
+    let blocks = buf.len().div_ceil(block);
+    assert!(
+        side_block == 0 || side.len().div_ceil(side_block) >= blocks,
+        "par_blocks_written: side has fewer blocks than the buffer"
+    );
+    let check = |i: usize, dst: &mut [MaybeUninit<T>], sb: &mut [S]| {
+        let (start, len) = (dst.as_ptr() as *const T, dst.len());
+        let written = write(i, dst, sb);
+        assert!(
+            std::ptr::eq(written.as_ptr(), start) && written.len() == len,
+            "par_blocks_written: a writer returned another slice than its block"
+        );
+    };
+    if blocks <= 1 {
+        if blocks == 1 {
+            let end = side_block.min(side.len());
+            check(0, buf, &mut side[..end]);
+        }
+    } else if side_block == 0 {
+        buf.par_chunks_mut(block)
+            .enumerate()
+            .for_each(|(i, dst)| check(i, dst, &mut []));
+    } else {
+        buf.par_chunks_mut(block)
+            .zip(side.par_chunks_mut(side_block))
+            .enumerate()
+            .for_each(|(i, (dst, sb))| check(i, dst, sb));
+    }
+    // SAFETY: every block of `buf` (the chunks partition it, and each was
+    // visited once above) was returned as an initialised `&mut [T]` over
+    // its own memory (checked), so every value of `buf` is initialised.
+    unsafe { &mut *(buf as *mut [MaybeUninit<T>] as *mut [T]) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn blocks_are_written_in_place_once_each() {
+        let mut side = vec![0usize; 10];
+        let v: Vec<u32> = vec_written_by(23, |buf| {
+            par_blocks_written(buf, 5, &mut side, 2, |i, dst, sb| {
+                sb.iter_mut().for_each(|s| *s += 1);
+                let n = dst.len();
+                for (j, d) in dst.iter_mut().enumerate() {
+                    d.write((i * 5 + j) as u32);
+                }
+                // SAFETY: the loop above wrote all n values.
+                let out = unsafe { &mut *(dst as *mut [MaybeUninit<u32>] as *mut [u32]) };
+                assert_eq!(out.len(), n);
+                out
+            })
+        });
+        assert_eq!(v, (0..23).collect::<Vec<u32>>());
+        // 5 blocks, each with its own 2 side values; the rest untouched.
+        assert_eq!(side, [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]);
+    }
+
+    #[test]
+    #[should_panic(expected = "another slice")]
+    fn a_slice_other_than_the_buffer_is_refused() {
+        let _ = vec_written_by::<f32>(4, |_| {
+            // A different, initialised slice of the right length.
+            Box::leak(Box::new([1.0f32; 4])).as_mut_slice()
+        });
+    }
+}
