@@ -22,11 +22,13 @@ use std::mem::MaybeUninit;
 /// An element-wise activation function.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Activation {
+    /// `max(x, 0)`.
     Relu,
     /// `0.5·x·(1 + erf(x/√2))`.
     Gelu,
     /// `x·σ(x)`.
     Silu,
+    /// `tanh x`.
     Tanh,
     /// `1.7159·tanh(0.666·x)`.
     LecunTanh,

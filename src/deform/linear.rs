@@ -26,7 +26,9 @@ use std::mem::MaybeUninit;
 /// Shape of a linear layer.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct LinearShape {
+    /// Input width (columns of `W`).
     pub in_dim: usize,
+    /// Output width (rows of `W`).
     pub out_dim: usize,
 }
 
