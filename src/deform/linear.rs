@@ -700,8 +700,8 @@ mod tests {
     /// with 1 or 3 threads.
     #[test]
     fn chunked_backward_matches_the_reference_products() {
-        use crate::deform::fastmath::{force_isa, Isa};
-        use crate::deform::matmul::reference;
+        use crate::kernels::fastmath::{force_isa, Isa};
+        use crate::kernels::matmul::reference;
         // Three chunks and a partial one; two input blocks.
         let (n, widths, out) = (2 * REDUCTION_CHUNK + 301, [13usize, 40], 70);
         let in_dim: usize = widths.iter().sum();
