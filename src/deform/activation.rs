@@ -22,11 +22,13 @@ use std::mem::MaybeUninit;
 /// An element-wise activation function.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Activation {
+    /// `max(x, 0)`.
     Relu,
     /// `0.5·x·(1 + erf(x/√2))`.
     Gelu,
     /// `x·σ(x)`.
     Silu,
+    /// `tanh x`.
     Tanh,
     /// `1.7159·tanh(0.666·x)`.
     LecunTanh,
@@ -165,6 +167,14 @@ impl Activation {
         apply_uninit(self, pre, out);
     }
 
+    /// [`backward_in_place`](Self::backward_in_place) on one block of
+    /// values, sequential (for a chunk of an output gradient produced inside
+    /// a linear layer's backward).
+    pub fn backward_block<T: Real>(self, pre: &[T], g: &mut [T]) {
+        assert_eq!(pre.len(), g.len(), "activation backward: sizes differ");
+        scale_by_derivative(self, pre, g);
+    }
+
     /// vjp: `g ⊙ f'(pre)`, in place on `g`.
     pub fn backward_in_place<T: Real>(self, pre: &[T], g: &mut [T]) {
         if g.len() <= 4096 {
@@ -186,6 +196,13 @@ pub fn relu_backward_from_output<T: Real>(out: &[T], g: &mut [T]) {
     g.par_chunks_mut(4096)
         .zip(out.par_chunks(4096))
         .for_each(|(g, o)| relu_mask_row(o, g));
+}
+
+/// [`relu_backward_from_output`] on one block of rows, sequential (for a
+/// chunk of an output gradient produced inside a linear layer's backward).
+pub fn relu_backward_from_output_block<T: Real>(out: &[T], g: &mut [T]) {
+    assert_eq!(out.len(), g.len(), "relu backward: sizes differ");
+    relu_mask_row(out, g)
 }
 
 multiversion!(fn relu_mask_row<T: Real>(out: &[T], g: &mut [T]) => relu_mask_row_body);

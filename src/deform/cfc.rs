@@ -12,7 +12,7 @@
 //! - Every cell's first backbone layer and the skip read the same `u`, so
 //!   their `u` columns are one product `[N, |u|]·[|u|, D·U + W]` per pass;
 //!   each cell's first layer then continues those sums over its state
-//!   columns ([`matmul_from_parts_then`]), the same bits as one sum over
+//!   columns ([`Input::continuing`]), the same bits as one sum over
 //!   `[u; h]` in order. The backward collects the gradients of those outputs
 //!   of all cells and of the skip, and computes their weight gradients over
 //!   `u` as one product `[D·U + W, N]·[N, |u|]` and their bias gradients as
@@ -25,24 +25,28 @@
 //! - The four heads of a cell run as one stacked product `4W` wide, and the
 //!   gate, both tanh's and the new state are computed in its epilogue on each
 //!   block of rows while it is in cache, which keeps what the backward needs
-//!   (tanh(ff1), tanh(ff2), time_a(z) and σ); the backward runs the heads'
-//!   weight gradient and input gradient as one product each. tanh and
-//!   sigmoid are [`fastmath`]'s (vectorised in f32).
+//!   (tanh(ff1), tanh(ff2), time_a(z) and σ). In the backward, the gate and
+//!   update vjp produces the heads' output gradient chunk by chunk inside
+//!   the heads' backward ([`OutputGrad::Produced`]), where the weight, bias
+//!   and input gradients read each chunk while it is in cache (the `[n, 4W]`
+//!   gradient is never stored whole); the backbone layers' activation vjps
+//!   are produced the same way. tanh and sigmoid are [`fastmath`]'s
+//!   (vectorised in f32).
 //!
 //! Every product and element-wise pass is timed by [`profile`] when it is on
 //! (`liquid-splat bench deform`).
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
-use super::linear::InputGrad;
+use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
 use super::profile;
 use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
     TimeEmbeddingSaved, XYZ_LEVELS,
 };
 use crate::kernels::fastmath::{self, multiversion};
-use crate::kernels::matmul::{column_sums, matmul, matmul_from_parts_then, matmul_tn, MatRef};
-use crate::kernels::{par_blocks_written, vec_written_by};
+use crate::kernels::matmul::{column_sums, matmul, matmul_tn, MatRef};
+use crate::kernels::vec_written_by;
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -242,7 +246,14 @@ impl CfcNet {
             h = cc.1;
             cells.push(cc.0);
         }
-        let out = profile::layer(|| "head".into(), || self.head.forward(p, &h, n));
+        let out = profile::layer(
+            || "head".into(),
+            || {
+                self.head
+                    .linear(p)
+                    .forward(Input::blocks(&[(&h, w)]), n, Epilogue::none())
+            },
+        );
         (
             Deformation::from_head(&out),
             CfcCache {
@@ -276,39 +287,24 @@ impl CfcNet {
             // written into `out` (which is never zeroed: every value is
             // written once).
             let units = lin.shape.out_dim;
+            let act = self.act;
+            let apply = |_: usize, blk: &mut [T], ob: &mut [MaybeUninit<T>]| {
+                act.apply_block_uninit(blk, ob)
+            };
             let mut pre = Vec::new();
             let out = vec_written_by(n * units, |ob| {
                 pre = if j == 0 {
-                    // The u sums continued over the state columns, then the
-                    // bias and the activation.
-                    let wt = MatRef::row_major(lin.weight(p), units, lin.shape.in_dim).t();
+                    // The u sums continued over the state columns (none before
+                    // the first cell, see reads_state), then the bias and the
+                    // activation.
                     let k = if self.reads_state(l) { w } else { 0 };
-                    let hm = MatRef::row_major(&h, n, k);
-                    let bias = lin.bias(p);
                     profile::layer(
-                        || "backbone.0".into(),
+                        || format!("backbone.0, u sums continued, {} in the epilogue", self.act),
                         || {
-                            profile::product(
-                                || format!("(u sums) + h·Wₕᵀ + b, {} in the epilogue", self.act),
+                            lin.linear(p).forward(
+                                Input::continuing(pu, ud, &[(&h, k)]),
                                 n,
-                                k,
-                                units,
-                                || {
-                                    matmul_from_parts_then(
-                                        Some(pu),
-                                        &[(hm, wt.rows(ud, k))],
-                                        ob,
-                                        units,
-                                        |_, blk, ob| {
-                                            for row in blk.chunks_exact_mut(units) {
-                                                for (v, &b) in row.iter_mut().zip(bias) {
-                                                    *v += b;
-                                                }
-                                            }
-                                            self.act.apply_block_uninit(blk, ob)
-                                        },
-                                    )
-                                },
+                                Epilogue::none().then(ob, units, &apply),
                             )
                         },
                     )
@@ -316,9 +312,11 @@ impl CfcNet {
                     profile::layer(
                         || format!("backbone.{j}, {} in the epilogue", self.act),
                         || {
-                            lin.forward_then(p, &cur, n, ob, units, |_, blk, ob| {
-                                self.act.apply_block_uninit(blk, ob)
-                            })
+                            lin.linear(p).forward(
+                                Input::blocks(&[(&cur, lin.shape.in_dim)]),
+                                n,
+                                Epilogue::none().then(ob, units, &apply),
+                            )
                         },
                     )
                 };
@@ -336,15 +334,20 @@ impl CfcNet {
         // The four heads as one product 4W wide, then the fused cell pass on
         // each block of rows while it is in cache, writing the new state
         // (never zeroed).
+        let pass = |r0: usize, g: &mut [T], hb: &mut [MaybeUninit<T>]| {
+            let rows = hb.len() / w;
+            cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
+        };
         let mut gate = Vec::new();
         let h_next = vec_written_by(n * w, |hb| {
             gate = profile::layer(
                 || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
                 || {
-                    Stacked(&cell.heads).forward_then(p, &z, n, hb, w, |r0, g, hb| {
-                        let rows = hb.len() / w;
-                        cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
-                    })
+                    Stacked(&cell.heads).linear(p).forward(
+                        Input::blocks(&[(&z, cell.heads[0].shape.in_dim)]),
+                        n,
+                        Epilogue::none().then(hb, w, &pass),
+                    )
                 },
             );
             // SAFETY: the cell pass wrote every value of every block of rows.
@@ -377,8 +380,14 @@ impl CfcNet {
         let mut dh = profile::layer(
             || "head".into(),
             || {
-                self.head
-                    .backward(p, &c.head_in, &g.to_head(), n, InputGrad::From(0), gp)
+                let mut r = self.head.linear(p).backward(
+                    &[(&c.head_in, w)],
+                    OutputGrad::Given(&g.to_head()),
+                    n,
+                    InputGrad::From(0),
+                );
+                self.head.store(&r, gp);
+                r.take_input(0)
             },
         )
         .expect("input gradient requested");
@@ -393,47 +402,69 @@ impl CfcNet {
             profile::layer(
                 || format!("cell {l}"),
                 || {
-                    let g_heads = profile::elementwise(
-                        || "gate and update vjp".into(),
-                        n,
-                        4 * w,
-                        || cell_backward_fused(&cc.gate, &dh, t, w, &mut gate_dt),
-                    );
+                    // The gate and update vjp produces the heads' output
+                    // gradient chunk by chunk, read there by the heads'
+                    // weight, bias and input gradients while in cache.
+                    let produce = |r0: usize, chunk: &mut [T], dt: &mut [T]| {
+                        let rows = dt.len();
+                        let mut prod = vec![T::ZERO; w];
+                        cell_backward_rows(
+                            chunk,
+                            &cc.gate[r0 * 4 * w..(r0 + rows) * 4 * w],
+                            &dh[r0 * w..(r0 + rows) * w],
+                            &t[r0..r0 + rows],
+                            dt,
+                            &mut prod,
+                            w,
+                        )
+                    };
                     let mut dz = profile::layer(
-                        || "heads ff1|ff2|time_a|time_b".into(),
+                        || "heads ff1|ff2|time_a|time_b, gate and update vjp producing G".into(),
                         || {
-                            Stacked(&cell.heads).backward(
-                                p,
-                                &cc.z,
-                                &g_heads,
+                            let heads = Stacked(&cell.heads);
+                            let mut r = heads.linear(p).backward(
+                                &[(&cc.z, units)],
+                                OutputGrad::Produced {
+                                    produce: &produce,
+                                    side: &mut gate_dt,
+                                    side_w: 1,
+                                },
                                 n,
                                 InputGrad::From(0),
-                                gp,
-                            )
+                            );
+                            heads.store(&r, gp);
+                            r.take_input(0)
                         },
                     )
                     .expect("input gradient requested");
                     for j in (1..cell.backbone.len()).rev() {
-                        dz = profile::layer(
-                            || format!("backbone.{j}"),
+                        // The activation's vjp produces the layer's output
+                        // gradient chunk by chunk inside its backward.
+                        let (pre, g_out, act) = (&cc.pres[j], &dz, self.act);
+                        let produce = |r0: usize, chunk: &mut [T], _: &mut [T]| {
+                            let rows = chunk.len() / units;
+                            chunk.copy_from_slice(&g_out[r0 * units..(r0 + rows) * units]);
+                            act.backward_block(&pre[r0 * units..(r0 + rows) * units], chunk)
+                        };
+                        let lin = &cell.backbone[j];
+                        let next = profile::layer(
+                            || format!("backbone.{j}, {} vjp producing G", self.act),
                             || {
-                                profile::elementwise(
-                                    || format!("{} vjp", self.act),
-                                    n,
-                                    units,
-                                    || self.act.backward_in_place(&cc.pres[j], &mut dz),
-                                );
-                                cell.backbone[j].backward(
-                                    p,
-                                    &cc.inputs[j - 1],
-                                    &dz,
+                                let mut r = lin.linear(p).backward(
+                                    &[(&cc.inputs[j - 1], units)],
+                                    OutputGrad::Produced {
+                                        produce: &produce,
+                                        side: &mut [],
+                                        side_w: 0,
+                                    },
                                     n,
                                     InputGrad::From(0),
-                                    gp,
-                                )
+                                );
+                                lin.store(&r, gp);
+                                r.take_input(0)
                             },
-                        )
-                        .expect("input gradient requested");
+                        );
+                        dz = next.expect("input gradient requested");
                     }
                     // The first layer's input is [γ(x) | t_feat | h]: γ(x) is
                     // stop-gradient; t_feat's gradient is collected, h's
@@ -633,32 +664,18 @@ fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], t: &[T
     }
 }
 
-/// vjp of [`cell_forward_rows`]: the gradient of the four head outputs
-/// `[n, 4W]` given the state gradient `dh` `[n, W]`; adds each row's
-/// gradient with respect to τ (summed over j in order) to `dt`.
-fn cell_backward_fused<T: Real>(gate: &[T], dh: &[T], t: &[T], w: usize, dt: &mut [T]) -> Vec<T> {
-    // Every value is written once below (never zeroed first).
-    let rows = ROWS_PER_TASK;
-    vec_written_by(gate.len(), |out| {
-        par_blocks_written(out, 4 * w * rows, dt, rows, |i, o, dt| {
-            let g = &gate[i * 4 * w * rows..][..o.len()];
-            let dh = &dh[i * w * rows..][..dt.len() * w];
-            let t = &t[i * rows..][..dt.len()];
-            let mut prod = vec![T::ZERO; w];
-            cell_backward_rows(o, g, dh, t, dt, &mut prod, w);
-            // SAFETY: cell_backward_rows wrote all 4W values of every row.
-            unsafe { &mut *(o as *mut [MaybeUninit<T>] as *mut [T]) }
-        })
-    })
-}
+// vjp of `cell_forward_rows` on a block of rows: the gradient of the four
+// head outputs `o` (`[rows, 4W]`) given the cell pass's saved values `g`
+// (tanh(ff1) | tanh(ff2) | time_a | σ) and the state gradient `dh`
+// `[rows, W]`; adds each row's gradient with respect to τ (summed over j in
+// order) to `dt`. `prod` is scratch, W long.
+multiversion!(fn cell_backward_rows<T: Real>(o: &mut [T], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
 
-multiversion!(fn cell_backward_rows<T: Real>(o: &mut [MaybeUninit<T>], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
-
-/// Rows of [`cell_backward_fused`]. The per-row sum for τ runs in its own
-/// loop over `prod` (j ascending), so the element-wise loop vectorises.
+// The per-row sum for τ runs in its own loop over `prod` (j ascending), so
+// the element-wise loop vectorises.
 #[inline(always)]
 fn cell_backward_rows_body<T: Real>(
-    o: &mut [MaybeUninit<T>],
+    o: &mut [T],
     g: &[T],
     dh: &[T],
     t: &[T],
@@ -695,10 +712,10 @@ fn cell_backward_rows_body<T: Real>(
             let db = gh * s;
             let ds = gh * (b - a);
             let dpre = ds * (s * (T::ONE - s));
-            o1.write(da * (T::ONE - a * a));
-            o2.write(db * (T::ONE - b * b));
-            o3.write(dpre * tau);
-            o4.write(dpre);
+            *o1 = da * (T::ONE - a * a);
+            *o2 = db * (T::ONE - b * b);
+            *o3 = dpre * tau;
+            *o4 = dpre;
             *pr = dpre * ta;
         }
         let mut sum = T::ZERO;

@@ -26,17 +26,22 @@ use std::fmt;
 /// A ptflops counting convention.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum MacConvention {
+    /// ptflops' aten backend: linear layers only.
     Aten,
+    /// ptflops' pytorch backend with `count_functional=True`.
     Pytorch,
+    /// ptflops' pytorch backend with `count_functional=False`.
     PytorchNoFunctional,
 }
 
 impl MacConvention {
+    /// Every convention, in the order reports list them.
     pub const ALL: [MacConvention; 3] = [
         MacConvention::Aten,
         MacConvention::Pytorch,
         MacConvention::PytorchNoFunctional,
     ];
+    /// A description of the convention for reports.
     pub fn name(self) -> &'static str {
         match self {
             MacConvention::Aten => "ptflops aten backend (linear layers only)",

@@ -3,14 +3,8 @@
 //! weight and bias there and runs, alone or stacked with others of the same
 //! input, and the builder of the layout in `state_dict` order.
 
-use super::activation::Activation;
-use super::linear::{
-    linear_backward, linear_backward_parts, linear_forward, linear_forward_parts_then, InputGrad,
-    LinearShape, PackedLinear,
-};
-use crate::kernels::vec_written_by;
+use super::linear::{Linear, LinearGradients, LinearShape};
 use crate::math::Real;
-use std::mem::MaybeUninit;
 
 /// One named tensor's place in the flat parameter vector.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -67,167 +61,9 @@ impl LinearParams {
         &p[self.b..self.b + self.shape.out_dim]
     }
 
-    /// Forward on `x` `[n, in]`.
-    pub fn forward<T: Real>(&self, p: &[T], x: &[T], n: usize) -> Vec<T> {
-        linear_forward(x, n, self.shape, self.weight(p), self.bias(p))
-    }
-
-    /// The layer packed for forwards one block of rows at a time (the same
-    /// bits as [`forward`](Self::forward)).
-    pub fn packed<T: Real>(&self, p: &[T]) -> PackedLinear<T> {
-        PackedLinear::new(self.weight(p), self.bias(p), self.shape)
-    }
-
-    /// [`forward_parts_act`](Self::forward_parts_act) with the next layer
-    /// `next` run on each block of output rows as it leaves this product,
-    /// while the block is in cache. Returns (this layer's output, `next`'s
-    /// output), the same bits as two separate forwards.
-    pub fn forward_parts_act_chain<T: Real>(
-        &self,
-        p: &[T],
-        xs: &[(&[T], usize)],
-        n: usize,
-        act: Activation,
-        next: &PackedLinear<T>,
-    ) -> (Vec<T>, Vec<T>) {
-        let nw = next.out_dim();
-        let mut h = Vec::new();
-        let y = vec_written_by(n * nw, |y| {
-            h = self.forward_parts_act_then(p, xs, n, act, y, nw, |_, blk, out| {
-                next.forward_block_into(blk, out.len() / nw.max(1), out)
-            });
-            // SAFETY: the epilogue wrote every row of `y` (each block of rows
-            // is visited once, and forward_block_into writes all of its
-            // output).
-            unsafe { &mut *(y as *mut [MaybeUninit<T>] as *mut [T]) }
-        });
-        (h, y)
-    }
-
-    /// `act(x·Wᵀ + b)` for an input given as column blocks `xs` (see
-    /// [`forward_parts_then`](Self::forward_parts_then)): the bias and the
-    /// activation in one pass over each block of output rows while it is in
-    /// cache (the same values as [`forward`](Self::forward) on the
-    /// concatenated input, then the activation).
-    pub fn forward_parts_act<T: Real>(
-        &self,
-        p: &[T],
-        xs: &[(&[T], usize)],
-        n: usize,
-        act: Activation,
-    ) -> Vec<T> {
-        self.forward_parts_act_then::<T, T, _>(p, xs, n, act, &mut [], 0, |_, _, _| {})
-    }
-
-    /// [`forward_parts_act`](Self::forward_parts_act), then `epilogue` on
-    /// each block of output rows, after the activation (see
-    /// [`linear_forward_parts_then`]).
-    #[allow(clippy::too_many_arguments)]
-    pub fn forward_parts_act_then<T: Real, S: Send, F>(
-        &self,
-        p: &[T],
-        xs: &[(&[T], usize)],
-        n: usize,
-        act: Activation,
-        side: &mut [S],
-        side_w: usize,
-        epilogue: F,
-    ) -> Vec<T>
-    where
-        F: Fn(usize, &mut [T], &mut [S]) + Sync,
-    {
-        let bias = self.bias(p);
-        linear_forward_parts_then(
-            xs,
-            n,
-            self.shape,
-            self.weight(p),
-            &[],
-            side,
-            side_w,
-            |r0, blk, sb| {
-                act.add_bias_apply_block(blk, bias);
-                epilogue(r0, blk, sb)
-            },
-        )
-    }
-
-    /// [`forward_then`](Self::forward_then) for an input given as column
-    /// blocks `xs` (`(block, width)`, see [`linear_forward_parts_then`]):
-    /// the same bits as on the concatenated input, without building it.
-    pub fn forward_parts_then<T: Real, S: Send, F>(
-        &self,
-        p: &[T],
-        xs: &[(&[T], usize)],
-        n: usize,
-        side: &mut [S],
-        side_w: usize,
-        epilogue: F,
-    ) -> Vec<T>
-    where
-        F: Fn(usize, &mut [T], &mut [S]) + Sync,
-    {
-        linear_forward_parts_then(
-            xs,
-            n,
-            self.shape,
-            self.weight(p),
-            self.bias(p),
-            side,
-            side_w,
-            epilogue,
-        )
-    }
-
-    /// [`backward`](Self::backward) for an input given as column blocks:
-    /// writes the weight and bias gradients into `grad` and returns, per
-    /// block, the gradient of its requested columns (see
-    /// [`linear_backward_parts`]).
-    pub fn backward_parts<T: Real>(
-        &self,
-        p: &[T],
-        xs: &[(&[T], usize)],
-        g: &[T],
-        n: usize,
-        input: InputGrad,
-        grad: &mut [T],
-    ) -> Vec<Option<Vec<T>>> {
-        let r = linear_backward_parts(xs, g, n, self.shape, self.weight(p), input);
-        self.store_grads(grad, &r.weight, &r.bias);
-        r.input
-    }
-
-    /// [`forward`](Self::forward) with an epilogue on each block of output
-    /// rows (see [`linear_forward_parts_then`]).
-    pub fn forward_then<T: Real, S: Send, F>(
-        &self,
-        p: &[T],
-        x: &[T],
-        n: usize,
-        side: &mut [S],
-        side_w: usize,
-        epilogue: F,
-    ) -> Vec<T>
-    where
-        F: Fn(usize, &mut [T], &mut [S]) + Sync,
-    {
-        self.forward_parts_then(p, &[(x, self.shape.in_dim)], n, side, side_w, epilogue)
-    }
-
-    /// Backward: writes the weight and bias gradients into `grad` (same
-    /// layout as the parameters) and returns the requested input gradient.
-    pub fn backward<T: Real>(
-        &self,
-        p: &[T],
-        x: &[T],
-        g: &[T],
-        n: usize,
-        input: InputGrad,
-        grad: &mut [T],
-    ) -> Option<Vec<T>> {
-        let r = linear_backward(x, g, n, self.shape, self.weight(p), input);
-        self.store_grads(grad, &r.weight, &r.bias);
-        r.input
+    /// The layer over its parameters in `p`.
+    pub fn linear<'a, T: Real>(&self, p: &'a [T]) -> Linear<'a, T> {
+        Linear::new(self.weight(p), self.bias(p), self.shape)
     }
 
     /// Write a weight and a bias gradient into `grad` (same layout as the
@@ -236,6 +72,11 @@ impl LinearParams {
         grad[self.w..self.w + weight.len()].copy_from_slice(weight);
         grad[self.b..self.b + bias.len()].copy_from_slice(bias);
     }
+
+    /// Write the layer's weight and bias gradients into `grad`.
+    pub fn store<T: Real>(&self, g: &LinearGradients<T>, grad: &mut [T]) {
+        self.store_grads(grad, &g.weight, &g.bias);
+    }
 }
 
 /// Several linear layers with the same input run as one (their weights
@@ -243,75 +84,25 @@ impl LinearParams {
 pub(crate) struct Stacked<'a>(pub &'a [LinearParams]);
 
 impl Stacked<'_> {
-    pub(crate) fn in_dim(&self) -> usize {
-        self.0[0].shape.in_dim
+    /// The stacked layer over the parameters in `p`: `[n, Σ out]`, the
+    /// layers' outputs side by side.
+    pub fn linear<T: Real>(&self, p: &[T]) -> Linear<'static, T> {
+        let layers: Vec<Linear<'_, T>> = self.0.iter().map(|l| l.linear(p)).collect();
+        Linear::stacked(&layers)
     }
-    pub fn out_dim(&self) -> usize {
-        self.0.iter().map(|l| l.shape.out_dim).sum()
-    }
-    pub(crate) fn gather<T: Real>(&self, p: &[T]) -> (Vec<T>, Vec<T>) {
-        let mut w = Vec::with_capacity(self.out_dim() * self.in_dim());
-        let mut b = Vec::with_capacity(self.out_dim());
-        for l in self.0 {
-            w.extend_from_slice(l.weight(p));
-            b.extend_from_slice(l.bias(p));
-        }
-        (w, b)
-    }
-    pub(crate) fn shape(&self) -> LinearShape {
-        LinearShape {
-            in_dim: self.in_dim(),
-            out_dim: self.out_dim(),
-        }
-    }
-    /// The stacked layers packed for forwards one block of rows at a time:
-    /// `[rows, Σ out]`, the layers' outputs side by side.
-    pub fn packed<T: Real>(&self, p: &[T]) -> PackedLinear<T> {
-        let (w, b) = self.gather(p);
-        PackedLinear::new(&w, &b, self.shape())
-    }
-    /// [`forward`](Self::forward) with an epilogue on each block of output
-    /// rows (see [`linear_forward_parts_then`]).
-    pub fn forward_then<T: Real, S: Send, F>(
-        &self,
-        p: &[T],
-        x: &[T],
-        n: usize,
-        side: &mut [S],
-        side_w: usize,
-        epilogue: F,
-    ) -> Vec<T>
-    where
-        F: Fn(usize, &mut [T], &mut [S]) + Sync,
-    {
-        let (w, b) = self.gather(p);
-        let xs = [(x, self.in_dim())];
-        linear_forward_parts_then(&xs, n, self.shape(), &w, &b, side, side_w, epilogue)
-    }
-    /// Backward; `g` is `[n, Σ out]`.
-    pub fn backward<T: Real>(
-        &self,
-        p: &[T],
-        x: &[T],
-        g: &[T],
-        n: usize,
-        input: InputGrad,
-        grad: &mut [T],
-    ) -> Option<Vec<T>> {
-        let (w, _) = self.gather(p);
-        let r = linear_backward(x, g, n, self.shape(), &w, input);
-        let in_dim = self.in_dim();
+
+    /// Write the stacked layer's gradients into `grad`, layer by layer.
+    pub fn store<T: Real>(&self, g: &LinearGradients<T>, grad: &mut [T]) {
         let mut row = 0;
         for l in self.0 {
-            let o = l.shape.out_dim;
+            let (o, in_dim) = (l.shape.out_dim, l.shape.in_dim);
             l.store_grads(
                 grad,
-                &r.weight[row * in_dim..(row + o) * in_dim],
-                &r.bias[row..row + o],
+                &g.weight[row * in_dim..(row + o) * in_dim],
+                &g.bias[row..row + o],
             );
             row += o;
         }
-        r.input
     }
 }
 

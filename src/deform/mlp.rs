@@ -12,16 +12,18 @@
 //! stacked product in `state_dict` order (`branch_w`, `branch_v`,
 //! `gaussian_rotation`, `gaussian_scaling`).
 
-use super::activation::{relu_backward_from_output, Activation};
+use super::activation::{relu_backward_from_output_block, Activation};
 use super::encoding::{encode, encoded_dim};
-use super::linear::InputGrad;
+use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
 use super::profile;
 use super::se3;
 use super::{
     Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
     TimeEmbeddingSaved, XYZ_LEVELS,
 };
+use crate::kernels::vec_written_by;
 use crate::math::Real;
+use std::mem::MaybeUninit;
 
 /// Architecture and parameter places of the MLP field.
 #[derive(Clone, Debug)]
@@ -103,8 +105,12 @@ impl MlpNet {
         let mut cur: Vec<T> = Vec::new();
         // The heads run on each block of rows of the last layer's output as
         // it leaves that layer, while the block is in cache.
-        let heads = Stacked(&self.heads).packed(p);
-        let mut head_out = Vec::new();
+        let heads = Stacked(&self.heads).linear(p).packed();
+        let hw = heads.out_dim();
+        let chain = |_: usize, blk: &mut [T], out: &mut [MaybeUninit<T>]| {
+            heads.forward_block_into(blk, out.len() / hw.max(1), out)
+        };
+        let mut head_out: Vec<T> = Vec::new();
         let last = self.layers.len() - 1;
         for (i, l) in self.layers.iter().enumerate() {
             // Layer 0 reads h₀ = [γ(x) | t_feat], the layer after the skip
@@ -118,16 +124,31 @@ impl MlpNet {
                 vec![(&cur, self.width)]
             };
             let out = if i == last {
-                let (out, y) = profile::layer(
-                    || format!("linear.{i} + ReLU, heads in its epilogue"),
-                    || l.forward_parts_act_chain(p, &xs, n, Activation::Relu, &heads),
-                );
-                head_out = y;
+                let mut out = Vec::new();
+                head_out = vec_written_by(n * hw, |y| {
+                    out = profile::layer(
+                        || format!("linear.{i} + ReLU, heads in its epilogue"),
+                        || {
+                            l.linear(p).forward(
+                                Input::blocks(&xs),
+                                n,
+                                Epilogue::act(Activation::Relu).then(y, hw, &chain),
+                            )
+                        },
+                    );
+                    // SAFETY: the epilogue wrote every row of `y` (each block
+                    // of rows is visited once, and forward_block_into writes
+                    // all of its output).
+                    unsafe { &mut *(y as *mut [MaybeUninit<T>] as *mut [T]) }
+                });
                 out
             } else {
                 profile::layer(
                     || format!("linear.{i} + ReLU"),
-                    || l.forward_parts_act(p, &xs, n, Activation::Relu),
+                    || {
+                        l.linear(p)
+                            .forward(Input::blocks(&xs), n, Epilogue::act(Activation::Relu))
+                    },
                 )
             };
             if i > 0 {
@@ -193,40 +214,63 @@ impl MlpNet {
         };
         let mut dh = profile::layer(
             || "heads".into(),
-            || Stacked(&self.heads).backward(p, &c.head_in, &g_head, n, InputGrad::From(0), gp),
+            || {
+                let heads = Stacked(&self.heads);
+                let mut r = heads.linear(p).backward(
+                    &[(&c.head_in, self.width)],
+                    OutputGrad::Given(&g_head),
+                    n,
+                    InputGrad::From(0),
+                );
+                heads.store(&r, gp);
+                r.take_input(0)
+            },
         )
         .expect("input gradient requested");
         let mut g_tfeat = vec![T::ZERO; n * td];
+        let w = self.width;
         for i in (0..self.layers.len()).rev() {
-            // ReLU's vjp from the layer's output (see MlpCache::outputs).
+            // ReLU's vjp from the layer's output (see MlpCache::outputs),
+            // producing the output gradient chunk by chunk inside the
+            // layer's backward.
             let out = c.outputs.get(i).unwrap_or(&c.head_in);
-            let name = || format!("linear.{i}");
+            let g_out = &dh;
+            let produce = |r0: usize, chunk: &mut [T], _: &mut [T]| {
+                let rows = chunk.len() / w;
+                chunk.copy_from_slice(&g_out[r0 * w..(r0 + rows) * w]);
+                relu_backward_from_output_block(&out[r0 * w..(r0 + rows) * w], chunk)
+            };
+            let g = || OutputGrad::Produced {
+                produce: &produce,
+                side: &mut [],
+                side_w: 0,
+            };
+            let lin = &self.layers[i];
+            let name = || format!("linear.{i}, ReLU vjp producing G");
             let next = profile::layer(name, || {
-                profile::elementwise(
-                    || "ReLU vjp".into(),
-                    n,
-                    self.width,
-                    || relu_backward_from_output(out, &mut dh),
-                );
                 if i == 0 || i == self.skip + 1 {
                     // Input [γ(x) | t_feat (| h)]: γ(x) is stop-gradient; the
                     // t_feat block's gradient is collected, h's flows on.
-                    let h_prev = if i == 0 {
-                        None
-                    } else {
-                        Some(&c.outputs[i - 1])
-                    };
                     let mut xs = vec![(&c.x_emb[..], xd), (&c.t_feat[..], td)];
-                    xs.extend(h_prev.map(|h| (&h[..], self.width)));
-                    let mut gin =
-                        self.layers[i].backward_parts(p, &xs, &dh, n, InputGrad::From(xd), gp);
-                    let g_t = gin[1].take().expect("input gradient requested");
+                    if i > 0 {
+                        xs.push((&c.outputs[i - 1][..], w));
+                    }
+                    let mut r = lin.linear(p).backward(&xs, g(), n, InputGrad::From(xd));
+                    lin.store(&r, gp);
+                    let g_t = r.take_input(1).expect("input gradient requested");
                     for (acc, v) in g_tfeat.iter_mut().zip(g_t) {
                         *acc += v;
                     }
-                    (i > 0).then(|| gin[2].take().expect("input gradient requested"))
+                    (i > 0).then(|| r.take_input(2).expect("input gradient requested"))
                 } else {
-                    self.layers[i].backward(p, &c.outputs[i - 1], &dh, n, InputGrad::From(0), gp)
+                    let mut r = lin.linear(p).backward(
+                        &[(&c.outputs[i - 1], w)],
+                        g(),
+                        n,
+                        InputGrad::From(0),
+                    );
+                    lin.store(&r, gp);
+                    r.take_input(0)
                 }
             });
             match next {

@@ -35,12 +35,14 @@ pub struct Record {
     /// The enclosing layers, outermost first, then the operation
     /// (`"cfc forward / cell 0 / heads / x·Wᵀ (+ gate, update)"`).
     pub label: String,
+    /// Product or element-wise pass.
     pub kind: Kind,
     /// Operand shapes, for example `[20000,64]·[64,512]`.
     pub shape: String,
     /// Floating-point operations (2 per multiply-add of a product; for an
     /// element-wise pass, its element count).
     pub work: f64,
+    /// Wall time of the operation, seconds.
     pub seconds: f64,
 }
 

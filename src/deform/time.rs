@@ -5,9 +5,11 @@ use super::activation::{self, Activation};
 use super::config::{Variant, TIMENET_HIDDEN, TIMENET_OUT, T_LEVELS_REAL, T_LEVELS_SYNTHETIC};
 use super::encoding;
 use super::layers::{Init, LayoutBuilder, LinearParams};
-use super::linear::InputGrad;
+use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
 use super::profile;
+use crate::kernels::vec_written_by;
 use crate::math::Real;
+use std::mem::MaybeUninit;
 
 /// The time input of a field: `timenet(γ₆(t))` or `γ₁₀(t)`.
 #[derive(Clone, Debug)]
@@ -49,11 +51,28 @@ impl TimeEmbedding {
                 let enc = encoding::encode(t, 1, T_LEVELS_SYNTHETIC);
                 // timenet.2 runs on each block of hidden rows as it leaves
                 // timenet.0 (bias, ReLU), while the block is in cache.
-                let xs = [(&enc[..], l0.shape.in_dim)];
-                let (hidden, feat) = profile::layer(
-                    || "timenet.0 + ReLU, timenet.2 in its epilogue".into(),
-                    || l0.forward_parts_act_chain(p, &xs, n, Activation::Relu, &l1.packed(p)),
-                );
+                let next = l1.linear(p).packed();
+                let nw = next.out_dim();
+                let chain = |_: usize, blk: &mut [T], out: &mut [MaybeUninit<T>]| {
+                    next.forward_block_into(blk, out.len() / nw.max(1), out)
+                };
+                let mut hidden = Vec::new();
+                let feat = vec_written_by(n * nw, |feat| {
+                    hidden = profile::layer(
+                        || "timenet.0 + ReLU, timenet.2 in its epilogue".into(),
+                        || {
+                            l0.linear(p).forward(
+                                Input::blocks(&[(&enc, l0.shape.in_dim)]),
+                                n,
+                                Epilogue::act(Activation::Relu).then(feat, nw, &chain),
+                            )
+                        },
+                    );
+                    // SAFETY: the epilogue wrote every row of `feat` (each
+                    // block of rows is visited once, and forward_block_into
+                    // writes all of its output).
+                    unsafe { &mut *(feat as *mut [MaybeUninit<T>] as *mut [T]) }
+                });
                 (feat, TimeEmbeddingSaved::Timenet { enc, hidden })
             }
             TimeEmbedding::Encoded => (
@@ -77,7 +96,16 @@ impl TimeEmbedding {
             (TimeEmbedding::Timenet { l0, l1 }, TimeEmbeddingSaved::Timenet { enc, hidden }) => {
                 let mut gh = profile::layer(
                     || "timenet.2".into(),
-                    || l1.backward(p, hidden, g_feat, n, InputGrad::From(0), grad),
+                    || {
+                        let mut r = l1.linear(p).backward(
+                            &[(hidden, TIMENET_HIDDEN)],
+                            OutputGrad::Given(g_feat),
+                            n,
+                            InputGrad::From(0),
+                        );
+                        l1.store(&r, grad);
+                        r.take_input(0)
+                    },
                 )
                 .expect("input gradient requested");
                 profile::elementwise(
@@ -88,7 +116,16 @@ impl TimeEmbedding {
                 );
                 let genc = profile::layer(
                     || "timenet.0".into(),
-                    || l0.backward(p, enc, &gh, n, InputGrad::From(0), grad),
+                    || {
+                        let mut r = l0.linear(p).backward(
+                            &[(enc, l0.shape.in_dim)],
+                            OutputGrad::Given(&gh),
+                            n,
+                            InputGrad::From(0),
+                        );
+                        l0.store(&r, grad);
+                        r.take_input(0)
+                    },
                 )
                 .expect("input gradient requested");
                 encoding::encode_vjp(t, &genc, 1, T_LEVELS_SYNTHETIC)
