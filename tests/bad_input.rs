@@ -122,10 +122,14 @@ fn counters_and_sizes_that_overflowed_or_aborted_are_refused() {
             &[s(&p)],
         );
     }
-    let p = case(d.as_path(), "mlpwide.safetensors", &["deform"], |f| {
-        f.set_meta("field", "mlp");
-        f.set_meta("width", "30000");
-    });
+    let p = case(
+        d.as_path(),
+        "mlpwide.safetensors",
+        &["deform", "--field", "mlp"],
+        |f| {
+            f.set_meta("width", "30000");
+        },
+    );
     refused(
         &["case", "run", s(&p), s(&d.join("o"))],
         &[s(&p), "field size", "limit"],
@@ -140,6 +144,40 @@ fn counters_and_sizes_that_overflowed_or_aborted_are_refused() {
             "4611686018427387904",
         ],
         &["backbone_layers"],
+    );
+    // A CfC-only option given for the MLP field is refused, not ignored.
+    for (flag, key, value) in [
+        ("--backbone-units", "backbone_units", "8"),
+        ("--backbone-layers", "backbone_layers", "1"),
+        ("--activation", "activation", "gelu"),
+    ] {
+        refused(&["count", "--field", "mlp", flag, value], &[key, value]);
+        refused(
+            &[
+                "train",
+                SWING,
+                "--field",
+                "mlp",
+                flag,
+                value,
+                "--out",
+                s(&d.join("mlprun")),
+            ],
+            &[key, value],
+        );
+    }
+    // So is an option of the other architecture in a case file's metadata.
+    let p = case(
+        d.as_path(),
+        "mlpunits.safetensors",
+        &["deform", "--field", "mlp"],
+        |f| {
+            f.set_meta("backbone_units", "16");
+        },
+    );
+    refused(
+        &["case", "run", s(&p), s(&d.join("o"))],
+        &[s(&p), "backbone_units", "16"],
     );
     refused(
         &[

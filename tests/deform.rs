@@ -5,7 +5,9 @@
 mod support;
 
 use approx::abs_diff_eq;
-use liquid_splat::deform::{Activation, Deformation, Field, FieldConfig, FieldKind, Variant};
+use liquid_splat::deform::{
+    Activation, CfcConfig, Deformation, Field, FieldConfig, FieldKind, MlpConfig, Variant,
+};
 use liquid_splat::io::TensorFile;
 use liquid_splat::math::gradcheck::{compare, cotangent};
 use liquid_splat::math::Rng;
@@ -17,14 +19,24 @@ fn config(
     width: usize,
     act: Activation,
 ) -> FieldConfig {
-    FieldConfig {
-        variant,
-        depth,
-        width,
-        activation: act,
-        backbone_units: 6,
-        backbone_layers: 2,
-        ..FieldConfig::new(kind)
+    match kind {
+        FieldKind::Mlp => {
+            assert_eq!(act, Activation::Relu, "the MLP field is ReLU");
+            FieldConfig::Mlp(MlpConfig {
+                variant,
+                depth,
+                width,
+                is_6dof: false,
+            })
+        }
+        FieldKind::Cfc => FieldConfig::Cfc(CfcConfig {
+            variant,
+            depth,
+            width,
+            activation: act,
+            backbone_units: 6,
+            backbone_layers: 2,
+        }),
     }
 }
 
@@ -69,7 +81,7 @@ fn central6(x: f64, h: f64, mut f: impl FnMut(f64) -> f64) -> f64 {
 /// the weights; layer by layer in forward order, re-evaluating after each).
 fn clear_relu_kinks(field: &mut Field<f64>, xyz: &[f64], t: &[f64], margin: f64) {
     let cfg = *field.config();
-    let scalar = if cfg.kind == FieldKind::Mlp {
+    let scalar = if cfg.kind() == FieldKind::Mlp {
         scalar_mlp
     } else {
         scalar_cfc
@@ -204,7 +216,7 @@ fn gradcheck_with(
             })
         })
         .collect();
-    if cfg.is_6dof {
+    if cfg.is_6dof() {
         let r = compare("xyz (warp)", gx, &num, 1e-10);
         assert!(r.passes(tol), "{cfg:?}\n{r}");
     } else {
@@ -216,7 +228,7 @@ fn gradcheck_with(
 /// scalar re-implementation; empty for other fields.
 fn warp_heads(field: &Field<f64>, xyz: &[f64], t: &[f64]) -> Vec<f64> {
     let cfg = *field.config();
-    if !cfg.is_6dof {
+    if !cfg.is_6dof() {
         return Vec::new();
     }
     let file = liquid_splat::oracle::field::field_to_tensor_file(field);
@@ -333,10 +345,12 @@ fn mlp_gradients_several_depths() {
 }
 
 fn six_dof(variant: Variant, depth: usize) -> FieldConfig {
-    FieldConfig {
+    FieldConfig::Mlp(MlpConfig {
+        variant,
+        depth,
+        width: 8,
         is_6dof: true,
-        ..config(FieldKind::Mlp, variant, depth, 8, Activation::Relu)
-    }
+    })
 }
 
 #[test]
@@ -448,6 +462,9 @@ fn time_feature(f: &TensorFile, variant: Variant, t: f64) -> Vec<f64> {
 }
 
 fn scalar_cfc(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
+    let FieldConfig::Cfc(c) = c else {
+        panic!("not a CfC configuration")
+    };
     let mut u = gamma(x, 10);
     u.extend(time_feature(f, c.variant, t));
     let mut h = vec![0.0; c.width];
@@ -481,6 +498,9 @@ fn scalar_cfc(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
 
 /// The MLP trunk's last hidden layer.
 fn mlp_trunk(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
+    let FieldConfig::Mlp(c) = c else {
+        panic!("not an MLP configuration")
+    };
     let mut input = gamma(x, 10);
     input.extend(time_feature(f, c.variant, t));
     let mut h = input.clone();
@@ -496,7 +516,7 @@ fn mlp_trunk(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
 
 fn scalar_mlp(f: &TensorFile, c: &FieldConfig, x: &[f64], t: f64) -> Vec<f64> {
     let h = mlp_trunk(f, c, x, t);
-    let mut out = if c.is_6dof {
+    let mut out = if c.is_6dof() {
         let (w, v) = (lin(f, "branch_w", &h), lin(f, "branch_v", &h));
         se3_rodrigues(&w, &v, x).to_vec()
     } else {
@@ -534,13 +554,7 @@ fn forward_matches_scalar_reimplementation() {
             config(FieldKind::Mlp, Variant::Real, 4, 8, Activation::Relu),
             scalar_mlp,
         ),
-        (
-            FieldConfig {
-                is_6dof: true,
-                ..config(FieldKind::Mlp, Variant::Synthetic, 4, 8, Activation::Relu)
-            },
-            scalar_mlp,
-        ),
+        (six_dof(Variant::Synthetic, 4), scalar_mlp),
     ] {
         let field = Field::<f64>::new(cfg, 3).unwrap();
         let file = liquid_splat::oracle::field::field_to_tensor_file(&field);
@@ -788,21 +802,25 @@ fn bad_inputs_are_errors() {
     assert!(f.forward(&[0.0; 5], &[0.0; 2]).is_err());
     let (_, c) = f.forward(&[0.0; 6], &[0.0; 2]).unwrap();
     assert!(f.backward(&c, &Deformation::zeros(3)).is_err());
-    let mut cfg = FieldConfig::new(FieldKind::Mlp);
+    let mut cfg = MlpConfig::paper();
     cfg.depth = 2;
-    assert!(Field::<f32>::new(cfg, 0)
+    assert!(Field::<f32>::new(cfg.into(), 0)
         .unwrap_err()
         .to_string()
         .contains("depth"));
     cfg.depth = 8;
     cfg.is_6dof = true;
-    assert!(Field::<f32>::new(cfg, 0).is_ok());
-    let mut cfg = FieldConfig::new(FieldKind::Cfc);
-    cfg.is_6dof = true;
-    assert!(Field::<f32>::new(cfg, 0)
+    assert!(Field::<f32>::new(cfg.into(), 0).is_ok());
+    // A 6-DoF CfC field cannot be written down: `CfcConfig` has no such
+    // option; a CfC field with no cell is refused.
+    let cfc = CfcConfig {
+        depth: 0,
+        ..CfcConfig::paper()
+    };
+    assert!(Field::<f32>::new(cfc.into(), 0)
         .unwrap_err()
         .to_string()
-        .contains("6-DoF"));
+        .contains("depth"));
 }
 
 #[test]
@@ -840,7 +858,7 @@ fn oracle_stage_matches_direct_calls() {
             d.d_scaling
         );
         assert_eq!(out.get_real::<f64>("grad_t", &[n, 1]).unwrap(), fg.t);
-        if cfg.is_6dof {
+        if cfg.is_6dof() {
             assert_eq!(out.get_real::<f64>("grad_xyz", &[n, 3]).unwrap(), fg.xyz);
             // The transform moves x to x + d_xyz (to rounding).
             let m = out.get_real::<f64>("d_xyz_se3", &[n, 4, 4]).unwrap();

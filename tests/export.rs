@@ -5,7 +5,7 @@
 mod support;
 
 use liquid_splat::dataset::Dataset;
-use liquid_splat::deform::{Activation, FieldConfig, FieldKind};
+use liquid_splat::deform::{Activation, CfcConfig, FieldConfig};
 use liquid_splat::gaussians::ply;
 use liquid_splat::math::Real;
 use liquid_splat::render::{rasterize, Colors, Covariances, RasterInput};
@@ -17,12 +17,14 @@ use support::swing as scene;
 /// A small CfC field, active from the first iteration, trained briefly:
 /// its offsets move, scale and turn the Gaussians (non-unit quaternions).
 fn trained<T: Real>(data: &Dataset) -> Trainer<T> {
-    let mut field = FieldConfig::new(FieldKind::Cfc);
-    field.depth = 2;
-    field.width = 8;
-    field.backbone_units = 8;
-    field.backbone_layers = 1;
-    field.activation = Activation::Gelu;
+    let field = FieldConfig::Cfc(CfcConfig {
+        depth: 2,
+        width: 8,
+        backbone_units: 8,
+        backbone_layers: 1,
+        activation: Activation::Gelu,
+        ..CfcConfig::paper()
+    });
     let mut c = TrainConfig::new(30, 3, field);
     c.schedule.warm_up = 0;
     c.schedule.sh_degree_interval = 10;

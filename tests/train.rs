@@ -4,7 +4,7 @@
 mod support;
 
 use liquid_splat::dataset::Dataset;
-use liquid_splat::deform::{Activation, FieldConfig, FieldKind};
+use liquid_splat::deform::{Activation, CfcConfig, FieldConfig, MlpConfig};
 use liquid_splat::train::{self, checkpoint, Event, RunOptions, TrainConfig, Trainer};
 use std::path::Path;
 use support::{copy_dir, tmp};
@@ -13,23 +13,25 @@ use support::swing as scene;
 
 /// The small CfC field of the short runs.
 fn cfc_field() -> FieldConfig {
-    let mut field = FieldConfig::new(FieldKind::Cfc);
-    field.depth = 2;
-    field.width = 8;
-    field.backbone_units = 8;
-    field.backbone_layers = 1;
-    field.activation = Activation::Gelu;
-    field
+    FieldConfig::Cfc(CfcConfig {
+        depth: 2,
+        width: 8,
+        backbone_units: 8,
+        backbone_layers: 1,
+        activation: Activation::Gelu,
+        ..CfcConfig::paper()
+    })
 }
 
 /// A small 6-DoF (SE(3)) MLP field: its warp sends a gradient of its own to
 /// the canonical means (`Rᵀ·g`), which the recorded state includes.
 fn mlp_6dof_field() -> FieldConfig {
-    let mut field = FieldConfig::new(FieldKind::Mlp);
-    field.depth = 4;
-    field.width = 16;
-    field.is_6dof = true;
-    field
+    FieldConfig::Mlp(MlpConfig {
+        depth: 4,
+        width: 16,
+        is_6dof: true,
+        ..MlpConfig::paper()
+    })
 }
 
 /// The small CfC field and a schedule compressed so that a short run passes

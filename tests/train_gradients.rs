@@ -11,7 +11,7 @@
 //! derivative is `Rᵀ·g` rather than `g`.
 
 use approx::abs_diff_eq;
-use liquid_splat::deform::{Activation, Field, FieldConfig, FieldKind, Variant};
+use liquid_splat::deform::{Activation, CfcConfig, Field, FieldConfig, MlpConfig, Variant};
 use liquid_splat::gaussians::Gaussians;
 use liquid_splat::loss::loss_and_grad;
 use liquid_splat::loss::LAMBDA_DSSIM;
@@ -25,23 +25,23 @@ use liquid_splat::train::{Model, View};
 const TIME: f64 = 0.37;
 
 fn mlp(variant: Variant, six_dof: bool) -> FieldConfig {
-    let mut c = FieldConfig::new(FieldKind::Mlp);
-    c.variant = variant;
-    c.depth = 4;
-    c.width = 16;
-    c.is_6dof = six_dof;
-    c
+    FieldConfig::Mlp(MlpConfig {
+        variant,
+        depth: 4,
+        width: 16,
+        is_6dof: six_dof,
+    })
 }
 
 fn cfc(variant: Variant) -> FieldConfig {
-    let mut c = FieldConfig::new(FieldKind::Cfc);
-    c.variant = variant;
-    c.depth = 2;
-    c.width = 8;
-    c.backbone_units = 8;
-    c.backbone_layers = 1;
-    c.activation = Activation::Gelu;
-    c
+    FieldConfig::Cfc(CfcConfig {
+        variant,
+        depth: 2,
+        width: 8,
+        backbone_units: 8,
+        backbone_layers: 1,
+        activation: Activation::Gelu,
+    })
 }
 
 /// A model of a small random scene (raw parameters of its Gaussians) with
@@ -138,7 +138,7 @@ fn check_xyz(field: FieldConfig, seed: u64) {
         abs_diff_eq!(l0, l, epsilon = 1e-14 * l.abs()),
         "{field:?}: {l0} vs {l}"
     );
-    if field.is_6dof {
+    if field.is_6dof() {
         // The warp's rotations are far from the identity: the check tells
         // Rᵀ·g from g.
         let n = x0.len() / 3;

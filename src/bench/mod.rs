@@ -339,7 +339,7 @@ pub fn deform<T: Real>(
         ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
         ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
     ] {
-        if only.is_some_and(|k| k != config.kind) {
+        if only.is_some_and(|k| k != config.kind()) {
             continue;
         }
         let field = Field::<T>::new(config, 0)?;
@@ -405,7 +405,7 @@ pub fn deform<T: Real>(
         ("mlp D8 W256", FieldConfig::new(FieldKind::Mlp)),
         ("cfc D6 W128", FieldConfig::new(FieldKind::Cfc)),
     ] {
-        if only.is_some_and(|k| k != config.kind) {
+        if only.is_some_and(|k| k != config.kind()) {
             continue;
         }
         deform_profile::<T>(name, config, &xyz, &t, &g, reps)?;

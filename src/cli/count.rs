@@ -3,7 +3,7 @@
 //! counting conventions of docs/UPSTREAM.md §8.3 (see `crate::deform::count`).
 
 use crate::deform::count::{macs_per_gaussian, param_count, MacConvention};
-use crate::deform::{FieldConfig, FieldKind, Variant};
+use crate::deform::{CfcConfig, FieldConfig, Variant};
 use crate::error::Outcome;
 use crate::report::tables::thousands;
 use crate::Error;
@@ -48,18 +48,27 @@ pub fn run(a: CountArgs) -> crate::Result<Outcome> {
         })?;
         rows.push((conv, per, total));
     }
-    let arch = match c.kind {
-        FieldKind::Mlp => format!(
+    let arch = match &c {
+        FieldConfig::Mlp(m) => format!(
             "mlp, variant {}, depth {}, width {}, activation relu{}",
-            c.variant,
-            c.depth,
-            c.width,
-            if c.is_6dof { ", 6-DoF (SE(3))" } else { "" }
+            m.variant,
+            m.depth,
+            m.width,
+            if m.is_6dof { ", 6-DoF (SE(3))" } else { "" }
         ),
-        FieldKind::Cfc => format!(
+        FieldConfig::Cfc(m) => format!(
             "cfc, variant {}, {} cells, width {}, backbone {}x{} {}",
-            c.variant, c.depth, c.width, c.backbone_layers, c.backbone_units, c.activation
+            m.variant, m.depth, m.width, m.backbone_layers, m.backbone_units, m.activation
         ),
+    };
+    // The JSON keeps one shape for both kinds: the MLP, which has no
+    // backbone, reports the CfC defaults there, as case-file metadata does.
+    let (units, layers) = match &c {
+        FieldConfig::Mlp(_) => {
+            let d = CfcConfig::paper();
+            (d.backbone_units, d.backbone_layers)
+        }
+        FieldConfig::Cfc(m) => (m.backbone_units, m.backbone_layers),
     };
     if a.json {
         let macs: serde_json::Map<String, serde_json::Value> = rows
@@ -76,14 +85,14 @@ pub fn run(a: CountArgs) -> crate::Result<Outcome> {
             })
             .collect();
         let v = serde_json::json!({
-            "field": c.kind.name(),
-            "variant": c.variant.name(),
-            "depth": c.depth,
-            "width": c.width,
-            "activation": c.activation.name(),
-            "backbone_units": c.backbone_units,
-            "backbone_layers": c.backbone_layers,
-            "is_6dof": c.is_6dof,
+            "field": c.kind().name(),
+            "variant": c.variant().name(),
+            "depth": c.depth(),
+            "width": c.width(),
+            "activation": c.activation().name(),
+            "backbone_units": units,
+            "backbone_layers": layers,
+            "is_6dof": c.is_6dof(),
             "parameters": params,
             "gaussians": n,
             "macs": macs,

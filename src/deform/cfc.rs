@@ -41,7 +41,7 @@ use super::encoding::{encode, encoded_dim};
 use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
 use super::profile;
 use super::{
-    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
+    CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
     TimeEmbeddingSaved, XYZ_LEVELS,
 };
 use crate::kernels::fastmath::{self, multiversion};
@@ -101,9 +101,9 @@ pub(crate) struct CfcCache<T> {
 }
 
 impl CfcNet {
-    pub fn build(c: &FieldConfig, lb: &mut LayoutBuilder) -> Self {
+    pub fn build(c: &CfcConfig, lb: &mut LayoutBuilder) -> Self {
         let time = TimeEmbedding::build(c.variant, lb);
-        let u_dim = c.input_dim();
+        let u_dim = c.variant.input_dim();
         let (w, units) = (c.width, c.backbone_units);
         let mut cells = Vec::with_capacity(c.depth);
         for l in 0..c.depth {

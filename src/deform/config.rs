@@ -66,6 +66,21 @@ impl Variant {
     }
 }
 
+impl Variant {
+    /// Width of the time feature: 30 (timenet) or 21 (γ₁₀(t)).
+    pub fn time_feature_dim(self) -> usize {
+        match self {
+            Variant::Synthetic => TIMENET_OUT,
+            Variant::Real => encoding::encoded_dim(1, T_LEVELS_REAL),
+        }
+    }
+
+    /// Width of a field's input `[γ₁₀(x), time feature]`: 93 or 84.
+    pub fn input_dim(self) -> usize {
+        encoding::encoded_dim(3, XYZ_LEVELS) + self.time_feature_dim()
+    }
+}
+
 impl fmt::Display for FieldKind {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.name())
@@ -99,66 +114,223 @@ pub const MAX_BACKBONE_LAYERS: usize = 64;
 /// layout, before any parameter is allocated.
 pub const MAX_FIELD_PARAMS: usize = 1 << 26;
 
-/// Architecture of a deformation field.
+/// Options of the MLP field (D-3DGS `DeformNetwork`): a ReLU trunk of
+/// `depth` layers, `width` wide, with one skip concatenation.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct FieldConfig {
-    /// Which network.
-    pub kind: FieldKind,
+pub struct MlpConfig {
     /// Which time input.
     pub variant: Variant,
-    /// MLP: number of trunk layers D. CfC: number of cells D.
+    /// Number of trunk layers D (at least 3).
     pub depth: usize,
-    /// MLP: trunk width W. CfC: hidden size W.
+    /// Trunk width W.
     pub width: usize,
-    /// MLP: always ReLU (upstream). CfC: the backbone activation.
-    pub activation: Activation,
-    /// CfC backbone width (ignored by the MLP).
-    pub backbone_units: usize,
-    /// CfC backbone depth (ignored by the MLP).
-    pub backbone_layers: usize,
-    /// MLP 6-DoF (SE(3)) variant ([`se3`]); the CfC field has none.
+    /// The 6-DoF (SE(3)) variant ([`se3`](super::se3)).
     pub is_6dof: bool,
 }
 
+/// Options of the CfC (liquid) field: `depth` CfC cells of hidden size
+/// `width`, each with a backbone of `backbone_layers` layers of
+/// `backbone_units` units and activation `activation`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CfcConfig {
+    /// Which time input.
+    pub variant: Variant,
+    /// Number of cells D (at least 1).
+    pub depth: usize,
+    /// Hidden size W.
+    pub width: usize,
+    /// The backbone activation.
+    pub activation: Activation,
+    /// Backbone width (units per layer).
+    pub backbone_units: usize,
+    /// Backbone depth (layers per cell).
+    pub backbone_layers: usize,
+}
+
+impl MlpConfig {
+    /// The paper's MLP: D=8, W=256, 3-DoF, synthetic variant.
+    pub fn paper() -> Self {
+        MlpConfig {
+            variant: Variant::Synthetic,
+            depth: 8,
+            width: 256,
+            is_6dof: false,
+        }
+    }
+}
+
+impl CfcConfig {
+    /// The paper's CfC field: D=6 cells, W=128, GELU backbone of 2 layers
+    /// × 64 units, synthetic variant.
+    pub fn paper() -> Self {
+        CfcConfig {
+            variant: Variant::Synthetic,
+            depth: 6,
+            width: 128,
+            activation: Activation::Gelu,
+            backbone_units: 64,
+            backbone_layers: 2,
+        }
+    }
+}
+
+impl Default for MlpConfig {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+impl Default for CfcConfig {
+    fn default() -> Self {
+        Self::paper()
+    }
+}
+
+/// Architecture of a deformation field: one variant per network, each
+/// holding only the options that network uses.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FieldConfig {
+    /// The MLP field.
+    Mlp(MlpConfig),
+    /// The CfC field.
+    Cfc(CfcConfig),
+}
+
+impl From<MlpConfig> for FieldConfig {
+    fn from(c: MlpConfig) -> Self {
+        FieldConfig::Mlp(c)
+    }
+}
+impl From<CfcConfig> for FieldConfig {
+    fn from(c: CfcConfig) -> Self {
+        FieldConfig::Cfc(c)
+    }
+}
+
 impl FieldConfig {
-    /// Defaults per kind: MLP D=8, W=256, ReLU; CfC D=6, W=128, GELU,
-    /// backbone 64 units × 2 layers. Synthetic variant.
+    /// The paper's defaults for `kind` ([`MlpConfig::paper`],
+    /// [`CfcConfig::paper`]).
     pub fn new(kind: FieldKind) -> Self {
         match kind {
-            FieldKind::Mlp => FieldConfig {
-                kind,
-                variant: Variant::Synthetic,
-                depth: 8,
-                width: 256,
-                activation: Activation::Relu,
-                backbone_units: 64,
-                backbone_layers: 2,
-                is_6dof: false,
-            },
-            FieldKind::Cfc => FieldConfig {
-                kind,
-                variant: Variant::Synthetic,
-                depth: 6,
-                width: 128,
-                activation: Activation::Gelu,
-                backbone_units: 64,
-                backbone_layers: 2,
-                is_6dof: false,
-            },
+            FieldKind::Mlp => FieldConfig::Mlp(MlpConfig::paper()),
+            FieldKind::Cfc => FieldConfig::Cfc(CfcConfig::paper()),
+        }
+    }
+
+    /// The paper's defaults for `kind` with the shared options set: time
+    /// input, depth, width and hidden activation (the CfC backbone's; the
+    /// MLP accepts only ReLU, an error naming `activation` otherwise).
+    pub fn sized(
+        kind: FieldKind,
+        variant: Variant,
+        depth: usize,
+        width: usize,
+        activation: Activation,
+    ) -> Result<Self> {
+        Ok(match kind {
+            FieldKind::Mlp => {
+                if activation != Activation::Relu {
+                    return Err(Error::invalid(
+                        "activation",
+                        format!("{activation} (the MLP field uses ReLU, as upstream)"),
+                    ));
+                }
+                FieldConfig::Mlp(MlpConfig {
+                    variant,
+                    depth,
+                    width,
+                    ..MlpConfig::paper()
+                })
+            }
+            FieldKind::Cfc => FieldConfig::Cfc(CfcConfig {
+                variant,
+                depth,
+                width,
+                activation,
+                ..CfcConfig::paper()
+            }),
+        })
+    }
+
+    /// Which network.
+    pub fn kind(&self) -> FieldKind {
+        match self {
+            FieldConfig::Mlp(_) => FieldKind::Mlp,
+            FieldConfig::Cfc(_) => FieldKind::Cfc,
+        }
+    }
+
+    /// Which time input.
+    pub fn variant(&self) -> Variant {
+        match self {
+            FieldConfig::Mlp(c) => c.variant,
+            FieldConfig::Cfc(c) => c.variant,
+        }
+    }
+
+    /// MLP: number of trunk layers D. CfC: number of cells D.
+    pub fn depth(&self) -> usize {
+        match self {
+            FieldConfig::Mlp(c) => c.depth,
+            FieldConfig::Cfc(c) => c.depth,
+        }
+    }
+
+    /// MLP: trunk width W. CfC: hidden size W.
+    pub fn width(&self) -> usize {
+        match self {
+            FieldConfig::Mlp(c) => c.width,
+            FieldConfig::Cfc(c) => c.width,
+        }
+    }
+
+    /// The hidden activation: ReLU for the MLP (fixed upstream), the
+    /// backbone activation for the CfC field.
+    pub fn activation(&self) -> Activation {
+        match self {
+            FieldConfig::Mlp(_) => Activation::Relu,
+            FieldConfig::Cfc(c) => c.activation,
+        }
+    }
+
+    /// Whether the field is the MLP's 6-DoF (SE(3)) variant (never for CfC).
+    pub fn is_6dof(&self) -> bool {
+        match self {
+            FieldConfig::Mlp(c) => c.is_6dof,
+            FieldConfig::Cfc(_) => false,
+        }
+    }
+
+    /// Set the time input.
+    pub fn set_variant(&mut self, variant: Variant) {
+        match self {
+            FieldConfig::Mlp(c) => c.variant = variant,
+            FieldConfig::Cfc(c) => c.variant = variant,
+        }
+    }
+
+    /// Set the depth (MLP layers or CfC cells).
+    pub fn set_depth(&mut self, depth: usize) {
+        match self {
+            FieldConfig::Mlp(c) => c.depth = depth,
+            FieldConfig::Cfc(c) => c.depth = depth,
+        }
+    }
+
+    /// Set the width (MLP trunk width or CfC hidden size).
+    pub fn set_width(&mut self, width: usize) {
+        match self {
+            FieldConfig::Mlp(c) => c.width = width,
+            FieldConfig::Cfc(c) => c.width = width,
         }
     }
 
     /// Check the configuration is buildable.
     pub fn validate(&self) -> Result<()> {
-        if self.width == 0 {
+        let (depth, width) = (self.depth(), self.width());
+        if width == 0 {
             return Err(Error::invalid("width", "must be at least 1"));
         }
-        for (name, v, max) in [
-            ("depth", self.depth, MAX_DEPTH),
-            ("width", self.width, MAX_WIDTH),
-            ("backbone_units", self.backbone_units, MAX_WIDTH),
-            ("backbone_layers", self.backbone_layers, MAX_BACKBONE_LAYERS),
-        ] {
+        for (name, v, max) in [("depth", depth, MAX_DEPTH), ("width", width, MAX_WIDTH)] {
             if v > max {
                 return Err(Error::invalid(
                     name,
@@ -166,41 +338,39 @@ impl FieldConfig {
                 ));
             }
         }
-        match self.kind {
-            FieldKind::Mlp => {
-                if self.depth < 3 {
+        match self {
+            FieldConfig::Mlp(_) => {
+                if depth < 3 {
                     return Err(Error::invalid(
                         "depth",
                         format!(
-                            "{} (the MLP field needs depth >= 3: the skip concatenation after layer depth/2 must feed a later layer)",
-                            self.depth
+                            "{depth} (the MLP field needs depth >= 3: the skip concatenation after layer depth/2 must feed a later layer)"
                         ),
                     ));
                 }
-                if self.activation != Activation::Relu {
-                    return Err(Error::invalid(
-                        "activation",
-                        format!("{} (the MLP field uses ReLU, as upstream)", self.activation),
-                    ));
-                }
             }
-            FieldKind::Cfc => {
-                if self.depth == 0 {
+            FieldConfig::Cfc(c) => {
+                for (name, v, max) in [
+                    ("backbone_units", c.backbone_units, MAX_WIDTH),
+                    ("backbone_layers", c.backbone_layers, MAX_BACKBONE_LAYERS),
+                ] {
+                    if v > max {
+                        return Err(Error::invalid(
+                            name,
+                            format!("{v} is above the limit {max}"),
+                        ));
+                    }
+                }
+                if depth == 0 {
                     return Err(Error::invalid(
                         "depth",
                         "the CfC field needs at least one cell",
                     ));
                 }
-                if self.backbone_units == 0 || self.backbone_layers == 0 {
+                if c.backbone_units == 0 || c.backbone_layers == 0 {
                     return Err(Error::invalid(
                         "backbone",
                         "backbone_units and backbone_layers must be at least 1",
-                    ));
-                }
-                if self.is_6dof {
-                    return Err(Error::invalid(
-                        "is_6dof",
-                        "only the MLP field has a 6-DoF variant",
                     ));
                 }
             }
@@ -210,14 +380,11 @@ impl FieldConfig {
 
     /// Width of the time feature: 30 (timenet) or 21 (γ₁₀(t)).
     pub fn time_feature_dim(&self) -> usize {
-        match self.variant {
-            Variant::Synthetic => TIMENET_OUT,
-            Variant::Real => encoding::encoded_dim(1, T_LEVELS_REAL),
-        }
+        self.variant().time_feature_dim()
     }
 
     /// Width of `[γ₁₀(x), time feature]`: 93 or 84.
     pub fn input_dim(&self) -> usize {
-        encoding::encoded_dim(3, XYZ_LEVELS) + self.time_feature_dim()
+        self.variant().input_dim()
     }
 }

@@ -19,7 +19,7 @@
 //! reports when all N points are passed through a dict input constructor;
 //! with one positional batch tensor it mixes per-point and total counts).
 
-use super::{Activation, Field, FieldConfig, FieldKind, Variant, TIMENET_HIDDEN};
+use super::{Activation, Field, FieldConfig, Variant, TIMENET_HIDDEN};
 use crate::error::Result;
 use std::fmt;
 
@@ -83,20 +83,20 @@ pub fn macs_per_gaussian(config: &FieldConfig, conv: MacConvention) -> Result<u6
         .map(|l| (l.shape.in_dim * l.shape.out_dim + l.shape.out_dim) as u64)
         .sum();
     let mut acts = 0;
-    if config.variant == Variant::Synthetic {
+    if config.variant() == Variant::Synthetic {
         // timenet: nn.ReLU(inplace=True) module on 256 values.
         acts += module_act(Activation::Relu, TIMENET_HIDDEN as u64, conv);
     }
-    match config.kind {
-        FieldKind::Mlp => {
+    match config {
+        FieldConfig::Mlp(c) => {
             // The trunk calls F.relu: counted only by the functional patch.
             if conv == MacConvention::Pytorch {
-                acts += (config.depth * config.width) as u64;
+                acts += (c.depth * c.width) as u64;
             }
         }
-        FieldKind::Cfc => {
-            let per_cell = (config.backbone_layers * config.backbone_units) as u64;
-            acts += config.depth as u64 * module_act(config.activation, per_cell, conv);
+        FieldConfig::Cfc(c) => {
+            let per_cell = (c.backbone_layers * c.backbone_units) as u64;
+            acts += c.depth as u64 * module_act(c.activation, per_cell, conv);
         }
     }
     Ok(linear + acts)
@@ -105,6 +105,8 @@ pub fn macs_per_gaussian(config: &FieldConfig, conv: MacConvention) -> Result<u6
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::deform::FieldKind;
+    use crate::deform::{CfcConfig, MlpConfig};
 
     fn cfg(
         kind: FieldKind,
@@ -113,12 +115,23 @@ mod tests {
         act: Activation,
         variant: Variant,
     ) -> FieldConfig {
-        FieldConfig {
-            depth,
-            width,
-            activation: act,
-            variant,
-            ..FieldConfig::new(kind)
+        match kind {
+            FieldKind::Mlp => {
+                assert_eq!(act, Activation::Relu, "the MLP field is ReLU");
+                FieldConfig::Mlp(MlpConfig {
+                    depth,
+                    width,
+                    variant,
+                    ..MlpConfig::paper()
+                })
+            }
+            FieldKind::Cfc => FieldConfig::Cfc(CfcConfig {
+                depth,
+                width,
+                activation: act,
+                variant,
+                ..CfcConfig::paper()
+            }),
         }
     }
 
@@ -134,10 +147,10 @@ mod tests {
         );
         assert_eq!(param_count(&cfg(Mlp, 8, 256, Relu, Real)).unwrap(), 506_378);
         // docs/UPSTREAM.md §6.3: the 6-DoF MLP (branch_w and branch_v replace the warp head).
-        let six = FieldConfig {
+        let six = FieldConfig::Mlp(MlpConfig {
             is_6dof: true,
-            ..cfg(Mlp, 8, 256, Relu, Synthetic)
-        };
+            ..MlpConfig::paper()
+        });
         assert_eq!(param_count(&six).unwrap(), 523_051);
         assert_eq!(
             param_count(&cfg(Cfc, 8, 256, Gelu, Synthetic)).unwrap(),

@@ -2,7 +2,7 @@
 //! parameter vector, with the forward ([`Field::forward`]) and the backward
 //! ([`Field::backward`]) that returns every gradient of the field.
 
-use super::config::{FieldConfig, FieldKind, MAX_FIELD_PARAMS};
+use super::config::{FieldConfig, MAX_FIELD_PARAMS};
 use super::layers::{Init, LayoutBuilder, ParamSpec};
 use super::linear::LinearShape;
 use super::{cfc, mlp};
@@ -127,16 +127,19 @@ impl<T: Real> Field<T> {
     pub(super) fn build(config: FieldConfig) -> Result<(Net, LayoutBuilder)> {
         config.validate()?;
         let mut lb = LayoutBuilder::default();
-        let net = match config.kind {
-            FieldKind::Mlp => Net::Mlp(mlp::MlpNet::build(&config, &mut lb)),
-            FieldKind::Cfc => Net::Cfc(cfc::CfcNet::build(&config, &mut lb)),
+        let net = match &config {
+            FieldConfig::Mlp(c) => Net::Mlp(mlp::MlpNet::build(c, &mut lb)),
+            FieldConfig::Cfc(c) => Net::Cfc(cfc::CfcNet::build(c, &mut lb)),
         };
         if lb.len > MAX_FIELD_PARAMS {
             return Err(Error::invalid(
                 "field size",
                 format!(
                     "{} D{} W{} has {} parameters, more than the limit {MAX_FIELD_PARAMS}",
-                    config.kind, config.depth, config.width, lb.len
+                    config.kind(),
+                    config.depth(),
+                    config.width(),
+                    lb.len
                 ),
             ));
         }
@@ -192,9 +195,9 @@ impl<T: Real> Field<T> {
                     "{} values, expected {} for {} D{} W{}",
                     params.len(),
                     lb.len,
-                    config.kind,
-                    config.depth,
-                    config.width
+                    config.kind(),
+                    config.depth(),
+                    config.width()
                 ),
             ));
         }

@@ -18,7 +18,7 @@ use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
 use super::profile;
 use super::se3;
 use super::{
-    Deformation, FieldConfig, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
+    Deformation, Init, LayoutBuilder, LinearParams, MlpConfig, Stacked, TimeEmbedding,
     TimeEmbeddingSaved, XYZ_LEVELS,
 };
 use crate::kernels::vec_written_by;
@@ -60,9 +60,9 @@ pub(crate) struct MlpCache<T> {
 }
 
 impl MlpNet {
-    pub fn build(c: &FieldConfig, lb: &mut LayoutBuilder) -> Self {
+    pub fn build(c: &MlpConfig, lb: &mut LayoutBuilder) -> Self {
         let time = TimeEmbedding::build(c.variant, lb);
-        let in_dim = c.input_dim();
+        let in_dim = c.variant.input_dim();
         let (d, w) = (c.depth, c.width);
         let skip = d / 2;
         let mut layers = vec![lb.linear("linear.0", in_dim, w, Init::TorchDefault)];

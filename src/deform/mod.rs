@@ -56,8 +56,9 @@ pub mod time;
 
 pub use activation::Activation;
 pub use config::{
-    FieldConfig, FieldKind, Variant, MAX_BACKBONE_LAYERS, MAX_DEPTH, MAX_FIELD_PARAMS, MAX_WIDTH,
-    TIMENET_HIDDEN, TIMENET_OUT, T_LEVELS_REAL, T_LEVELS_SYNTHETIC, XYZ_LEVELS,
+    CfcConfig, FieldConfig, FieldKind, MlpConfig, Variant, MAX_BACKBONE_LAYERS, MAX_DEPTH,
+    MAX_FIELD_PARAMS, MAX_WIDTH, TIMENET_HIDDEN, TIMENET_OUT, T_LEVELS_REAL, T_LEVELS_SYNTHETIC,
+    XYZ_LEVELS,
 };
 pub use field::{Deformation, Field, FieldGradients, FieldSaved};
 pub use layers::ParamSpec;

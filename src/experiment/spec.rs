@@ -3,7 +3,7 @@
 //! `export`; and the rules for starting, resuming and reopening a run folder.
 
 use crate::dataset::{self, synth, Background, Dataset, DatasetKind, LoadOptions};
-use crate::deform::{Activation, FieldConfig, FieldKind, Variant};
+use crate::deform::{Activation, CfcConfig, FieldConfig, MlpConfig, Variant};
 use crate::error::{Error, Result};
 use crate::math::Real;
 use crate::train::{self, checkpoint, TrainConfig, Trainer};
@@ -84,31 +84,58 @@ impl FieldSpec {
     /// The field configuration, with `default_variant` when no variant is
     /// given; an error names the first unusable setting.
     pub fn config(&self, default_variant: Variant) -> Result<FieldConfig> {
-        let mut c = FieldConfig::new(match self.field {
-            FieldChoice::Cfc => FieldKind::Cfc,
-            FieldChoice::Mlp => FieldKind::Mlp,
-        });
-        c.variant = match self.variant {
+        let variant = match self.variant {
             Some(VariantChoice::Synthetic) => Variant::Synthetic,
             Some(VariantChoice::Real) => Variant::Real,
             None => default_variant,
         };
-        if let Some(d) = self.depth {
-            c.depth = d;
-        }
-        if let Some(w) = self.width {
-            c.width = w;
-        }
-        if let Some(a) = &self.activation {
-            c.activation = Activation::parse(a)?;
-        }
-        if let Some(u) = self.backbone_units {
-            c.backbone_units = u;
-        }
-        if let Some(l) = self.backbone_layers {
-            c.backbone_layers = l;
-        }
-        c.is_6dof = self.six_dof;
+        let c = match self.field {
+            FieldChoice::Mlp => {
+                // The CfC-only options have no meaning for the MLP: refuse
+                // them rather than ignore them.
+                let cfc_only = [
+                    ("activation", self.activation.clone()),
+                    ("backbone_units", self.backbone_units.map(|u| u.to_string())),
+                    (
+                        "backbone_layers",
+                        self.backbone_layers.map(|l| l.to_string()),
+                    ),
+                ];
+                if let Some((key, Some(v))) = cfc_only.into_iter().find(|(_, v)| v.is_some()) {
+                    return Err(Error::invalid(
+                        key,
+                        format!("{v} (only the CfC field has this option; the MLP field is ReLU without a backbone)"),
+                    ));
+                }
+                let d = MlpConfig::paper();
+                FieldConfig::Mlp(MlpConfig {
+                    variant,
+                    depth: self.depth.unwrap_or(d.depth),
+                    width: self.width.unwrap_or(d.width),
+                    is_6dof: self.six_dof,
+                })
+            }
+            FieldChoice::Cfc => {
+                if self.six_dof {
+                    return Err(Error::invalid(
+                        "is_6dof",
+                        "only the MLP field has a 6-DoF variant",
+                    ));
+                }
+                let d = CfcConfig::paper();
+                FieldConfig::Cfc(CfcConfig {
+                    variant,
+                    depth: self.depth.unwrap_or(d.depth),
+                    width: self.width.unwrap_or(d.width),
+                    activation: match &self.activation {
+                        Some(a) => Activation::parse(a)?,
+                        None => d.activation,
+                    },
+                    backbone_units: self.backbone_units.unwrap_or(d.backbone_units),
+                    backbone_layers: self.backbone_layers.unwrap_or(d.backbone_layers),
+                })
+            }
+        };
         c.validate()?;
         Ok(c)
     }

@@ -89,7 +89,7 @@ fn run_typed<T: Real>(case: &TensorFile) -> Result<TensorFile> {
     out.insert_real("d_rotation", vec![n, 4], &d.d_rotation);
     out.insert_real("d_scaling", vec![n, 3], &d.d_scaling);
     out.insert_real("grad_t", vec![n, 1], &fg.t);
-    if config.is_6dof {
+    if config.is_6dof() {
         out.insert_real("grad_xyz", vec![n, 3], &fg.xyz);
         if let Some(m) = field.se3_transforms(&cache) {
             out.insert_real("d_xyz_se3", vec![n, 4, 4], &m);

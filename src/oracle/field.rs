@@ -8,9 +8,12 @@
 //! (each optional, defaulting per kind as [`FieldConfig::new`]). Every key is
 //! written for every kind; a value present in a file must parse, whatever
 //! the kind, or the file is refused with an error naming the file, the key
-//! and the value.
+//! and the value. A key for an option the kind does not have (`activation`,
+//! `backbone_units`, `backbone_layers` for the MLP; `is_6dof` for the CfC
+//! field) may only hold the value [`config_to_meta`] writes there (`relu`,
+//! 64, 2; `false`); any other value is refused the same way.
 
-use crate::deform::{Activation, Field, FieldConfig, FieldKind, Variant};
+use crate::deform::{Activation, CfcConfig, Field, FieldConfig, FieldKind, MlpConfig, Variant};
 use crate::error::{Error, Result};
 use crate::io::TensorFile;
 use crate::math::Real;
@@ -66,30 +69,93 @@ fn name<V>(parse: fn(&str) -> Result<V>) -> impl FnOnce(&str) -> std::result::Re
 pub fn config_from_meta(file: &TensorFile) -> Result<FieldConfig> {
     let kind = optional(file, "field", None, |s| name(FieldKind::parse)(s).map(Some))?
         .ok_or_else(|| Error::field(&file.path, "__metadata__.field", "missing"))?;
-    let d = FieldConfig::new(kind);
-    let c = FieldConfig {
-        kind,
-        variant: optional(file, "variant", d.variant, name(Variant::parse))?,
-        depth: optional(file, "depth", d.depth, number)?,
-        width: optional(file, "width", d.width, number)?,
-        activation: optional(file, "activation", d.activation, name(Activation::parse))?,
-        backbone_units: optional(file, "backbone_units", d.backbone_units, number)?,
-        backbone_layers: optional(file, "backbone_layers", d.backbone_layers, number)?,
-        is_6dof: optional(file, "is_6dof", d.is_6dof, number)?,
+    let (mlp, cfc) = (MlpConfig::paper(), CfcConfig::paper());
+    let variant = optional(file, "variant", Variant::Synthetic, name(Variant::parse))?;
+    let activation = optional(file, "activation", None, |s| {
+        name(Activation::parse)(s).map(Some)
+    })?;
+    let backbone_units = optional(file, "backbone_units", None, |s| {
+        number::<usize>(s).map(Some)
+    })?;
+    let backbone_layers = optional(file, "backbone_layers", None, |s| {
+        number::<usize>(s).map(Some)
+    })?;
+    let is_6dof = optional(file, "is_6dof", None, |s| number::<bool>(s).map(Some))?;
+    // An option of the other architecture may only hold the value
+    // `config_to_meta` writes in its place.
+    let foreign = |key: &str, value: String, written: String| -> Result<()> {
+        if value == written {
+            return Ok(());
+        }
+        Err(Error::field(
+            &file.path,
+            format!("__metadata__.{key}"),
+            format!(
+                "{value:?}: the {kind} field has no {key} option (only {written:?} may be written)"
+            ),
+        ))
     };
-    Ok(c)
+    Ok(match kind {
+        FieldKind::Mlp => {
+            if let Some(a) = activation {
+                foreign("activation", a.to_string(), Activation::Relu.to_string())?;
+            }
+            if let Some(u) = backbone_units {
+                foreign(
+                    "backbone_units",
+                    u.to_string(),
+                    cfc.backbone_units.to_string(),
+                )?;
+            }
+            if let Some(l) = backbone_layers {
+                foreign(
+                    "backbone_layers",
+                    l.to_string(),
+                    cfc.backbone_layers.to_string(),
+                )?;
+            }
+            FieldConfig::Mlp(MlpConfig {
+                variant,
+                depth: optional(file, "depth", mlp.depth, number)?,
+                width: optional(file, "width", mlp.width, number)?,
+                is_6dof: is_6dof.unwrap_or(mlp.is_6dof),
+            })
+        }
+        FieldKind::Cfc => {
+            if let Some(six) = is_6dof {
+                foreign("is_6dof", six.to_string(), false.to_string())?;
+            }
+            FieldConfig::Cfc(CfcConfig {
+                variant,
+                depth: optional(file, "depth", cfc.depth, number)?,
+                width: optional(file, "width", cfc.width, number)?,
+                activation: activation.unwrap_or(cfc.activation),
+                backbone_units: backbone_units.unwrap_or(cfc.backbone_units),
+                backbone_layers: backbone_layers.unwrap_or(cfc.backbone_layers),
+            })
+        }
+    })
 }
 
-/// Write the keys [`config_from_meta`] reads.
+/// Write the keys [`config_from_meta`] reads. Every key is written for
+/// every kind: an option the field does not have holds the value it would
+/// have in the other architecture's defaults (`activation` `relu` for the
+/// MLP, `backbone_units` 64 and `backbone_layers` 2 for the MLP, `is_6dof`
+/// `false` for the CfC field), so the format is the same for both.
 pub fn config_to_meta(config: &FieldConfig, file: &mut TensorFile) {
-    file.set_meta("field", config.kind);
-    file.set_meta("variant", config.variant);
-    file.set_meta("depth", config.depth);
-    file.set_meta("width", config.width);
-    file.set_meta("activation", config.activation);
-    file.set_meta("backbone_units", config.backbone_units);
-    file.set_meta("backbone_layers", config.backbone_layers);
-    file.set_meta("is_6dof", config.is_6dof);
+    let cfc = CfcConfig::paper();
+    let (units, layers) = match config {
+        FieldConfig::Mlp(_) => (cfc.backbone_units, cfc.backbone_layers),
+        FieldConfig::Cfc(c) => (c.backbone_units, c.backbone_layers),
+    };
+    file.set_meta("field", config.kind());
+    file.set_meta("variant", config.variant());
+    file.set_meta("depth", config.depth());
+    file.set_meta("width", config.width());
+    file.set_meta("activation", config.activation());
+    file.set_meta("backbone_units", units);
+    file.set_meta("backbone_layers", layers);
+    file.set_meta("is_6dof", config.is_6dof());
 }
 
 /// The field's weights as a tensor file under their `state_dict` names,
@@ -150,20 +216,23 @@ mod tests {
     use super::*;
 
     fn small_mlp() -> FieldConfig {
-        let mut c = FieldConfig::new(FieldKind::Mlp);
-        c.depth = 3;
-        c.width = 4;
-        c
+        FieldConfig::Mlp(MlpConfig {
+            depth: 3,
+            width: 4,
+            ..MlpConfig::paper()
+        })
     }
 
     #[test]
     fn round_trip_keeps_the_configuration_and_the_weights() {
-        let mut cfc = FieldConfig::new(FieldKind::Cfc);
-        cfc.depth = 2;
-        cfc.width = 3;
-        cfc.backbone_units = 5;
-        cfc.backbone_layers = 1;
-        cfc.variant = Variant::Real;
+        let cfc = FieldConfig::Cfc(CfcConfig {
+            depth: 2,
+            width: 3,
+            backbone_units: 5,
+            backbone_layers: 1,
+            variant: Variant::Real,
+            ..CfcConfig::paper()
+        });
         for config in [small_mlp(), cfc] {
             let field = Field::<f32>::new(config, 3).unwrap();
             let file = TensorFile::from_bytes(
@@ -203,6 +272,28 @@ mod tests {
             let e = field_from_tensor_file::<f64>(small_mlp(), &file)
                 .unwrap_err()
                 .to_string();
+            assert!(e.contains(key) && e.contains(bad), "{key}={bad}: {e}");
+        }
+    }
+
+    /// An option of the other architecture is refused naming the key and
+    /// the value, unless it holds the value `config_to_meta` writes there.
+    #[test]
+    fn options_of_the_other_architecture_are_errors_naming_key_and_value() {
+        let mlp = field_to_tensor_file(&Field::<f64>::new(small_mlp(), 1).unwrap());
+        let cfc =
+            field_to_tensor_file(&Field::<f64>::new(FieldConfig::new(FieldKind::Cfc), 1).unwrap());
+        // What the writer puts there reads back.
+        assert_eq!(config_from_meta(&mlp).unwrap(), small_mlp());
+        for (file, key, bad) in [
+            (&mlp, "activation", "gelu"),
+            (&mlp, "backbone_units", "16"),
+            (&mlp, "backbone_layers", "1"),
+            (&cfc, "is_6dof", "true"),
+        ] {
+            let mut file = file.clone();
+            file.set_meta(key, bad);
+            let e = config_from_meta(&file).unwrap_err().to_string();
             assert!(e.contains(key) && e.contains(bad), "{key}={bad}: {e}");
         }
     }

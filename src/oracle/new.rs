@@ -9,7 +9,7 @@
 
 use super::gsplat::{self as gs, GsplatOptions};
 use super::{deform, loss, rasterize, run_case, step, STAGES};
-use crate::deform::{Field, FieldConfig, FieldKind, Variant};
+use crate::deform::{CfcConfig, Field, FieldConfig, FieldKind, MlpConfig, Variant};
 use crate::error::{Error, Result};
 use crate::gaussians::{Gaussians, Group};
 use crate::io::{Tensor, TensorFile};
@@ -209,20 +209,31 @@ fn new_rasterize<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
 }
 
 /// The small field of generated cases ([`SMALL_MLP`], [`SMALL_CFC`]).
-fn small_field(spec: &CaseSpec) -> FieldConfig {
-    let mut config = FieldConfig::new(spec.field);
-    let (d, wd) = match spec.field {
-        FieldKind::Mlp => SMALL_MLP,
-        FieldKind::Cfc => {
-            config.backbone_units = 16;
-            SMALL_CFC
+fn small_field(spec: &CaseSpec) -> Result<FieldConfig> {
+    let mut config = match spec.field {
+        FieldKind::Mlp => FieldConfig::Mlp(MlpConfig {
+            depth: spec.depth.unwrap_or(SMALL_MLP.0),
+            width: spec.hidden.unwrap_or(SMALL_MLP.1),
+            is_6dof: spec.is_6dof,
+            ..MlpConfig::paper()
+        }),
+        FieldKind::Cfc if spec.is_6dof => {
+            return Err(Error::invalid(
+                "is_6dof",
+                "only the MLP field has a 6-DoF variant",
+            ))
         }
+        FieldKind::Cfc => FieldConfig::Cfc(CfcConfig {
+            depth: spec.depth.unwrap_or(SMALL_CFC.0),
+            width: spec.hidden.unwrap_or(SMALL_CFC.1),
+            backbone_units: 16,
+            ..CfcConfig::paper()
+        }),
     };
-    config.depth = spec.depth.unwrap_or(d);
-    config.width = spec.hidden.unwrap_or(wd);
-    config.variant = spec.variant.unwrap_or(config.variant);
-    config.is_6dof = spec.is_6dof;
-    config
+    if let Some(v) = spec.variant {
+        config.set_variant(v);
+    }
+    Ok(config)
 }
 
 /// A case file holding freshly initialised weights of `config` (rounded to
@@ -239,7 +250,7 @@ fn field_case<T: Real>(spec: &CaseSpec, config: FieldConfig) -> Result<TensorFil
 }
 
 fn new_deform<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
-    let mut f = field_case::<T>(spec, small_field(spec))?;
+    let mut f = field_case::<T>(spec, small_field(spec)?)?;
     let n = spec.count;
     let xyz = uniforms(spec.seed, STREAM_INPUT, 3 * n, -1.5, 1.5);
     let t = uniforms(spec.seed, STREAM_INPUT + 1, n, 0.0, 1.0);
@@ -282,8 +293,8 @@ pub const STEP_ADAM_STEP: u64 = 7;
 fn new_step<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
     // The field: small, by default the `real` variant (time feature γ₁₀(t),
     // no timenet) so the files stay small; the deform cases cover the timenet.
-    let mut config = small_field(spec);
-    config.variant = spec.variant.unwrap_or(Variant::Real);
+    let mut config = small_field(spec)?;
+    config.set_variant(spec.variant.unwrap_or(Variant::Real));
     let mut f = field_case::<T>(spec, config)?;
     let field_params = Field::<f64>::new(config, spec.seed)?.param_count();
 

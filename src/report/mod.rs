@@ -168,24 +168,23 @@ pub struct RunRecord {
 pub fn field_label(c: &FieldConfig) -> String {
     format!(
         "{}-d{}-w{}-{}",
-        c.kind,
-        c.depth,
-        c.width,
-        c.activation.name()
+        c.kind(),
+        c.depth(),
+        c.width(),
+        c.activation().name()
     )
 }
 
 impl RunRecord {
     /// The field configuration this run trained (default backbone).
     pub fn field_config(&self) -> Result<FieldConfig> {
-        let kind = FieldKind::parse(&self.kind)?;
-        let c = FieldConfig {
-            variant: Variant::parse(&self.variant)?,
-            depth: self.depth,
-            width: self.width,
-            activation: Activation::parse(&self.activation)?,
-            ..FieldConfig::new(kind)
-        };
+        let c = FieldConfig::sized(
+            FieldKind::parse(&self.kind)?,
+            Variant::parse(&self.variant)?,
+            self.depth,
+            self.width,
+            Activation::parse(&self.activation)?,
+        )?;
         c.validate()?;
         Ok(c)
     }

@@ -519,12 +519,7 @@ pub const PAPER_CONFIGS: [(FieldKind, usize, usize, Activation); 3] = [
 pub fn cost_table(records: &[RunRecord]) -> Result<Table> {
     let mut configs: Vec<(FieldConfig, bool, bool)> = Vec::new(); // (config, paper, run here)
     for (kind, depth, width, activation) in PAPER_CONFIGS {
-        let c = FieldConfig {
-            depth,
-            width,
-            activation,
-            ..FieldConfig::new(kind)
-        };
+        let c = FieldConfig::sized(kind, Variant::Synthetic, depth, width, activation)?;
         configs.push((c, true, false));
     }
     let mut run_configs: Vec<FieldConfig> = Vec::new();
@@ -535,8 +530,8 @@ pub fn cost_table(records: &[RunRecord]) -> Result<Table> {
         }
     }
     run_configs.sort_by_key(|c| {
-        let names = (c.activation.name(), c.variant.name());
-        (c.kind != FieldKind::Mlp, c.depth, c.width, names)
+        let names = (c.activation().name(), c.variant().name());
+        (c.kind() != FieldKind::Mlp, c.depth(), c.width(), names)
     });
     for c in run_configs {
         match configs.iter_mut().find(|x| x.0 == c) {
@@ -553,19 +548,15 @@ pub fn cost_table(records: &[RunRecord]) -> Result<Table> {
     headers.extend(["MACs aten", "MACs pytorch", "MACs pytorch no-functional"].map(String::from));
     let mut rows = Vec::new();
     for (c, paper, run) in configs {
-        let act = if c.kind == FieldKind::Mlp {
-            "relu"
-        } else {
-            c.activation.name()
-        };
+        let act = c.activation().name();
         let source = match (paper, run) {
             (true, true) => "paper config, run here",
             (true, false) => "paper config, not run",
             _ => "run here",
         };
         let mut row = vec![
-            Cell::text(format!("{}-d{}-w{}-{act}", c.kind, c.depth, c.width)),
-            Cell::text(if c.variant == Variant::Synthetic {
+            Cell::text(format!("{}-d{}-w{}-{act}", c.kind(), c.depth(), c.width())),
+            Cell::text(if c.variant() == Variant::Synthetic {
                 "synthetic (timenet)"
             } else {
                 "real (γ10(t))"

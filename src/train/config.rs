@@ -124,7 +124,7 @@ impl TrainConfig {
         TrainConfig {
             iterations,
             seed,
-            ast: field.variant == Variant::Real,
+            ast: field.variant() == Variant::Real,
             field,
             lr: LearningRates::default().scaled_to(iterations, REFERENCE_ITERATIONS),
             schedule,
