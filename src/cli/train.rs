@@ -30,13 +30,13 @@ pub struct FieldArgs {
     /// MLP width / CfC hidden size.
     #[arg(long)]
     pub width: Option<usize>,
-    /// CfC backbone activation: gelu, relu, silu, tanh, lecun_tanh.
+    /// CfC backbone activation: gelu, relu, silu, tanh, lecun_tanh (refused with `--field mlp`).
     #[arg(long)]
     pub activation: Option<String>,
-    /// CfC backbone width (default 64).
+    /// CfC backbone width (default 64; refused with `--field mlp`).
     #[arg(long)]
     pub backbone_units: Option<usize>,
-    /// CfC backbone layers (default 2).
+    /// CfC backbone layers (default 2; refused with `--field mlp`).
     #[arg(long)]
     pub backbone_layers: Option<usize>,
     /// The MLP's 6-DoF (SE(3)) variant.

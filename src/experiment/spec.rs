@@ -51,7 +51,8 @@ pub struct FieldSpec {
     pub depth: Option<usize>,
     /// MLP width / CfC hidden size.
     pub width: Option<usize>,
-    /// CfC backbone activation by name: gelu, relu, silu, tanh, lecun_tanh.
+    /// CfC backbone activation by name: gelu, relu, silu, tanh, lecun_tanh
+    /// (an error for the MLP field, as are the backbone options).
     pub activation: Option<String>,
     /// CfC backbone width.
     pub backbone_units: Option<usize>,
@@ -82,7 +83,8 @@ impl FieldSpec {
     }
 
     /// The field configuration, with `default_variant` when no variant is
-    /// given; an error names the first unusable setting.
+    /// given; an error names the first unusable setting (a CfC-only option
+    /// for the MLP field, the 6-DoF variant for the CfC field included).
     pub fn config(&self, default_variant: Variant) -> Result<FieldConfig> {
         let variant = match self.variant {
             Some(VariantChoice::Synthetic) => Variant::Synthetic,
