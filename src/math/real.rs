@@ -420,6 +420,7 @@ mod tests {
             }
         }
         for &(a, b, c) in &cases32 {
+            // SAFETY: the test returned early unless the CPU has FMA.
             let want = unsafe { hw32(a, b, c) };
             for got in [libm::fmaf(a, b, c), Real::mul_add(a, b, c)] {
                 assert!(
@@ -445,6 +446,7 @@ mod tests {
             cases64.push((j(a, r), j(b, r >> 20), j(c, r >> 40)));
         }
         for &(a, b, c) in &cases64 {
+            // SAFETY: the test returned early unless the CPU has FMA.
             let want = unsafe { hw64(a, b, c) };
             for got in [libm::fma(a, b, c), Real::mul_add(a, b, c)] {
                 assert!(
