@@ -25,7 +25,8 @@
 //! time divided by the thread count estimates the wall time the same work
 //! takes with the cores to itself.
 
-use liquid_splat::dataset::{self, init::initial_gaussians, LoadOptions, Splits};
+use liquid_splat::dataset::{self, LoadOptions, Splits};
+use liquid_splat::gaussians::init::initial_gaussians;
 use liquid_splat::render::{rasterize, rasterize_vjp, Colors, Covariances, GradientMode};
 use liquid_splat::train::deformed::deform_gaussians;
 use std::io::Write;

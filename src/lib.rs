@@ -15,13 +15,17 @@
 //! ```
 //!
 //! - [`math`]: the `Real` scalar trait (f32 / f64), the pinned math library,
-//!   the seeded generator and the finite-difference gradient checker.
+//!   small vectors, matrices and quaternions, the seeded generator and the
+//!   finite-difference gradient checker.
+//! - [`kernels`]: the deterministic matrix product and the f32 fast-math
+//!   functions, with run-time instruction-set paths that give the same bits.
 //! - [`camera`]: pinhole cameras and the matrices the rasterizer consumes.
 //! - [`io`]: atomic writes, named-tensor (safetensors) files, PNG and EXR,
 //!   PyTorch `.pth` reading.
-//! - [`dataset`]: D-NeRF and nerfies loaders, initial points, built-in scenes.
+//! - [`dataset`]: D-NeRF and nerfies loaders, built-in scenes.
 //! - [`deform`]: the MLP and CfC deformation fields, forward and backward.
-//! - [`gaussians`]: raw per-Gaussian parameters, activations, Inria PLY.
+//! - [`gaussians`]: raw per-Gaussian parameters, the table of parameter
+//!   groups, activations, initialisation, Inria PLY.
 //! - [`render`]: the rasterizer, forward and backward (`exact` or `inria`).
 //! - [`gsplat`]: gsplat's projection, tile intersection, rasterize-to-pixels
 //!   and composite `rasterization`, at gsplat 1.5.3 and 1.6 (`exact` or
@@ -30,7 +34,9 @@
 //! - [`lpips`]: LPIPS v0.1 (VGG16) as the `lpips` package computes it, with
 //!   weights read from PyTorch `.pth` files ([`io::pth`]).
 //! - [`optim`], [`densify`]: Adam and schedules; clone, split, prune, reset.
-//! - [`train`]: [`train::Trainer::step`], checkpoints, whole runs.
+//! - [`train`]: [`train::Model`] (forward, backward, render),
+//!   [`train::Trainer::step`], the training-state codec, checkpoints, whole
+//!   runs.
 //! - [`oracle`]: case files for every stage and the comparison report.
 //! - [`cli`]: the command-line tool as a library function (the binary and
 //!   the Python package run it).

@@ -3,12 +3,10 @@
 
 mod support;
 
-use liquid_splat::dataset::image::{decode_png, encode_png};
 use liquid_splat::dataset::synth::{self, Layout, SynthOptions};
-use liquid_splat::dataset::{
-    self, init, Background, Dataset, DatasetKind, LoadOptions, NerfiesSplit,
-};
-use liquid_splat::gaussians::Gaussians;
+use liquid_splat::dataset::{self, Background, Dataset, DatasetKind, LoadOptions, NerfiesSplit};
+use liquid_splat::gaussians::{init, Gaussians};
+use liquid_splat::io::png::{decode as decode_png, encode as encode_png};
 use std::path::{Path, PathBuf};
 use support::tmp;
 

@@ -61,7 +61,7 @@ fn train_in_pool<T: liquid_splat::math::Real>(
 ) -> Trainer<T> {
     support::with_threads(threads, || {
         let views = train::run::views::<T>(&data.train);
-        let g = liquid_splat::dataset::init::initial_gaussians::<T>(&data.init).unwrap();
+        let g = liquid_splat::gaussians::init::initial_gaussians::<T>(&data.init).unwrap();
         let mut t = Trainer::new(
             config_with(iterations, field),
             g,

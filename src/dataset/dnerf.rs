@@ -24,11 +24,12 @@
 //! when the optical axis passes through the world origin, as in every D-NeRF camera.
 //! [`upstream_w2c`] implements upstream's formula for comparison.
 
-use super::image::{box_downscale, composite, read_png, to_chw};
+use super::image::{box_downscale, composite, to_chw};
 use super::{json, par_map_ordered, scene_extent, Dataset, DatasetKind, Frame, LoadOptions};
 use crate::camera::{focal2fov, fov2focal, Camera};
 use crate::error::{Error, Result};
 use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
+use crate::io::png::read as read_png;
 use crate::math::vec::{dmat4_from_rows, dmat4_rows};
 use std::path::{Path, PathBuf};
 

@@ -6,7 +6,7 @@ use super::Background;
 use crate::error::{Error, Result};
 use std::path::Path;
 
-pub use crate::io::png::{decode as decode_png, encode as encode_png, read as read_png, Image8};
+use crate::io::png::Image8;
 
 /// Upstream's D-NeRF compositing, interleaved RGB bytes out: `n = v/255` and `a = A/255`
 /// in f64, `x = n·a + bg·(1 − a)`, then `x·255` truncated to a byte.
@@ -71,6 +71,7 @@ pub fn to_chw(rgb: &[u8], w: usize, h: usize) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::io::png::{decode as decode_png, encode as encode_png};
 
     #[test]
     fn opaque_pixels_round_trip_through_compositing() {

@@ -20,9 +20,9 @@ pub mod nerfies;
 pub mod npy;
 pub mod synth;
 
+use crate::gaussians::init;
 /// Initial points and Gaussians: [`crate::gaussians::init`], under the name the loaders use.
-pub use crate::gaussians::init;
-pub use init::InitialPoints;
+pub use crate::gaussians::init::InitialPoints;
 
 use crate::camera::Camera;
 use crate::error::{Error, Result};

@@ -19,13 +19,14 @@
 //! - `LoadOptions::downscale` applies the box filter on top of the ratio.
 //! - Initial points: `points.npy` mapped by `(p − center)·scale`; without it, the random cube.
 
-use super::image::{box_downscale, read_png, to_chw};
+use super::image::{box_downscale, to_chw};
 use super::{
     json, par_map_ordered, scene_extent, Dataset, DatasetKind, Frame, LoadOptions, NerfiesSplit,
 };
 use crate::camera::{focal2fov, Camera};
 use crate::error::{Error, Result};
 use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
+use crate::io::png::read as read_png;
 use crate::math::vec::dmat3_from_rows;
 use glam::DVec3;
 use serde_json::Value;

@@ -109,11 +109,19 @@ pub struct Epilogue<'e, T> {
     then: Option<Then<'e, T>>,
 }
 
+/// `f(first_row, y_rows, side_rows)` on a block of output rows (see
+/// [`Epilogue::then`]).
+pub type BlockFn<'f, T> = dyn Fn(usize, &mut [T], &mut [MaybeUninit<T>]) + Sync + 'f;
+
+/// `produce(first_row, chunk, side_rows)`: writes a chunk of an output
+/// gradient (see [`OutputGrad::Produced`]).
+pub type ChunkFn<'f, T> = dyn Fn(usize, &mut [T], &mut [T]) + Sync + 'f;
+
 /// A function run on each block of output rows (see [`Epilogue::then`]).
 struct Then<'e, T> {
     side: &'e mut [MaybeUninit<T>],
     side_w: usize,
-    f: &'e (dyn Fn(usize, &mut [T], &mut [MaybeUninit<T>]) + Sync),
+    f: &'e BlockFn<'e, T>,
 }
 
 impl<'e, T: Real> Epilogue<'e, T> {
@@ -143,7 +151,7 @@ impl<'e, T: Real> Epilogue<'e, T> {
         self,
         side: &'e mut [MaybeUninit<T>],
         side_w: usize,
-        f: &'e (dyn Fn(usize, &mut [T], &mut [MaybeUninit<T>]) + Sync),
+        f: &'e BlockFn<'e, T>,
     ) -> Self {
         Epilogue {
             act: self.act,
@@ -358,7 +366,7 @@ pub enum OutputGrad<'a, T> {
     /// matching rows of `side` (`side_w` values a row).
     Produced {
         /// Writes a chunk of the output gradient.
-        produce: &'a (dyn Fn(usize, &mut [T], &mut [T]) + Sync),
+        produce: &'a ChunkFn<'a, T>,
         /// Per-row values the producer updates (for example a gradient
         /// it accumulates), `[n, side_w]`; empty when `side_w` is 0.
         side: &'a mut [T],
@@ -430,8 +438,9 @@ fn backward_by_chunks<T: Real>(
     let wm = MatRef::row_major(w, out_dim, in_dim);
     // Per input block: its first column and the columns of it whose
     // gradient is requested (first, count), with Wᵀ's rows for them packed.
+    type Block<T> = (usize, usize, Option<(usize, Packed<T>)>);
     let mut c0 = 0;
-    let blocks: Vec<(usize, usize, Option<(usize, Packed<T>)>)> = xs
+    let blocks: Vec<Block<T>> = xs
         .iter()
         .map(|&(_, d)| {
             let req = match input {

@@ -426,7 +426,7 @@ pub fn evaluate_renders(
 
 /// A PNG as `[3, H, W]` values `u8 / 255`.
 fn read_rgb(path: &Path) -> Result<(Vec<f32>, usize, usize)> {
-    let img = dataset::image::read_png(path)?;
+    let img = crate::io::png::read(path)?;
     let (w, h) = (img.width, img.height);
     Ok((dataset::image::to_chw(&img.rgb(), w, h), h, w))
 }

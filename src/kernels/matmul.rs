@@ -746,16 +746,21 @@ unsafe fn run_tile<T>(
     resume: bool,
 ) {
     let (ap, rs, cs) = a;
-    f(
-        ap as *const u8,
-        rs,
-        cs,
-        panel.as_ptr() as *const u8,
-        kc,
-        out as *mut u8,
-        ldo,
-        resume,
-    )
+    // SAFETY: the caller guarantees what `f` requires (see `# Safety`):
+    // `f` suits this CPU, `T` and the tile shape, and every pointer
+    // addresses the values the tile reads and writes.
+    unsafe {
+        f(
+            ap as *const u8,
+            rs,
+            cs,
+            panel.as_ptr() as *const u8,
+            kc,
+            out as *mut u8,
+            ldo,
+            resume,
+        )
+    }
 }
 
 /// `acc[r][q] += Σ_p strip[p][r] · panel[p][q]`, p ascending, one term at a
@@ -804,32 +809,38 @@ mod simd {
                 ldo: usize,
                 resume: bool,
             ) {
-                let a = a as *const $t;
-                let out = out as *mut $t;
-                let mut panel = panel as *const $t;
-                let mut c: [[$vec; 2]; $mr] = [[$zero(); 2]; $mr];
-                if resume {
-                    for r in 0..$mr {
-                        c[r][0] = $load(out.add(r * ldo));
-                        c[r][1] = $load(out.add(r * ldo + $lanes));
+                // SAFETY: the caller guarantees the CPU feature and that the
+                // pointers address what `TileFn` documents: MR rows of `k`
+                // values of A (`rs`, `cs` apart), `k` panel rows of 2·lanes
+                // values, and an MR × 2·lanes output tile, rows `ldo` apart.
+                unsafe {
+                    let a = a as *const $t;
+                    let out = out as *mut $t;
+                    let mut panel = panel as *const $t;
+                    let mut c: [[$vec; 2]; $mr] = [[$zero(); 2]; $mr];
+                    if resume {
+                        for r in 0..$mr {
+                            c[r][0] = $load(out.add(r * ldo));
+                            c[r][1] = $load(out.add(r * ldo + $lanes));
+                        }
                     }
-                }
-                let rows: [*const $t; $mr] = core::array::from_fn(|r| a.add(r * rs));
-                let mut p = 0;
-                for _ in 0..k {
-                    let b0 = $load(panel);
-                    let b1 = $load(panel.add($lanes));
-                    for r in 0..$mr {
-                        let x = $set1(*rows[r].add(p));
-                        c[r][0] = $fma(x, b0, c[r][0]);
-                        c[r][1] = $fma(x, b1, c[r][1]);
+                    let rows: [*const $t; $mr] = core::array::from_fn(|r| a.add(r * rs));
+                    let mut p = 0;
+                    for _ in 0..k {
+                        let b0 = $load(panel);
+                        let b1 = $load(panel.add($lanes));
+                        for r in 0..$mr {
+                            let x = $set1(*rows[r].add(p));
+                            c[r][0] = $fma(x, b0, c[r][0]);
+                            c[r][1] = $fma(x, b1, c[r][1]);
+                        }
+                        p = p.wrapping_add(cs);
+                        panel = panel.add(2 * $lanes);
                     }
-                    p = p.wrapping_add(cs);
-                    panel = panel.add(2 * $lanes);
-                }
-                for r in 0..$mr {
-                    $store(out.add(r * ldo), c[r][0]);
-                    $store(out.add(r * ldo + $lanes), c[r][1]);
+                    for r in 0..$mr {
+                        $store(out.add(r * ldo), c[r][0]);
+                        $store(out.add(r * ldo + $lanes), c[r][1]);
+                    }
                 }
             }
         };

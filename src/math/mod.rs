@@ -9,6 +9,7 @@
 //! - [`gradcheck`]: central finite differences in f64 for every hand-written backward.
 
 pub mod covariance;
+pub mod fast;
 pub mod gradcheck;
 pub mod quat;
 pub mod real;

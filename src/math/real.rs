@@ -122,6 +122,22 @@ pub trait Real:
     /// version (used otherwise) give the same bits.
     fn mul_add(self, a: Self, b: Self) -> Self;
 
+    /// `e^self` as the fields and the rasterizer compute it: in f32
+    /// [`fast::exp_f32`](crate::math::fast::exp_f32) (plain arithmetic that
+    /// vectorises, ≤ 1 ulp), in f64 the pinned libm.
+    fn fast_exp(self) -> Self;
+    /// `erf self`: [`fast::erf_f32`](crate::math::fast::erf_f32) in f32, the
+    /// pinned libm in f64.
+    fn fast_erf(self) -> Self;
+    /// `tanh self`: [`fast::tanh_f32`](crate::math::fast::tanh_f32) in f32,
+    /// the pinned libm in f64.
+    fn fast_tanh(self) -> Self;
+    /// `1/(1 + e^(−self))`: [`fast::sigmoid_f32`](crate::math::fast::sigmoid_f32)
+    /// in f32, [`sigmoid`](Self::sigmoid) in f64.
+    fn fast_sigmoid(self) -> Self;
+    /// `(sin self, cos self)`: [`fast::sin_cos_f32`](crate::math::fast::sin_cos_f32)
+    /// in f32 (libm's bits for `|x| < 2²⁸·π/2`), the pinned libm in f64.
+    fn fast_sin_cos(self) -> (Self, Self);
     /// The slice as `&mut [f32]` when `Self` is `f32`, `None` when it is
     /// `f64` (for a pass that only the f32 version of a kernel needs).
     fn as_f32_slice_mut(x: &mut [Self]) -> Option<&mut [f32]>;
@@ -172,7 +188,8 @@ macro_rules! impl_real {
     }};
     ($t:ty, $prec:expr, $size:expr, $exp:path, $ln:path, $sin:path, $cos:path, $tan:path,
      $atan:path, $tanh:path, $erf:path, $log10:path, $pow:path, $ceil:path, $floor:path, $trunc:path,
-     $fma:path, $pick:ident) => {
+     $fma:path, $pick:ident, $fexp:path, $ferf:path, $ftanh:path, $fsigmoid:path,
+     $fsincos:path) => {
         impl Real for $t {
             const ZERO: Self = 0.0;
             const ONE: Self = 1.0;
@@ -273,6 +290,26 @@ macro_rules! impl_real {
                 <$t>::is_nan(self)
             }
             #[inline(always)]
+            fn fast_exp(self) -> Self {
+                $fexp(self)
+            }
+            #[inline(always)]
+            fn fast_erf(self) -> Self {
+                $ferf(self)
+            }
+            #[inline(always)]
+            fn fast_tanh(self) -> Self {
+                $ftanh(self)
+            }
+            #[inline(always)]
+            fn fast_sigmoid(self) -> Self {
+                $fsigmoid(self)
+            }
+            #[inline(always)]
+            fn fast_sin_cos(self) -> (Self, Self) {
+                $fsincos(self)
+            }
+            #[inline(always)]
             fn as_f32_slice_mut(x: &mut [Self]) -> Option<&mut [f32]> {
                 impl_real!(@slice $pick, x)
             }
@@ -309,7 +346,12 @@ impl_real!(
     libm::floorf,
     libm::truncf,
     libm::fmaf,
-    first
+    first,
+    super::fast::exp_f32,
+    super::fast::erf_f32,
+    super::fast::tanh_f32,
+    super::fast::sigmoid_f32,
+    super::fast::sin_cos_f32
 );
 impl_real!(
     f64,
@@ -329,8 +371,25 @@ impl_real!(
     libm::floor,
     libm::trunc,
     libm::fma,
-    second
+    second,
+    libm::exp,
+    libm::erf,
+    libm::tanh,
+    sigmoid_f64,
+    sin_cos_f64
 );
+
+/// `1/(1 + e^(−x))` with the pinned `exp` ([`Real::sigmoid`] in f64).
+#[inline(always)]
+fn sigmoid_f64(x: f64) -> f64 {
+    Real::sigmoid(x)
+}
+
+/// `(sin x, cos x)` with the pinned libm.
+#[inline(always)]
+fn sin_cos_f64(x: f64) -> (f64, f64) {
+    (libm::sin(x), libm::cos(x))
+}
 
 /// Version string of the pinned math library, recorded beside every
 /// bit-exact golden value.
@@ -420,6 +479,7 @@ mod tests {
             }
         }
         for &(a, b, c) in &cases32 {
+            // SAFETY: the test returned early unless the CPU has FMA.
             let want = unsafe { hw32(a, b, c) };
             for got in [libm::fmaf(a, b, c), Real::mul_add(a, b, c)] {
                 assert!(
@@ -445,6 +505,7 @@ mod tests {
             cases64.push((j(a, r), j(b, r >> 20), j(c, r >> 40)));
         }
         for &(a, b, c) in &cases64 {
+            // SAFETY: the test returned early unless the CPU has FMA.
             let want = unsafe { hw64(a, b, c) };
             for got in [libm::fma(a, b, c), Real::mul_add(a, b, c)] {
                 assert!(

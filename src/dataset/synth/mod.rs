@@ -18,11 +18,12 @@ pub mod scene;
 pub use scene::SceneName;
 
 use super::dnerf::fov_pair;
-use super::image::{composite, encode_png, to_chw, Image8};
+use super::image::{composite, to_chw};
 use super::{scene_extent, Background, Dataset, DatasetKind, Frame};
 use crate::camera::Camera;
 use crate::error::{Error, Result};
 use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
+use crate::io::png::{encode as encode_png, Image8};
 use crate::math::Rng;
 use serde_json::{json, Value};
 use std::path::Path;
