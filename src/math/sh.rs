@@ -47,7 +47,7 @@ pub fn coeffs_for_degree(degree: usize) -> usize {
 
 /// Forward result of [`sh_to_color`]: what the backward needs besides the inputs.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct ShColor<T> {
+pub struct ShColorSaved<T> {
     /// `max(result, 0)` per channel.
     pub color: [T; 3],
     /// `result < 0` per channel (the gradient of such a channel is zero).
@@ -172,7 +172,7 @@ pub fn sh_to_color<T: Real>(
     coeffs: &[T],
     mean: [T; 3],
     campos: [T; 3],
-) -> ShColor<T> {
+) -> ShColorSaved<T> {
     let (_, dir) = direction(mean, campos);
     let basis = sh_basis(degree, dir);
     let n = coeffs_for_degree(degree);
@@ -187,7 +187,7 @@ pub fn sh_to_color<T: Real>(
         clamped[ch] = r < T::ZERO;
         color[ch] = r.max(T::ZERO);
     }
-    ShColor { color, clamped }
+    ShColorSaved { color, clamped }
 }
 
 /// Backward of [`sh_to_color`]: writes `dL/dcoeffs` (entries above the degree
@@ -197,7 +197,7 @@ pub fn sh_to_color_vjp<T: Real>(
     coeffs: &[T],
     mean: [T; 3],
     campos: [T; 3],
-    fwd: &ShColor<T>,
+    fwd: &ShColorSaved<T>,
     grad_color: [T; 3],
     grad_coeffs: &mut [T],
 ) -> [T; 3] {

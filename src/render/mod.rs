@@ -56,7 +56,7 @@ pub(crate) mod tiles;
 use crate::camera::RasterCamera;
 use crate::error::{Error, Result};
 use crate::math::covariance::cov3d;
-use crate::math::sh::{sh_to_color, ShColor, MAX_SH_DEGREE};
+use crate::math::sh::{sh_to_color, ShColorSaved, MAX_SH_DEGREE};
 use crate::math::Real;
 use project::{Intrinsics, Projected};
 use rasterize::{Blended, Splat};
@@ -144,7 +144,7 @@ pub struct RasterOutput<T> {
 pub struct RasterizeSaved<T> {
     intr: Intrinsics<T>,
     proj: Vec<Projected<T>>,
-    colors: Vec<ShColor<T>>,
+    colors: Vec<ShColorSaved<T>>,
     cov3d: Vec<[T; 6]>,
     binning: tiles::Binning,
     /// The splat data of each sorted entry, in list order.
@@ -424,7 +424,7 @@ impl<T: Real> RasterInput<'_, T> {
         }
     }
 
-    fn color(&self, i: usize) -> ShColor<T> {
+    fn color(&self, i: usize) -> ShColorSaved<T> {
         match self.colors {
             Colors::Sh {
                 coeffs,
@@ -436,7 +436,7 @@ impl<T: Real> RasterInput<'_, T> {
                 self.mean(i),
                 self.camera.campos,
             ),
-            Colors::Precomputed(c) => ShColor {
+            Colors::Precomputed(c) => ShColorSaved {
                 color: [c[3 * i], c[3 * i + 1], c[3 * i + 2]],
                 clamped: [false; 3],
             },
@@ -473,7 +473,7 @@ fn forward<T: Real>(
     let (w, h) = (intr.width, intr.height);
 
     // 1. Per-Gaussian preprocessing.
-    let per: Vec<(Projected<T>, ShColor<T>, [T; 6])> = (0..n)
+    let per: Vec<(Projected<T>, ShColorSaved<T>, [T; 6])> = (0..n)
         .into_par_iter()
         .map(|i| {
             let cov = input.cov3d(i);
@@ -482,7 +482,7 @@ fn forward<T: Real>(
             let c = if p.radius > 0 {
                 input.color(i)
             } else {
-                ShColor {
+                ShColorSaved {
                     color: [T::ZERO; 3],
                     clamped: [false; 3],
                 }
