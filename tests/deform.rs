@@ -328,6 +328,28 @@ fn cfc_gradients_every_activation_and_depth() {
     );
 }
 
+/// Backbones of one and of three layers (the paper's cells have two): the
+/// backward's loop over the layers after the first, and a backbone whose
+/// first layer feeds the heads directly.
+#[test]
+fn cfc_gradients_other_backbone_depths() {
+    for (layers, depth, act) in [
+        (1, 3, Activation::Gelu),
+        (3, 2, Activation::Silu),
+        (3, 1, Activation::LecunTanh),
+    ] {
+        let cfg = FieldConfig::Cfc(CfcConfig {
+            variant: Variant::Real,
+            depth,
+            width: 8,
+            activation: act,
+            backbone_units: 6,
+            backbone_layers: layers,
+        });
+        gradcheck(cfg, 40 + layers as u64, 256);
+    }
+}
+
 #[test]
 fn mlp_gradients_several_depths() {
     for depth in [3, 4, 5] {

@@ -8,51 +8,108 @@
 //! `h ← tanh(ff1(z))·(1 − σ) + σ·tanh(ff2(z))` (ncps CfCCell, mode "default").
 //! Output: `head(h)` = Linear(W, 10) split 3 | 4 | 3.
 //!
-//! The computation is arranged around its shapes:
-//! - Every cell's first backbone layer and the skip read the same `u`, so
-//!   their `u` columns are one product `[N, |u|]·[|u|, D·U + W]` per pass;
-//!   each cell's first layer then continues those sums over its state
-//!   columns ([`Input::continuing`]), the same bits as one sum over
-//!   `[u; h]` in order. The backward collects the gradients of those outputs
-//!   of all cells and of the skip, and computes their weight gradients over
-//!   `u` as one product `[D·U + W, N]·[N, |u|]` and their bias gradients as
-//!   one column sum (each element its own fixed-order sum, as layer by layer).
+//! The computation is arranged around its shapes and the memory it moves:
+//! - The forward runs every cell on a block of rows (`FORWARD_ROWS`) after
+//!   the other while the block is in cache: per cell, the first backbone
+//!   layer's sums over `u`, continued over the state columns (the same bits
+//!   as one sum over `[u; h]` in order), the bias and activation, the later
+//!   backbone layers, the four heads as one stacked product `4W` wide, then
+//!   the gate, both tanh's and the new state. Only what the backward needs
+//!   is written out: each backbone layer's pre-activation, the state entering
+//!   each cell, and per row tanh(ff1) | tanh(ff2) | time_a(z) | σ. The
+//!   activations' outputs are recomputed from the pre-activations in the
+//!   backward (the same function of the same values: the same bits).
+//! - The backward runs every cell, last first, on a chunk of
+//!   [`REDUCTION_CHUNK`] rows after the other, with the state's gradient, the
+//!   heads' output gradient and each layer's output gradient kept in cache
+//!   (never stored whole). The weight and bias gradients are partial sums per
+//!   chunk, added in chunk order at the end: the chunks and the order of
+//!   [`matmul_tn`] and [`column_sums`] over all rows, so every element has the
+//!   bits of the layer-by-layer backward over all rows.
 //! - Before the first cell the state is zero (unless the skip is added
 //!   there, D = 1). A sum over `k` that starts from +0 is never −0 (round to
 //!   nearest), so the terms `0·w` of the zero state would add exact zeros:
 //!   the first cell's product over the state and its gradients are not run,
 //!   with the same bits for finite weights.
-//! - The four heads of a cell run as one stacked product `4W` wide, and the
-//!   gate, both tanh's and the new state are computed in its epilogue on each
-//!   block of rows while it is in cache, which keeps what the backward needs
-//!   (tanh(ff1), tanh(ff2), time_a(z) and σ). In the backward, the gate and
-//!   update vjp produces the heads' output gradient chunk by chunk inside
-//!   the heads' backward ([`OutputGrad::Produced`]), where the weight, bias
-//!   and input gradients read each chunk while it is in cache (the `[n, 4W]`
-//!   gradient is never stored whole); the backbone layers' activation vjps
-//!   are produced the same way. tanh and sigmoid are [`fastmath`]'s
-//!   (vectorised in f32).
+//! - tanh and sigmoid are [`fastmath`]'s (vectorised in f32).
 //!
 //! Every product and element-wise pass is timed by [`profile`] when it is on
-//! (`liquid-splat bench deform`).
+//! (`liquid-splat bench deform`); inside the fused passes, as CPU time
+//! summed over the threads ([`Tally`]).
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
-use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
-use super::profile;
+use super::linear::{add_bias, InputGrad, OutputGrad};
+use super::profile::{self, Tally};
 use super::{
-    CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
-    TimeEmbeddingSaved, XYZ_LEVELS,
+    CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, TimeEmbedding, TimeEmbeddingSaved,
+    XYZ_LEVELS,
 };
 use crate::kernels::fastmath::{self, multiversion};
-use crate::kernels::matmul::{column_sums, matmul, matmul_tn, MatRef};
-use crate::kernels::vec_written_by;
+use crate::kernels::matmul::{
+    column_sums, matmul_block_into, matmul_block_resume, matmul_tn, pack, MatRef, Packed,
+    REDUCTION_CHUNK,
+};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 
-/// Rows per parallel task of the fused cell pass (does not affect results).
+/// Rows per parallel task of element-wise passes (does not affect results).
 const ROWS_PER_TASK: usize = 64;
+
+/// Rows per block of the forward, which runs every cell on a block of rows
+/// after the other (does not affect results).
+const FORWARD_ROWS: usize = 48;
+
+/// The operations of the forward timed by the profile, in the order of
+/// [`CfcNet::forward_ops`].
+#[derive(Clone, Copy)]
+enum FwdOp {
+    Skip,
+    UPart,
+    HPart,
+    Later,
+    Act,
+    Heads,
+    Gate,
+    SaveState,
+    Head,
+}
+
+/// The operations of the backward timed by the profile, in the order of
+/// [`CfcNet::backward_ops`].
+#[derive(Clone, Copy)]
+enum BwdOp {
+    Act,
+    Gate,
+    HeadsWeight,
+    HeadsInput,
+    ActVjp,
+    LaterWeight,
+    LaterInput,
+    UWeight,
+    HWeight,
+    TInput,
+    HInput,
+    Skip,
+}
+
+/// `f()`, its time added to operation `op` of the profile's tally (if on).
+#[inline(always)]
+fn timed<R>(tally: Option<&Tally>, op: usize, f: impl FnOnce() -> R) -> R {
+    Tally::time(tally, op, f)
+}
+
+/// A cell's four heads stacked by rows: `W` `[4W, U]` and `b` `[4W]`.
+fn stacked_heads<T: Real>(cell: &Cell, p: &[T]) -> (Vec<T>, Vec<T>) {
+    let mut w = Vec::new();
+    let mut b = Vec::new();
+    for h in &cell.heads {
+        w.extend_from_slice(h.weight(p));
+        b.extend_from_slice(h.bias(p));
+    }
+    (w, b)
+}
 
 /// One CfC cell's parameter places.
 #[derive(Clone, Debug)]
@@ -76,17 +133,15 @@ pub(crate) struct CfcNet {
     act: Activation,
 }
 
+/// What one cell's backward needs from its forward. The activations'
+/// outputs and the heads are recomputed from these, chunk by chunk, in the
+/// backward (see the module docs).
 struct CellCache<T> {
-    /// The state entering the cell (after the skip, at cell D/2): with `u`,
-    /// the first backbone layer's input `[u; h]`, read as column blocks
-    /// (never concatenated).
+    /// The state entering the cell (after the skip, at cell D/2), `[n, W]`;
+    /// empty for a cell that reads no state ([`CfcNet::reads_state`]).
     h_in: Vec<T>,
-    /// Input of each backbone layer after the first.
-    inputs: Vec<Vec<T>>,
-    /// Pre-activation of each backbone layer.
+    /// Pre-activation of each backbone layer, `[n, U]`.
     pres: Vec<Vec<T>>,
-    /// Backbone output z `[n, U]`.
-    z: Vec<T>,
     /// Per row, 4W values: tanh(ff1) | tanh(ff2) | time_a(z) | σ.
     gate: Vec<T>,
 }
@@ -98,6 +153,196 @@ pub(crate) struct CfcCache<T> {
     u: Vec<T>,
     cells: Vec<CellCache<T>>,
     head_in: Vec<T>,
+}
+
+/// One cell's weights packed for the forward's blocks of rows.
+struct CellForward<'p, T> {
+    /// backbone.0's `u` columns, `Wᵀ` `[|u|, U]`.
+    u_part: Packed<T>,
+    /// backbone.0's state columns, `Wᵀ` `[W, U]`.
+    h_part: Packed<T>,
+    /// The backbone layers after the first, `Wᵀ` `[U, U]`.
+    later: Vec<Packed<T>>,
+    /// Every backbone layer's bias.
+    biases: Vec<&'p [T]>,
+    /// ff1 | ff2 | time_a | time_b stacked, `Wᵀ` `[U, 4W]`.
+    heads: Packed<T>,
+    heads_bias: Vec<T>,
+}
+
+/// The field's weights packed for the forward.
+struct ForwardWeights<'p, T> {
+    cells: Vec<CellForward<'p, T>>,
+    skip: Packed<T>,
+    skip_bias: &'p [T],
+    head: Packed<T>,
+    head_bias: &'p [T],
+}
+
+/// One cell's weights packed for the backward's chunks.
+struct CellBackward<T> {
+    /// `W` of the stacked heads `[4W, U]`, for their input gradient.
+    heads: Packed<T>,
+    /// `W` of each backbone layer after the first `[U, U]`.
+    later: Vec<Packed<T>>,
+    /// backbone.0's `t_feat` columns `[U, |t_feat|]` and state columns `[U, W]`.
+    t_part: Packed<T>,
+    h_part: Packed<T>,
+}
+
+/// The field's weights packed for the backward.
+struct BackwardWeights<T> {
+    cells: Vec<CellBackward<T>>,
+    /// The skip's `t_feat` columns `[W, |t_feat|]`.
+    skip_t: Packed<T>,
+}
+
+/// One block of rows of the forward, with its rows of every saved array
+/// (uninitialised until the block is run).
+struct ForwardTask<'o, T> {
+    r0: usize,
+    rows: usize,
+    /// Cell by cell, layer by layer.
+    pres: Vec<&'o mut [MaybeUninit<T>]>,
+    /// Per cell (empty where the cell reads no state).
+    h_in: Vec<&'o mut [MaybeUninit<T>]>,
+    /// Per cell.
+    gates: Vec<&'o mut [MaybeUninit<T>]>,
+    head_in: &'o mut [MaybeUninit<T>],
+    out: &'o mut [MaybeUninit<T>],
+}
+
+/// One chunk of rows of the backward with its rows of the outputs.
+struct BackwardTask<'o, T> {
+    r0: usize,
+    rows: usize,
+    g_tfeat: &'o mut [MaybeUninit<T>],
+    dt: &'o mut [MaybeUninit<T>],
+}
+
+/// A chunk's partial weight and bias gradients: per cell the stacked heads
+/// (weight, bias), each backbone layer after the first (weight, bias),
+/// backbone.0's `u` columns, bias and (where it reads the state) state
+/// columns; then the skip's weight and bias.
+struct ChunkGradients<T> {
+    cells: Vec<CellGradients<T>>,
+    skip: (Vec<T>, Vec<T>),
+}
+
+struct CellGradients<T> {
+    heads: (Vec<T>, Vec<T>),
+    later: Vec<(Vec<T>, Vec<T>)>,
+    u_part: Vec<T>,
+    bias0: Vec<T>,
+    h_part: Vec<T>,
+}
+
+impl<T: Real> ChunkGradients<T> {
+    /// The number of values in all the partials.
+    fn len(&self) -> usize {
+        let cells: usize = self
+            .cells
+            .iter()
+            .map(|c| {
+                c.heads.0.len()
+                    + c.heads.1.len()
+                    + c.later
+                        .iter()
+                        .map(|(w, b)| w.len() + b.len())
+                        .sum::<usize>()
+                    + c.u_part.len()
+                    + c.bias0.len()
+                    + c.h_part.len()
+            })
+            .sum();
+        cells + self.skip.0.len() + self.skip.1.len()
+    }
+
+    /// Every partial, in a fixed order (for the sum over chunks).
+    fn parts_mut(&mut self) -> Vec<&mut Vec<T>> {
+        let mut v = Vec::new();
+        for c in &mut self.cells {
+            v.push(&mut c.heads.0);
+            v.push(&mut c.heads.1);
+            for (w, b) in &mut c.later {
+                v.push(w);
+                v.push(b);
+            }
+            v.push(&mut c.u_part);
+            v.push(&mut c.bias0);
+            v.push(&mut c.h_part);
+        }
+        v.push(&mut self.skip.0);
+        v.push(&mut self.skip.1);
+        v
+    }
+}
+
+/// Scratch of a forward block or a backward chunk, reused across the blocks
+/// a thread runs (every value is written before it is read).
+#[derive(Default)]
+struct Scratch<T> {
+    h: Vec<T>,
+    h_next: Vec<T>,
+    xs: Vec<Vec<T>>,
+    gate: Vec<T>,
+    dz: Vec<T>,
+    dz_next: Vec<T>,
+    tmp: Vec<T>,
+    g_tfeat: Vec<T>,
+    dt: Vec<T>,
+    prod: Vec<T>,
+}
+
+/// `v` resized to `len` (new values zero; existing ones kept).
+fn sized<T: Real>(v: &mut Vec<T>, len: usize) -> &mut [T] {
+    v.resize(len, T::ZERO);
+    &mut v[..len]
+}
+
+/// An initialised slice viewed as slots to overwrite.
+fn slots<T>(s: &mut [T]) -> &mut [MaybeUninit<T>] {
+    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the writers these
+    // slots are given (matrix products, element-wise passes) write only
+    // initialised values, so the slice stays initialised.
+    unsafe { &mut *(s as *mut [T] as *mut [MaybeUninit<T>]) }
+}
+
+/// `dst = src`, writing every slot of `dst`.
+fn write_all<T: Copy>(dst: &mut [MaybeUninit<T>], src: &[T]) {
+    assert_eq!(dst.len(), src.len(), "cfc: saved rows differ in size");
+    for (d, &s) in dst.iter_mut().zip(src) {
+        d.write(s);
+    }
+}
+
+/// `len` uninitialised slots of `v` (reserved) in blocks of `block`
+/// values, one per task; `tasks` empty slices when `len` is 0.
+fn blocks_of<T>(
+    v: &mut Vec<T>,
+    len: usize,
+    block: usize,
+    tasks: usize,
+) -> Vec<&mut [MaybeUninit<T>]> {
+    if len == 0 {
+        return (0..tasks)
+            .map(|_| <&mut [MaybeUninit<T>]>::default())
+            .collect();
+    }
+    v.reserve_exact(len);
+    let b: Vec<_> = v.spare_capacity_mut()[..len].chunks_mut(block).collect();
+    assert_eq!(b.len(), tasks, "cfc: blocks and tasks differ");
+    b
+}
+
+/// Marks the `len` values reserved by [`blocks_of`] as written.
+///
+/// # Safety
+/// Every one of the `len` slots must have been written.
+unsafe fn assume_written<T>(v: &mut Vec<T>, len: usize) {
+    debug_assert!(v.capacity() >= len);
+    // SAFETY: the caller guarantees the slots are written.
+    unsafe { v.set_len(len) }
 }
 
 impl CfcNet {
@@ -135,29 +380,12 @@ impl CfcNet {
         }
     }
 
-    /// Rows of the wide product over `u`: every cell's first backbone
-    /// layer (`units` rows each, cell by cell), then the skip (`W` rows).
-    fn wide_rows(&self) -> usize {
-        self.cells.len() * self.units() + self.width
-    }
-
     fn units(&self) -> usize {
         self.cells[0].backbone[0].shape.out_dim
     }
 
-    /// The weights of the wide product over `u`, `[wide_rows, |u|]`: the
-    /// `u` columns of every cell's first backbone layer, then the skip's.
-    fn wide_weight<T: Real>(&self, p: &[T]) -> Vec<T> {
-        let ud = self.u_dim;
-        let mut out = Vec::with_capacity(self.wide_rows() * ud);
-        for cell in &self.cells {
-            let lin = &cell.backbone[0];
-            for row in lin.weight(p).chunks_exact(lin.shape.in_dim) {
-                out.extend_from_slice(&row[..ud]);
-            }
-        }
-        out.extend_from_slice(self.skip.weight(p));
-        out
+    fn layers(&self) -> usize {
+        self.cells[0].backbone.len()
     }
 
     /// Whether cell `l`'s first layer reads a state that may be non-zero:
@@ -168,9 +396,40 @@ impl CfcNet {
         l > 0 || self.skip_at == 0
     }
 
+    fn forward_weights<'p, T: Real>(&self, p: &'p [T]) -> ForwardWeights<'p, T> {
+        let (w, ud, units) = (self.width, self.u_dim, self.units());
+        let wt = |lin: &LinearParams| {
+            MatRef::row_major(lin.weight(p), lin.shape.out_dim, lin.shape.in_dim).t()
+        };
+        let cells = self
+            .cells
+            .iter()
+            .map(|cell| {
+                let b0 = wt(&cell.backbone[0]);
+                let (hw, hb) = stacked_heads(cell, p);
+                CellForward {
+                    u_part: pack(b0.rows(0, ud)),
+                    h_part: pack(b0.rows(ud, w)),
+                    later: cell.backbone[1..].iter().map(|l| pack(wt(l))).collect(),
+                    biases: cell.backbone.iter().map(|l| l.bias(p)).collect(),
+                    heads: pack(MatRef::row_major(&hw, hb.len(), units).t()),
+                    heads_bias: hb,
+                }
+            })
+            .collect();
+        ForwardWeights {
+            cells,
+            skip: pack(wt(&self.skip)),
+            skip_bias: self.skip.bias(p),
+            head: pack(wt(&self.head)),
+            head_bias: self.head.bias(p),
+        }
+    }
+
     pub fn forward<T: Real>(&self, p: &[T], xyz: &[T], t: &[T]) -> (Deformation<T>, CfcCache<T>) {
         let n = t.len();
-        let (w, ud, units) = (self.width, self.u_dim, self.units());
+        let (w, ud, units, layers) = (self.width, self.u_dim, self.units(), self.layers());
+        let d = self.cells.len();
         let xd = encoded_dim(3, XYZ_LEVELS);
         let td = ud - xd;
         let x_emb = profile::elementwise(
@@ -188,181 +447,282 @@ impl CfcNet {
             || concat_columns(&x_emb, xd, &t_feat, td, n),
         );
         drop((x_emb, t_feat));
-        // Every cell's first layer and the skip see the same u: their u
-        // parts are one product [n, |u|]·[|u|, D·units + W]. Each cell's
-        // first layer then continues these sums over its state columns
-        // (the same bits as one sum over [u; h]).
-        let wide_n = self.wide_rows();
-        let wide_w = self.wide_weight(p);
-        let pu = profile::layer(
-            || "u part of every cell's backbone.0 and of the skip".into(),
-            || {
-                profile::product(
-                    || "u·Wᵤᵀ".into(),
-                    n,
-                    ud,
-                    wide_n,
-                    || {
-                        matmul(
-                            MatRef::row_major(&u, n, ud),
-                            MatRef::row_major(&wide_w, wide_n, ud).t(),
-                        )
-                    },
-                )
-            },
-        );
-        let pum = MatRef::row_major(&pu, n, wide_n);
-        let mut h = vec![T::ZERO; n * w];
-        let mut cells = Vec::with_capacity(self.cells.len());
-        for l in 0..self.cells.len() {
-            if l == self.skip_at {
-                // h += skip(u), the skip's sums plus its bias (added after
-                // the sum, as in every linear layer).
-                let (bias, s0) = (self.skip.bias(p), self.cells.len() * units);
-                profile::elementwise(
-                    || "skip: h += (u·Wᵀ + b)".into(),
-                    n,
-                    w,
-                    || {
-                        h.par_chunks_mut((ROWS_PER_TASK * w).max(1))
-                            .enumerate()
-                            .for_each(|(blk, hb)| {
-                                let r0 = blk * ROWS_PER_TASK;
-                                for (r, hr) in hb.chunks_exact_mut(w).enumerate() {
-                                    let o = (r0 + r) * wide_n + s0;
-                                    let sr = &pu[o..o + w];
-                                    for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(bias) {
-                                        *hv += sv + b;
-                                    }
-                                }
-                            })
-                    },
-                );
+        let fw = self.forward_weights(p);
+        // Every cell runs on a block of rows after the other while the block
+        // is in cache; the saved arrays are written once, block by block.
+        let tasks_n = n.div_ceil(FORWARD_ROWS);
+        let mut pres: Vec<Vec<T>> = (0..d * layers).map(|_| Vec::new()).collect();
+        let mut h_in: Vec<Vec<T>> = (0..d).map(|_| Vec::new()).collect();
+        let mut gates: Vec<Vec<T>> = (0..d).map(|_| Vec::new()).collect();
+        let (mut head_in, mut out) = (Vec::new(), Vec::new());
+        let h_len = |l: usize| if self.reads_state(l) { n * w } else { 0 };
+        {
+            let mut tasks: Vec<ForwardTask<'_, T>> = (0..tasks_n)
+                .map(|b| ForwardTask {
+                    r0: b * FORWARD_ROWS,
+                    rows: FORWARD_ROWS.min(n - b * FORWARD_ROWS),
+                    pres: Vec::with_capacity(d * layers),
+                    h_in: Vec::with_capacity(d),
+                    gates: Vec::with_capacity(d),
+                    head_in: &mut [],
+                    out: &mut [],
+                })
+                .collect();
+            for v in pres.iter_mut() {
+                for (task, s) in
+                    tasks
+                        .iter_mut()
+                        .zip(blocks_of(v, n * units, FORWARD_ROWS * units, tasks_n))
+                {
+                    task.pres.push(s);
+                }
             }
-            let cc = profile::layer(
-                || format!("cell {l}"),
-                || self.cell_forward(p, l, pum.cols(l * units, units), h, t, n),
+            for (l, v) in h_in.iter_mut().enumerate() {
+                for (task, s) in
+                    tasks
+                        .iter_mut()
+                        .zip(blocks_of(v, h_len(l), FORWARD_ROWS * w, tasks_n))
+                {
+                    task.h_in.push(s);
+                }
+            }
+            for v in gates.iter_mut() {
+                for (task, s) in
+                    tasks
+                        .iter_mut()
+                        .zip(blocks_of(v, n * 4 * w, FORWARD_ROWS * 4 * w, tasks_n))
+                {
+                    task.gates.push(s);
+                }
+            }
+            for (task, s) in
+                tasks
+                    .iter_mut()
+                    .zip(blocks_of(&mut head_in, n * w, FORWARD_ROWS * w, tasks_n))
+            {
+                task.head_in = s;
+            }
+            for (task, s) in
+                tasks
+                    .iter_mut()
+                    .zip(blocks_of(&mut out, n * 10, FORWARD_ROWS * 10, tasks_n))
+            {
+                task.out = s;
+            }
+            let tally = Tally::new(|| self.forward_ops(n));
+            profile::layer(
+                || "cells (fused by blocks of rows)".into(),
+                || {
+                    tasks
+                        .into_par_iter()
+                        .for_each_init(Scratch::default, |s, task| {
+                            self.forward_rows(&fw, s, &u, t, task, tally.as_ref())
+                        })
+                },
             );
-            h = cc.1;
-            cells.push(cc.0);
+            if let Some(tally) = tally {
+                tally.finish();
+            }
         }
-        let out = profile::layer(
-            || "head".into(),
-            || {
-                self.head
-                    .linear(p)
-                    .forward(Input::blocks(&[(&h, w)]), n, Epilogue::none())
-            },
-        );
+        // SAFETY: every task wrote all its rows of every saved array and of
+        // the output (forward_rows writes each slot it is given).
+        unsafe {
+            for v in pres.iter_mut() {
+                assume_written(v, n * units);
+            }
+            for (l, v) in h_in.iter_mut().enumerate() {
+                assume_written(v, h_len(l));
+            }
+            for v in gates.iter_mut() {
+                assume_written(v, n * 4 * w);
+            }
+            assume_written(&mut head_in, n * w);
+            assume_written(&mut out, n * 10);
+        }
+        let mut pres = pres.into_iter();
+        let cells = h_in
+            .into_iter()
+            .zip(gates)
+            .map(|(h_in, gate)| CellCache {
+                h_in,
+                pres: pres.by_ref().take(layers).collect(),
+                gate,
+            })
+            .collect();
         (
             Deformation::from_head(&out),
             CfcCache {
                 time,
                 u,
                 cells,
-                head_in: h,
+                head_in,
             },
         )
     }
 
-    /// One cell's forward from the sums of its first layer over `u`
-    /// (`pu`, `[n, units]`) and the state `h` entering it; returns its cache
-    /// and the new state.
-    fn cell_forward<T: Real>(
+    /// The operations of the fused forward, in [`FwdOp`] order, for the
+    /// profile: (what, shape, FLOPs or elements per call, calls).
+    fn forward_ops(&self, n: usize) -> Vec<profile::TallyOp> {
+        let (w, ud, units, d) = (self.width, self.u_dim, self.units(), self.cells.len());
+        let later = d * (self.layers() - 1);
+        let states = (0..d).filter(|&l| self.reads_state(l)).count();
+        vec![
+            profile::TallyOp::product("skip: u·Wᵀ, h += sums + b", n, ud, w, 1),
+            profile::TallyOp::product("backbone.0, u columns: u·Wᵤᵀ", n, ud, units, d),
+            profile::TallyOp::product(
+                "backbone.0, state columns continued: + h·Wₕᵀ",
+                n,
+                w,
+                units,
+                states,
+            ),
+            profile::TallyOp::product("backbone.j > 0: x·Wᵀ", n, units, units, later),
+            profile::TallyOp::elementwise(
+                &format!("bias and {} (every backbone layer)", self.act),
+                n,
+                units,
+                d * self.layers(),
+            ),
+            profile::TallyOp::product("heads ff1|ff2|time_a|time_b: z·Wᵀ + b", n, units, 4 * w, d),
+            profile::TallyOp::elementwise("gate and update (2 tanh, sigmoid)", n, w, d),
+            profile::TallyOp::elementwise("state saved (copy)", n, w, states),
+            profile::TallyOp::product("head: h·Wᵀ + b", n, w, 10, 1),
+        ]
+    }
+
+    /// The forward of one block of rows: every cell, then the head.
+    fn forward_rows<T: Real>(
         &self,
-        p: &[T],
-        l: usize,
-        pu: MatRef<'_, T>,
-        h: Vec<T>,
+        fw: &ForwardWeights<'_, T>,
+        s: &mut Scratch<T>,
+        u: &[T],
         t: &[T],
-        n: usize,
-    ) -> (CellCache<T>, Vec<T>) {
-        let (w, ud) = (self.width, self.u_dim);
-        let cell = &self.cells[l];
-        let mut inputs = Vec::with_capacity(cell.backbone.len() - 1);
-        let mut pres = Vec::with_capacity(cell.backbone.len());
-        let mut cur: Vec<T> = Vec::new();
-        for (j, lin) in cell.backbone.iter().enumerate() {
-            // The activation on each block of rows as it leaves the product,
-            // written into `out` (which is never zeroed: every value is
-            // written once).
-            let units = lin.shape.out_dim;
-            let act = self.act;
-            let apply = |_: usize, blk: &mut [T], ob: &mut [MaybeUninit<T>]| {
-                act.apply_block_uninit(blk, ob)
-            };
-            let mut pre = Vec::new();
-            let out = vec_written_by(n * units, |ob| {
-                pre = if j == 0 {
-                    // The u sums continued over the state columns (none before
-                    // the first cell, see reads_state), then the bias and the
-                    // activation.
-                    let k = if self.reads_state(l) { w } else { 0 };
-                    profile::layer(
-                        || format!("backbone.0, u sums continued, {} in the epilogue", self.act),
-                        || {
-                            lin.linear(p).forward(
-                                Input::continuing(pu, ud, &[(&h, k)]),
-                                n,
-                                Epilogue::none().then(ob, units, &apply),
-                            )
-                        },
-                    )
-                } else {
-                    profile::layer(
-                        || format!("backbone.{j}, {} in the epilogue", self.act),
-                        || {
-                            lin.linear(p).forward(
-                                Input::blocks(&[(&cur, lin.shape.in_dim)]),
-                                n,
-                                Epilogue::none().then(ob, units, &apply),
-                            )
-                        },
-                    )
-                };
-                // SAFETY: the epilogue ran once on every block of rows and wrote
-                // every value of its rows of `ob`.
-                unsafe { &mut *(ob as *mut [MaybeUninit<T>] as *mut [T]) }
-            });
-            let prev = std::mem::replace(&mut cur, out);
-            if j > 0 {
-                inputs.push(prev);
-            }
-            pres.push(pre);
+        task: ForwardTask<'_, T>,
+        tally: Option<&profile::Tally>,
+    ) {
+        let ForwardTask {
+            r0,
+            rows,
+            pres,
+            mut h_in,
+            gates,
+            head_in,
+            out,
+        } = task;
+        let (w, ud, units) = (self.width, self.u_dim, self.units());
+        let um = MatRef::row_major(&u[r0 * ud..(r0 + rows) * ud], rows, ud);
+        let tb = &t[r0..r0 + rows];
+        // The state before the first cell is zero.
+        sized(&mut s.h, rows * w).fill(T::ZERO);
+        sized(&mut s.h_next, rows * w);
+        sized(&mut s.tmp, rows * w);
+        if s.xs.is_empty() {
+            s.xs.push(Vec::new());
         }
-        let z = cur;
-        // The four heads as one product 4W wide, then the fused cell pass on
-        // each block of rows while it is in cache, writing the new state
-        // (never zeroed).
-        let pass = |r0: usize, g: &mut [T], hb: &mut [MaybeUninit<T>]| {
-            let rows = hb.len() / w;
-            cell_forward_rows(g, hb, &t[r0..r0 + rows], w)
-        };
-        let mut gate = Vec::new();
-        let h_next = vec_written_by(n * w, |hb| {
-            gate = profile::layer(
-                || "heads ff1|ff2|time_a|time_b, gate and update in the epilogue".into(),
-                || {
-                    Stacked(&cell.heads).linear(p).forward(
-                        Input::blocks(&[(&z, cell.heads[0].shape.in_dim)]),
-                        n,
-                        Epilogue::none().then(hb, w, &pass),
-                    )
-                },
-            );
-            // SAFETY: the cell pass wrote every value of every block of rows.
-            unsafe { &mut *(hb as *mut [MaybeUninit<T>] as *mut [T]) }
+        sized(&mut s.xs[0], rows * units);
+        let mut pres = pres.into_iter();
+        for ((l, cw), gate) in fw.cells.iter().enumerate().zip(gates) {
+            if l == self.skip_at {
+                // h += skip(u): the skip's sums plus its bias (added after the
+                // sum, as in every linear layer), added to the state.
+                timed(tally, FwdOp::Skip as usize, || {
+                    let sk = matmul_block_into(um, &fw.skip, slots(&mut s.tmp[..rows * w]));
+                    for (hr, sr) in s.h.chunks_exact_mut(w).zip(sk.chunks_exact(w)) {
+                        for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(fw.skip_bias) {
+                            *hv += sv + b;
+                        }
+                    }
+                });
+            }
+            let reads = self.reads_state(l);
+            if reads {
+                timed(tally, FwdOp::SaveState as usize, || {
+                    write_all(h_in[l], &s.h[..rows * w])
+                });
+            }
+            for j in 0..cw.biases.len() {
+                let slot = pres.next().expect("a saved block per layer");
+                // The layer's sums, written into its saved pre-activation.
+                let pre: &mut [T] = if j == 0 {
+                    // The u columns, then the sums continued over the state
+                    // columns (none where the state is zero, see
+                    // reads_state): the same bits as one sum over [u; h].
+                    let pre = timed(tally, FwdOp::UPart as usize, || {
+                        matmul_block_into(um, &cw.u_part, slot)
+                    });
+                    if reads {
+                        timed(tally, FwdOp::HPart as usize, || {
+                            matmul_block_resume(
+                                MatRef::row_major(&s.h[..rows * w], rows, w),
+                                &cw.h_part,
+                                pre,
+                            )
+                        });
+                    }
+                    pre
+                } else {
+                    timed(tally, FwdOp::Later as usize, || {
+                        matmul_block_into(
+                            MatRef::row_major(&s.xs[0][..rows * units], rows, units),
+                            &cw.later[j - 1],
+                            slot,
+                        )
+                    })
+                };
+                timed(tally, FwdOp::Act as usize, || {
+                    add_bias(pre, cw.biases[j], units);
+                    self.act
+                        .apply_block_uninit(pre, slots(&mut s.xs[0][..rows * units]));
+                });
+            }
+            // The heads as one product 4W wide, then the gate and the new
+            // state (the gate's values are saved).
+            let gate = timed(tally, FwdOp::Heads as usize, || {
+                let g = matmul_block_into(
+                    MatRef::row_major(&s.xs[0][..rows * units], rows, units),
+                    &cw.heads,
+                    gate,
+                );
+                add_bias(g, &cw.heads_bias, 4 * w);
+                g
+            });
+            timed(tally, FwdOp::Gate as usize, || {
+                cell_forward_rows(gate, slots(&mut s.h_next[..rows * w]), tb, w)
+            });
+            std::mem::swap(&mut s.h, &mut s.h_next);
+        }
+        timed(tally, FwdOp::Head as usize, || {
+            write_all(head_in, &s.h[..rows * w]);
+            let o = matmul_block_into(MatRef::row_major(&s.h[..rows * w], rows, w), &fw.head, out);
+            add_bias(o, fw.head_bias, 10);
         });
-        (
-            CellCache {
-                h_in: h,
-                inputs,
-                pres,
-                z,
-                gate,
-            },
-            h_next,
-        )
+    }
+
+    fn backward_weights<T: Real>(&self, p: &[T]) -> BackwardWeights<T> {
+        let (w, ud, units) = (self.width, self.u_dim, self.units());
+        let xd = encoded_dim(3, XYZ_LEVELS);
+        let td = ud - xd;
+        let wm = |lin: &LinearParams| {
+            MatRef::row_major(lin.weight(p), lin.shape.out_dim, lin.shape.in_dim)
+        };
+        let cells = self
+            .cells
+            .iter()
+            .map(|cell| {
+                let (hw, hb) = stacked_heads(cell, p);
+                let b0 = wm(&cell.backbone[0]);
+                CellBackward {
+                    heads: pack(MatRef::row_major(&hw, hb.len(), units)),
+                    later: cell.backbone[1..].iter().map(|l| pack(wm(l))).collect(),
+                    t_part: pack(b0.cols(xd, td)),
+                    h_part: pack(b0.cols(ud, w)),
+                }
+            })
+            .collect();
+        BackwardWeights {
+            cells,
+            skip_t: pack(wm(&self.skip).cols(xd, td)),
+        }
     }
 
     pub fn backward<T: Real>(
@@ -374,10 +734,10 @@ impl CfcNet {
         gp: &mut [T],
     ) -> Vec<T> {
         let n = t.len();
-        let (w, ud, units) = (self.width, self.u_dim, self.units());
+        let (w, ud) = (self.width, self.u_dim);
         let xd = encoded_dim(3, XYZ_LEVELS);
         let td = ud - xd;
-        let mut dh = profile::layer(
+        let dh = profile::layer(
             || "head".into(),
             || {
                 let mut r = self.head.linear(p).backward(
@@ -391,194 +751,56 @@ impl CfcNet {
             },
         )
         .expect("input gradient requested");
-        // The gradients of the wide product's outputs (each cell's first
-        // layer, then the skip), for its weight and bias gradients at the end.
-        let wide_n = self.wide_rows();
-        let mut gu = vec![T::ZERO; n * wide_n];
-        let mut g_tfeat = vec![T::ZERO; n * td];
-        let mut gate_dt = vec![T::ZERO; n];
-        for l in (0..self.cells.len()).rev() {
-            let (cell, cc) = (&self.cells[l], &c.cells[l]);
-            profile::layer(
-                || format!("cell {l}"),
+        let bw = self.backward_weights(p);
+        // Every cell runs backwards on a chunk of rows after the other while
+        // the chunk is in cache; the weight and bias gradients are partial
+        // sums per chunk, added in chunk order at the end.
+        let tasks_n = n.div_ceil(REDUCTION_CHUNK);
+        let (mut g_tfeat, mut gate_dt) = (Vec::new(), Vec::new());
+        let partials: Vec<ChunkGradients<T>> = {
+            let tasks: Vec<BackwardTask<'_, T>> = (0..tasks_n)
+                .zip(blocks_of(
+                    &mut g_tfeat,
+                    n * td,
+                    REDUCTION_CHUNK * td,
+                    tasks_n,
+                ))
+                .zip(blocks_of(&mut gate_dt, n, REDUCTION_CHUNK, tasks_n))
+                .map(|((b, g_tfeat), dt)| BackwardTask {
+                    r0: b * REDUCTION_CHUNK,
+                    rows: REDUCTION_CHUNK.min(n - b * REDUCTION_CHUNK),
+                    g_tfeat,
+                    dt,
+                })
+                .collect();
+            let tally = Tally::new(|| self.backward_ops(n));
+            let r = profile::layer(
+                || "cells (fused by chunks of rows)".into(),
                 || {
-                    // The gate and update vjp produces the heads' output
-                    // gradient chunk by chunk, read there by the heads'
-                    // weight, bias and input gradients while in cache.
-                    let produce = |r0: usize, chunk: &mut [T], dt: &mut [T]| {
-                        let rows = dt.len();
-                        let mut prod = vec![T::ZERO; w];
-                        cell_backward_rows(
-                            chunk,
-                            &cc.gate[r0 * 4 * w..(r0 + rows) * 4 * w],
-                            &dh[r0 * w..(r0 + rows) * w],
-                            &t[r0..r0 + rows],
-                            dt,
-                            &mut prod,
-                            w,
-                        )
-                    };
-                    let mut dz = profile::layer(
-                        || "heads ff1|ff2|time_a|time_b, gate and update vjp producing G".into(),
-                        || {
-                            let heads = Stacked(&cell.heads);
-                            let mut r = heads.linear(p).backward(
-                                &[(&cc.z, units)],
-                                OutputGrad::Produced {
-                                    produce: &produce,
-                                    side: &mut gate_dt,
-                                    side_w: 1,
-                                },
-                                n,
-                                InputGrad::From(0),
-                            );
-                            heads.store(&r, gp);
-                            r.take_input(0)
-                        },
-                    )
-                    .expect("input gradient requested");
-                    for j in (1..cell.backbone.len()).rev() {
-                        // The activation's vjp produces the layer's output
-                        // gradient chunk by chunk inside its backward.
-                        let (pre, g_out, act) = (&cc.pres[j], &dz, self.act);
-                        let produce = |r0: usize, chunk: &mut [T], _: &mut [T]| {
-                            let rows = chunk.len() / units;
-                            chunk.copy_from_slice(&g_out[r0 * units..(r0 + rows) * units]);
-                            act.backward_block(&pre[r0 * units..(r0 + rows) * units], chunk)
-                        };
-                        let lin = &cell.backbone[j];
-                        let next = profile::layer(
-                            || format!("backbone.{j}, {} vjp producing G", self.act),
-                            || {
-                                let mut r = lin.linear(p).backward(
-                                    &[(&cc.inputs[j - 1], units)],
-                                    OutputGrad::Produced {
-                                        produce: &produce,
-                                        side: &mut [],
-                                        side_w: 0,
-                                    },
-                                    n,
-                                    InputGrad::From(0),
-                                );
-                                lin.store(&r, gp);
-                                r.take_input(0)
-                            },
-                        );
-                        dz = next.expect("input gradient requested");
-                    }
-                    // The first layer's input is [γ(x) | t_feat | h]: γ(x) is
-                    // stop-gradient; t_feat's gradient is collected, h's
-                    // flows on. Its weight gradient over u and its bias
-                    // gradient come from the wide product at the end.
-                    profile::layer(
-                        || "backbone.0".into(),
-                        || {
-                            let lin = &cell.backbone[0];
-                            let in_dim = lin.shape.in_dim;
-                            profile::elementwise(
-                                || format!("{} vjp, into the wide gradient", self.act),
-                                n,
-                                units,
-                                || {
-                                    self.act.backward_in_place(&cc.pres[0], &mut dz);
-                                    set_columns(&mut gu, wide_n, l * units, &dz, units);
-                                },
-                            );
-                            let gm = MatRef::row_major(&dz, n, units);
-                            let wm = MatRef::row_major(lin.weight(p), units, in_dim);
-                            if self.reads_state(l) {
-                                let wh = profile::product(
-                                    || "weight grad Gᵀ·h".into(),
-                                    units,
-                                    n,
-                                    w,
-                                    || matmul_tn(gm, MatRef::row_major(&cc.h_in, n, w)),
-                                );
-                                let wg = &mut gp[lin.w..lin.w + units * in_dim];
-                                for (dst, src) in
-                                    wg.chunks_exact_mut(in_dim).zip(wh.chunks_exact(w))
-                                {
-                                    dst[ud..].copy_from_slice(src);
-                                }
-                            }
-                            let g_t = profile::product(
-                                || "input grad G·Wₜ".into(),
-                                n,
-                                units,
-                                td,
-                                || matmul(gm, wm.cols(xd, td)),
-                            );
-                            add_into(&mut g_tfeat, &g_t);
-                            if self.reads_state(l) {
-                                dh = profile::product(
-                                    || "input grad G·Wₕ".into(),
-                                    n,
-                                    units,
-                                    w,
-                                    || matmul(gm, wm.cols(ud, w)),
-                                );
-                            }
-                        },
-                    );
+                    tasks
+                        .into_par_iter()
+                        .map_init(Scratch::default, |s, task| {
+                            self.backward_rows(&bw, s, c, &dh, t, task, tally.as_ref())
+                        })
+                        .collect()
                 },
             );
-            if l == self.skip_at {
-                // h_in = h_prev + skip(u): the same gradient flows to both.
-                profile::layer(
-                    || "skip".into(),
-                    || {
-                        set_columns(&mut gu, wide_n, self.cells.len() * units, &dh, w);
-                        let wm = MatRef::row_major(self.skip.weight(p), w, ud);
-                        let g_t = profile::product(
-                            || "input grad G·Wₜ".into(),
-                            n,
-                            w,
-                            td,
-                            || matmul(MatRef::row_major(&dh, n, w), wm.cols(xd, td)),
-                        );
-                        add_into(&mut g_tfeat, &g_t);
-                    },
-                );
+            if let Some(tally) = tally {
+                tally.finish();
             }
+            r
+        };
+        // SAFETY: every chunk's task wrote all its rows of both.
+        unsafe {
+            assume_written(&mut g_tfeat, n * td);
+            assume_written(&mut gate_dt, n);
         }
-        // The weight and bias gradients of the wide product over u: one
-        // product [D·units + W, n]·[n, |u|] and one column sum (each element
-        // its own fixed-order sum, as layer by layer).
-        profile::layer(
-            || "u part of every cell's backbone.0 and of the skip".into(),
-            || {
-                let wg = profile::product(
-                    || "weight grad Gᵀ·u".into(),
-                    wide_n,
-                    n,
-                    ud,
-                    || {
-                        matmul_tn(
-                            MatRef::row_major(&gu, n, wide_n),
-                            MatRef::row_major(&c.u, n, ud),
-                        )
-                    },
-                );
-                let bg = profile::elementwise(
-                    || "bias grad (column sums of G)".into(),
-                    n,
-                    wide_n,
-                    || column_sums(&gu, n, wide_n),
-                );
-                let mut rows = wg.chunks_exact(ud).zip(&bg);
-                for cell in &self.cells {
-                    let lin = &cell.backbone[0];
-                    let in_dim = lin.shape.in_dim;
-                    for (r, (src, &b)) in rows.by_ref().take(units).enumerate() {
-                        gp[lin.w + r * in_dim..lin.w + r * in_dim + ud].copy_from_slice(src);
-                        gp[lin.b + r] = b;
-                    }
-                }
-                for (r, (src, &b)) in rows.enumerate() {
-                    gp[self.skip.w + r * ud..self.skip.w + (r + 1) * ud].copy_from_slice(src);
-                    gp[self.skip.b + r] = b;
-                }
-            },
+        let per_chunk = partials.first().map_or(0, ChunkGradients::len);
+        profile::elementwise(
+            || "weight and bias gradients: chunk partials added in order".into(),
+            partials.len(),
+            per_chunk,
+            || self.store_partials(partials, gp),
         );
         let mut gt = profile::layer(
             || "timenet".into(),
@@ -588,6 +810,258 @@ impl CfcNet {
             *a += b;
         }
         gt
+    }
+
+    /// The chunks' partial gradients added in chunk order (the first taken
+    /// as is) and written into `gp`.
+    fn store_partials<T: Real>(&self, partials: Vec<ChunkGradients<T>>, gp: &mut [T]) {
+        let (w, ud, units) = (self.width, self.u_dim, self.units());
+        let mut chunks = partials.into_iter();
+        let Some(mut total) = chunks.next() else {
+            return;
+        };
+        for mut part in chunks {
+            for (acc, v) in total.parts_mut().into_iter().zip(part.parts_mut()) {
+                for (a, &b) in acc.iter_mut().zip(v.iter()) {
+                    *a += b;
+                }
+            }
+        }
+        for (l, (cell, cg)) in self.cells.iter().zip(&total.cells).enumerate() {
+            for (k, head) in cell.heads.iter().enumerate() {
+                head.store_grads(
+                    gp,
+                    &cg.heads.0[k * w * units..(k + 1) * w * units],
+                    &cg.heads.1[k * w..(k + 1) * w],
+                );
+            }
+            for (lin, (wg, bg)) in cell.backbone[1..].iter().zip(&cg.later) {
+                lin.store_grads(gp, wg, bg);
+            }
+            let lin = &cell.backbone[0];
+            let in_dim = lin.shape.in_dim;
+            for r in 0..units {
+                let row = &mut gp[lin.w + r * in_dim..lin.w + (r + 1) * in_dim];
+                row[..ud].copy_from_slice(&cg.u_part[r * ud..(r + 1) * ud]);
+                if self.reads_state(l) {
+                    row[ud..].copy_from_slice(&cg.h_part[r * w..(r + 1) * w]);
+                }
+                gp[lin.b + r] = cg.bias0[r];
+            }
+        }
+        self.skip.store_grads(gp, &total.skip.0, &total.skip.1);
+    }
+
+    /// The operations of the fused backward, in [`BwdOp`] order, for the
+    /// profile.
+    fn backward_ops(&self, n: usize) -> Vec<profile::TallyOp> {
+        let (w, ud, units, d) = (self.width, self.u_dim, self.units(), self.cells.len());
+        let td = ud - encoded_dim(3, XYZ_LEVELS);
+        let layers = self.layers();
+        let later = d * (layers - 1);
+        let states = (0..d).filter(|&l| self.reads_state(l)).count();
+        vec![
+            profile::TallyOp::elementwise(
+                &format!("{} recomputed from the saved pre-activations", self.act),
+                n,
+                units,
+                d * layers,
+            ),
+            profile::TallyOp::elementwise("gate and update vjp", n, w, d),
+            profile::TallyOp::product("heads weight grad Gᵀ·z, bias grad", 4 * w, n, units, d),
+            profile::TallyOp::product("heads input grad G·W", n, 4 * w, units, d),
+            profile::TallyOp::elementwise(
+                &format!("{} vjp (every backbone layer)", self.act),
+                n,
+                units,
+                d * layers,
+            ),
+            profile::TallyOp::product(
+                "backbone.j > 0 weight grad Gᵀ·x, bias grad",
+                units,
+                n,
+                units,
+                later,
+            ),
+            profile::TallyOp::product("backbone.j > 0 input grad G·W", n, units, units, later),
+            profile::TallyOp::product(
+                "backbone.0 weight grad over u: Gᵀ·u, bias grad",
+                units,
+                n,
+                ud,
+                d,
+            ),
+            profile::TallyOp::product(
+                "backbone.0 weight grad over the state: Gᵀ·h",
+                units,
+                n,
+                w,
+                states,
+            ),
+            profile::TallyOp::product("backbone.0 input grad over t_feat: G·Wₜ", n, units, td, d),
+            profile::TallyOp::product(
+                "backbone.0 input grad over the state: G·Wₕ",
+                n,
+                units,
+                w,
+                states,
+            ),
+            profile::TallyOp::product(
+                "skip: weight grad Gᵀ·u, bias grad, input grad G·Wₜ",
+                n,
+                w,
+                ud + td,
+                1,
+            ),
+        ]
+    }
+
+    /// The backward of one chunk of rows: every cell, last first. Returns
+    /// the chunk's partial weight and bias gradients.
+    #[allow(clippy::too_many_arguments)]
+    fn backward_rows<T: Real>(
+        &self,
+        bw: &BackwardWeights<T>,
+        s: &mut Scratch<T>,
+        c: &CfcCache<T>,
+        dh_all: &[T],
+        t: &[T],
+        task: BackwardTask<'_, T>,
+        tally: Option<&profile::Tally>,
+    ) -> ChunkGradients<T> {
+        let BackwardTask {
+            r0,
+            rows,
+            g_tfeat,
+            dt,
+        } = task;
+        let (w, ud, units, layers) = (self.width, self.u_dim, self.units(), self.layers());
+        let xd = encoded_dim(3, XYZ_LEVELS);
+        let td = ud - xd;
+        let um = MatRef::row_major(&c.u[r0 * ud..(r0 + rows) * ud], rows, ud);
+        let tb = &t[r0..r0 + rows];
+        let rm = |d: usize| (r0 * d, (r0 + rows) * d);
+        // The state gradient entering the last cell, the t_feat gradient
+        // and the gate's τ gradient, accumulated cell by cell (from zero).
+        let (a, b) = rm(w);
+        sized(&mut s.h, rows * w).copy_from_slice(&dh_all[a..b]);
+        sized(&mut s.h_next, rows * w);
+        sized(&mut s.g_tfeat, rows * td).fill(T::ZERO);
+        sized(&mut s.tmp, rows * td);
+        sized(&mut s.dt, rows).fill(T::ZERO);
+        sized(&mut s.prod, w);
+        sized(&mut s.gate, rows * 4 * w);
+        sized(&mut s.dz, rows * units);
+        sized(&mut s.dz_next, rows * units);
+        s.xs.resize_with(layers, Vec::new);
+        let mut cells: Vec<CellGradients<T>> = Vec::with_capacity(self.cells.len());
+        let mut skip = (Vec::new(), Vec::new());
+        for l in (0..self.cells.len()).rev() {
+            let (cc, cw) = (&c.cells[l], &bw.cells[l]);
+            let reads = self.reads_state(l);
+            // The backbone's outputs, recomputed from the saved
+            // pre-activations (the same function: the same bits).
+            timed(tally, BwdOp::Act as usize, || {
+                for (x, pre) in s.xs.iter_mut().zip(&cc.pres) {
+                    let (a, b) = rm(units);
+                    self.act
+                        .apply_block_uninit(&pre[a..b], slots(sized(x, rows * units)));
+                }
+            });
+            let zm = MatRef::row_major(&s.xs[layers - 1][..rows * units], rows, units);
+            // The gate and update vjp: the heads' output gradient G.
+            let gate = &mut s.gate[..rows * 4 * w];
+            timed(tally, BwdOp::Gate as usize, || {
+                cell_backward_rows(
+                    gate,
+                    &cc.gate[r0 * 4 * w..(r0 + rows) * 4 * w],
+                    &s.h[..rows * w],
+                    tb,
+                    &mut s.dt[..rows],
+                    &mut s.prod,
+                    w,
+                )
+            });
+            let gm = MatRef::row_major(&*gate, rows, 4 * w);
+            let heads = timed(tally, BwdOp::HeadsWeight as usize, || {
+                (matmul_tn(gm, zm), column_sums(gate, rows, 4 * w))
+            });
+            let mut dz = timed(tally, BwdOp::HeadsInput as usize, || {
+                matmul_block_into(gm, &cw.heads, slots(&mut s.dz[..rows * units]))
+            });
+            let mut later = Vec::with_capacity(layers - 1);
+            for j in (1..layers).rev() {
+                let pre = &cc.pres[j];
+                let (a, b) = rm(units);
+                timed(tally, BwdOp::ActVjp as usize, || {
+                    self.act.backward_block(&pre[a..b], dz)
+                });
+                let xm = MatRef::row_major(&s.xs[j - 1][..rows * units], rows, units);
+                let gj = MatRef::row_major(&*dz, rows, units);
+                later.push(timed(tally, BwdOp::LaterWeight as usize, || {
+                    (matmul_tn(gj, xm), column_sums(dz, rows, units))
+                }));
+                timed(tally, BwdOp::LaterInput as usize, || {
+                    matmul_block_into(gj, &cw.later[j - 1], slots(&mut s.dz_next[..rows * units]));
+                });
+                std::mem::swap(&mut s.dz, &mut s.dz_next);
+                dz = &mut s.dz[..rows * units];
+            }
+            later.reverse();
+            let (a, b) = rm(units);
+            timed(tally, BwdOp::ActVjp as usize, || {
+                self.act.backward_block(&cc.pres[0][a..b], dz)
+            });
+            let g0 = MatRef::row_major(&*dz, rows, units);
+            // backbone.0's input is [γ(x) | t_feat | h]: its weight
+            // gradient over u and its bias gradient; γ(x) is stop-gradient,
+            // t_feat's gradient is collected, h's flows on.
+            let (u_part, bias0) = timed(tally, BwdOp::UWeight as usize, || {
+                (matmul_tn(g0, um), column_sums(dz, rows, units))
+            });
+            let h_part = if reads {
+                let (a, b) = rm(w);
+                timed(tally, BwdOp::HWeight as usize, || {
+                    matmul_tn(g0, MatRef::row_major(&cc.h_in[a..b], rows, w))
+                })
+            } else {
+                Vec::new()
+            };
+            timed(tally, BwdOp::TInput as usize, || {
+                let g_t = matmul_block_into(g0, &cw.t_part, slots(&mut s.tmp[..rows * td]));
+                for (acc, &v) in s.g_tfeat.iter_mut().zip(g_t.iter()) {
+                    *acc += v;
+                }
+            });
+            if reads {
+                timed(tally, BwdOp::HInput as usize, || {
+                    matmul_block_into(g0, &cw.h_part, slots(&mut s.h_next[..rows * w]));
+                });
+                std::mem::swap(&mut s.h, &mut s.h_next);
+            }
+            if l == self.skip_at {
+                // h_in = h_prev + skip(u): the same gradient flows to both.
+                timed(tally, BwdOp::Skip as usize, || {
+                    let dhm = MatRef::row_major(&s.h[..rows * w], rows, w);
+                    skip = (matmul_tn(dhm, um), column_sums(&s.h[..rows * w], rows, w));
+                    let g_t = matmul_block_into(dhm, &bw.skip_t, slots(&mut s.tmp[..rows * td]));
+                    for (acc, &v) in s.g_tfeat.iter_mut().zip(g_t.iter()) {
+                        *acc += v;
+                    }
+                });
+            }
+            cells.push(CellGradients {
+                heads,
+                later,
+                u_part,
+                bias0,
+                h_part,
+            });
+        }
+        cells.reverse();
+        write_all(g_tfeat, &s.g_tfeat[..rows * td]);
+        write_all(dt, &s.dt[..rows]);
+        ChunkGradients { cells, skip }
     }
 }
 
@@ -606,28 +1080,6 @@ fn concat_columns<T: Real>(a: &[T], da: usize, b: &[T], db: usize, n: usize) -> 
             }
         });
     out
-}
-
-/// Columns `c0..c0 + d` of the row-major `dst` (`ld` wide) set to `src`
-/// `[n, d]`.
-fn set_columns<T: Real>(dst: &mut [T], ld: usize, c0: usize, src: &[T], d: usize) {
-    if d == 0 || ld == 0 {
-        return;
-    }
-    dst.par_chunks_mut(ROWS_PER_TASK * ld)
-        .zip(src.par_chunks(ROWS_PER_TASK * d))
-        .for_each(|(o, s)| {
-            for (orow, srow) in o.chunks_exact_mut(ld).zip(s.chunks_exact(d)) {
-                orow[c0..c0 + d].copy_from_slice(srow);
-            }
-        });
-}
-
-/// `acc += v` element-wise.
-fn add_into<T: Real>(acc: &mut [T], v: &[T]) {
-    for (a, &b) in acc.iter_mut().zip(v) {
-        *a += b;
-    }
 }
 
 // The fused element-wise pass of a cell on a block of rows. `g` holds the

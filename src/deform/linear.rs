@@ -292,7 +292,7 @@ impl<'a, T: Real> Linear<'a, T> {
 }
 
 /// `y += b` on each row of a block `[rows, out]`.
-fn add_bias<T: Real>(blk: &mut [T], b: &[T], out_dim: usize) {
+pub(crate) fn add_bias<T: Real>(blk: &mut [T], b: &[T], out_dim: usize) {
     if out_dim > 0 {
         for row in blk.chunks_exact_mut(out_dim) {
             for (v, &bj) in row.iter_mut().zip(b) {

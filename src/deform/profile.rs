@@ -9,7 +9,7 @@
 //! rayon pool inside), so the layer names are a per-thread stack.
 
 use std::cell::RefCell;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
 
@@ -136,6 +136,108 @@ pub fn elementwise<R>(
         (rows * cols) as f64,
         f,
     )
+}
+
+/// One operation of a fused pass (see [`Tally`]): what it is, its shape,
+/// its work per call and how many calls a pass makes.
+pub struct TallyOp {
+    what: String,
+    kind: Kind,
+    shape: String,
+    work: f64,
+    calls: usize,
+}
+
+impl TallyOp {
+    /// A product `[m, k]·[k, n]` (each call's shape, over all the blocks
+    /// of rows it is split into) run `calls` times in a pass.
+    pub fn product(what: &str, m: usize, k: usize, n: usize, calls: usize) -> Self {
+        TallyOp {
+            what: what.to_string(),
+            kind: Kind::Product,
+            shape: format!("[{m},{k}]·[{k},{n}]"),
+            work: 2.0 * (m * k * n) as f64,
+            calls,
+        }
+    }
+
+    /// An element-wise pass over `rows × cols` (each call's) run `calls`
+    /// times in a pass.
+    pub fn elementwise(what: &str, rows: usize, cols: usize, calls: usize) -> Self {
+        TallyOp {
+            what: what.to_string(),
+            kind: Kind::Elementwise,
+            shape: format!("[{rows},{cols}]"),
+            work: (rows * cols) as f64,
+            calls,
+        }
+    }
+}
+
+/// The operations of a fused parallel pass (one that runs every operation
+/// on a block of rows after the other, on every thread): each operation's
+/// time is summed over the blocks and threads, and recorded as that CPU time
+/// divided by the thread count (the operation's share of the pass's wall
+/// time when the threads are busy), with the label marked `(fused)`.
+pub struct Tally {
+    prefix: String,
+    ops: Vec<TallyOp>,
+    nanos: Vec<AtomicU64>,
+}
+
+impl Tally {
+    /// A tally of `ops` (built only when recording is on; `None` when off).
+    pub fn new(ops: impl FnOnce() -> Vec<TallyOp>) -> Option<Self> {
+        if !enabled() {
+            return None;
+        }
+        let ops = ops();
+        let mut prefix = LAYERS.with(|l| l.borrow().join(" / "));
+        if !prefix.is_empty() {
+            prefix.push_str(" / ");
+        }
+        Some(Tally {
+            prefix,
+            nanos: ops.iter().map(|_| AtomicU64::new(0)).collect(),
+            ops,
+        })
+    }
+
+    /// Run `f`, adding its time to operation `op` of `tally` (just run it
+    /// when there is no tally).
+    #[inline]
+    pub fn time<R>(tally: Option<&Tally>, op: usize, f: impl FnOnce() -> R) -> R {
+        match tally {
+            None => f(),
+            Some(t) => {
+                let t0 = Instant::now();
+                let r = f();
+                let ns = t0.elapsed().as_nanos() as u64;
+                t.nanos[op].fetch_add(ns, Ordering::Relaxed);
+                r
+            }
+        }
+    }
+
+    /// Record every operation (its calls as separate records of equal
+    /// share, so that a table summing calls shows the count).
+    pub fn finish(self) {
+        let threads = rayon::current_num_threads().max(1) as f64;
+        let mut log = LOG.lock().unwrap_or_else(|e| e.into_inner());
+        for (op, ns) in self.ops.into_iter().zip(self.nanos) {
+            let calls = op.calls.max(1);
+            let seconds = ns.into_inner() as f64 * 1e-9 / threads / calls as f64;
+            for _ in 0..op.calls {
+                log.push(Record {
+                    label: format!("{}{} (fused)", self.prefix, op.what),
+                    kind: op.kind,
+                    shape: op.shape.clone(),
+                    work: op.work,
+                    seconds,
+                });
+            }
+        }
+    }
 }
 
 #[cfg(test)]

@@ -250,6 +250,24 @@ pub fn matmul_block_into<'c, T: Real>(
     block_product(ASource::View(a), &b.b, b.k, b.n, c, false)
 }
 
+/// `c += A · B` for a block of rows of `A` (`[rows, k]`, any strides) and a
+/// packed `B`, on the calling thread: each sum in `c` (`rows × n`) is
+/// continued term by term, the same bits as [`matmul_from_parts_then`] with
+/// `c` as its initial sums (a product over earlier columns of a wider `A`
+/// continued over these).
+pub fn matmul_block_resume<T: Real>(a: MatRef<'_, T>, b: &Packed<T>, c: &mut [T]) {
+    assert_eq!(a.cols, b.k, "matmul: inner dimensions differ");
+    assert_eq!(c.len(), a.rows * b.n, "matmul: output has the wrong size");
+    if c.is_empty() {
+        return;
+    }
+    // SAFETY: `MaybeUninit<T>` has the layout of `T`; block_product only
+    // reads `c`'s values (resumed sums) and writes initialised ones, so `c`
+    // stays initialised.
+    let cu = unsafe { &mut *(c as *mut [T] as *mut [MaybeUninit<T>]) };
+    block_product(ASource::View(a), &b.b, b.k, b.n, cu, true);
+}
+
 /// `C = Aᵀ · B` for `A` `[r, m]` and `B` `[r, n]`: a reduction over the `r`
 /// rows, done in fixed chunks of [`REDUCTION_CHUNK`] rows whose partials are
 /// added in chunk order. Returns `[m, n]` row-major.
