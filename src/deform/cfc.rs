@@ -72,7 +72,6 @@ enum FwdOp {
     Act,
     Heads,
     Gate,
-    SaveState,
     Head,
 }
 
@@ -306,6 +305,16 @@ fn slots<T>(s: &mut [T]) -> &mut [MaybeUninit<T>] {
     // slots are given (matrix products, element-wise passes) write only
     // initialised values, so the slice stays initialised.
     unsafe { &mut *(s as *mut [T] as *mut [MaybeUninit<T>]) }
+}
+
+/// Slots that have all been written, as values.
+///
+/// # Safety
+/// Every slot must have been written.
+unsafe fn assume_init<T>(s: &mut [MaybeUninit<T>]) -> &mut [T] {
+    // SAFETY: the caller guarantees every value is initialised, and
+    // `MaybeUninit<T>` has the layout of `T`.
+    unsafe { &mut *(s as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
 /// `dst = src`, writing every slot of `dst`.
@@ -585,7 +594,6 @@ impl CfcNet {
             ),
             profile::TallyOp::product("heads ff1|ff2|time_a|time_b: z·Wᵀ + b", n, units, 4 * w, d),
             profile::TallyOp::elementwise("gate and update (2 tanh, sigmoid)", n, w, d),
-            profile::TallyOp::elementwise("state saved (copy)", n, w, states),
             profile::TallyOp::product("head: h·Wᵀ + b", n, w, 10, 1),
         ]
     }
@@ -604,7 +612,7 @@ impl CfcNet {
             r0,
             rows,
             pres,
-            mut h_in,
+            h_in,
             gates,
             head_in,
             out,
@@ -612,34 +620,49 @@ impl CfcNet {
         let (w, ud, units) = (self.width, self.u_dim, self.units());
         let um = MatRef::row_major(&u[r0 * ud..(r0 + rows) * ud], rows, ud);
         let tb = &t[r0..r0 + rows];
-        // The state before the first cell is zero.
-        sized(&mut s.h, rows * w).fill(T::ZERO);
-        sized(&mut s.h_next, rows * w);
         sized(&mut s.tmp, rows * w);
         if s.xs.is_empty() {
             s.xs.push(Vec::new());
         }
         sized(&mut s.xs[0], rows * units);
+        // The state lives in the saved arrays: cell l reads its entering
+        // state from h_in[l] and writes the next one into h_in[l + 1] (the
+        // last cell into head_in). None: the zero state before the first
+        // cell.
+        let mut states = h_in.into_iter().chain(std::iter::once(head_in));
+        let mut first = states.next();
+        let mut h: Option<&mut [T]> = None;
         let mut pres = pres.into_iter();
         for ((l, cw), gate) in fw.cells.iter().enumerate().zip(gates) {
             if l == self.skip_at {
                 // h += skip(u): the skip's sums plus its bias (added after the
-                // sum, as in every linear layer), added to the state.
+                // sum, as in every linear layer), added to the state (+0 for
+                // the zero state).
                 timed(tally, FwdOp::Skip as usize, || {
                     let sk = matmul_block_into(um, &fw.skip, slots(&mut s.tmp[..rows * w]));
-                    for (hr, sr) in s.h.chunks_exact_mut(w).zip(sk.chunks_exact(w)) {
-                        for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(fw.skip_bias) {
-                            *hv += sv + b;
+                    match h.as_deref_mut() {
+                        Some(h) => {
+                            for (hr, sr) in h.chunks_exact_mut(w).zip(sk.chunks_exact(w)) {
+                                for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(fw.skip_bias) {
+                                    *hv += sv + b;
+                                }
+                            }
+                        }
+                        None => {
+                            let slot = first.take().expect("the first cell's state slot");
+                            for (hr, sr) in slot.chunks_exact_mut(w).zip(sk.chunks_exact(w)) {
+                                for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(fw.skip_bias) {
+                                    hv.write(T::ZERO + (sv + b));
+                                }
+                            }
+                            // SAFETY: every value of the slot was written.
+                            h = Some(unsafe { assume_init(slot) });
                         }
                     }
                 });
             }
             let reads = self.reads_state(l);
-            if reads {
-                timed(tally, FwdOp::SaveState as usize, || {
-                    write_all(h_in[l], &s.h[..rows * w])
-                });
-            }
+            debug_assert_eq!(reads, h.is_some());
             for j in 0..cw.biases.len() {
                 let slot = pres.next().expect("a saved block per layer");
                 // The layer's sums, written into its saved pre-activation.
@@ -650,13 +673,9 @@ impl CfcNet {
                     let pre = timed(tally, FwdOp::UPart as usize, || {
                         matmul_block_into(um, &cw.u_part, slot)
                     });
-                    if reads {
+                    if let Some(h) = h.as_deref() {
                         timed(tally, FwdOp::HPart as usize, || {
-                            matmul_block_resume(
-                                MatRef::row_major(&s.h[..rows * w], rows, w),
-                                &cw.h_part,
-                                pre,
-                            )
+                            matmul_block_resume(MatRef::row_major(h, rows, w), &cw.h_part, pre)
                         });
                     }
                     pre
@@ -686,14 +705,16 @@ impl CfcNet {
                 add_bias(g, &cw.heads_bias, 4 * w);
                 g
             });
+            let next = states.next().expect("a state slot per cell");
             timed(tally, FwdOp::Gate as usize, || {
-                cell_forward_rows(gate, slots(&mut s.h_next[..rows * w]), tb, w)
+                cell_forward_rows(gate, &mut *next, tb, w)
             });
-            std::mem::swap(&mut s.h, &mut s.h_next);
+            // SAFETY: cell_forward_rows wrote every value of its rows.
+            h = Some(unsafe { assume_init(next) });
         }
+        let h = h.expect("at least one cell");
         timed(tally, FwdOp::Head as usize, || {
-            write_all(head_in, &s.h[..rows * w]);
-            let o = matmul_block_into(MatRef::row_major(&s.h[..rows * w], rows, w), &fw.head, out);
+            let o = matmul_block_into(MatRef::row_major(h, rows, w), &fw.head, out);
             add_bias(o, fw.head_bias, 10);
         });
     }
