@@ -94,6 +94,42 @@ impl Activation {
         }
     }
 
+    /// `(f(x), f'(x))`, each with the bits of [`apply`](Self::apply) and
+    /// [`derivative`](Self::derivative), their common transcendental
+    /// function evaluated once.
+    #[inline(always)]
+    pub fn apply_and_derivative<T: Real>(self, x: T) -> (T, T) {
+        let half = T::from_f64(0.5);
+        match self {
+            Activation::Gelu => {
+                let e = fastmath::erf(x * T::from_f64(std::f64::consts::FRAC_1_SQRT_2));
+                let cdf = half * (T::ONE + e);
+                let pdf = fastmath::exp(-(half * x * x)) * T::from_f64(0.398_942_280_401_432_7);
+                (half * x * (T::ONE + e), cdf + x * pdf)
+            }
+            Activation::Silu => {
+                let s = fastmath::sigmoid(x);
+                (x * s, s * (T::ONE + x * (T::ONE - s)))
+            }
+            Activation::Tanh => {
+                let y = fastmath::tanh(x);
+                (y, T::ONE - y * y)
+            }
+            Activation::LecunTanh => {
+                let y = fastmath::tanh(T::from_f64(LECUN_B) * x);
+                (
+                    T::from_f64(LECUN_A) * y,
+                    T::from_f64(LECUN_A * LECUN_B) * (T::ONE - y * y),
+                )
+            }
+            Activation::Sigmoid => {
+                let s = fastmath::sigmoid(x);
+                (s, s * (T::ONE - s))
+            }
+            Activation::Relu => (self.apply(x), self.derivative(x)),
+        }
+    }
+
     /// f'(x). ReLU uses 0 at x = 0 (as PyTorch).
     #[inline(always)]
     pub fn derivative<T: Real>(self, x: T) -> T {
@@ -165,6 +201,30 @@ impl Activation {
     pub fn apply_block_uninit<T: Real>(self, pre: &[T], out: &mut [MaybeUninit<T>]) {
         assert_eq!(pre.len(), out.len(), "activation: sizes differ");
         apply_uninit(self, pre, out);
+    }
+
+    /// `out = f(pre)` and `deriv = f'(pre)` on a block of values, writing
+    /// every value of both (sequential): the bits of
+    /// [`apply_block_uninit`](Self::apply_block_uninit) and of the
+    /// derivative [`backward_block`](Self::backward_block) multiplies by, in
+    /// one pass.
+    pub fn apply_and_derivative_block<T: Real>(
+        self,
+        pre: &[T],
+        out: &mut [MaybeUninit<T>],
+        deriv: &mut [MaybeUninit<T>],
+    ) {
+        assert_eq!(pre.len(), out.len(), "activation: sizes differ");
+        assert_eq!(pre.len(), deriv.len(), "activation: sizes differ");
+        apply_and_derivative_uninit(self, pre, out, deriv);
+    }
+
+    /// `g ⊙ deriv` in place, with `deriv` from
+    /// [`apply_and_derivative_block`](Self::apply_and_derivative_block):
+    /// the bits of [`backward_block`](Self::backward_block).
+    pub fn backward_block_from_derivative<T: Real>(deriv: &[T], g: &mut [T]) {
+        assert_eq!(deriv.len(), g.len(), "activation backward: sizes differ");
+        scale_by(deriv, g);
     }
 
     /// [`backward_in_place`](Self::backward_in_place) on one block of
@@ -250,6 +310,32 @@ multiversion!(fn add_bias_apply<T: Real>(act: Activation, row: &mut [T], bias: &
 multiversion!(fn apply_uninit<T: Real>(act: Activation, pre: &[T], out: &mut [MaybeUninit<T>]) => apply_uninit_body);
 multiversion!(fn scale_by_derivative<T: Real>(act: Activation, pre: &[T], g: &mut [T]) => scale_by_derivative_body);
 
+multiversion!(fn apply_and_derivative_uninit<T: Real>(act: Activation, pre: &[T], out: &mut [MaybeUninit<T>], deriv: &mut [MaybeUninit<T>]) => apply_and_derivative_uninit_body);
+multiversion!(fn scale_by<T: Real>(d: &[T], g: &mut [T]) => scale_by_body);
+
+#[inline(always)]
+fn apply_and_derivative_uninit_body<T: Real>(
+    act: Activation,
+    pre: &[T],
+    out: &mut [MaybeUninit<T>],
+    deriv: &mut [MaybeUninit<T>],
+) {
+    per_activation!(act, |a| {
+        for ((o, d), &p) in out.iter_mut().zip(deriv.iter_mut()).zip(pre) {
+            let (f, df) = a.apply_and_derivative(p);
+            o.write(f);
+            d.write(df);
+        }
+    })
+}
+
+#[inline(always)]
+fn scale_by_body<T: Real>(d: &[T], g: &mut [T]) {
+    for (g, &d) in g.iter_mut().zip(d) {
+        *g *= d;
+    }
+}
+
 #[inline(always)]
 fn add_bias_apply_body<T: Real>(act: Activation, row: &mut [T], bias: &[T]) {
     per_activation!(act, |a| {
@@ -295,6 +381,52 @@ mod tests {
         Activation::LecunTanh,
         Activation::Sigmoid,
     ];
+
+    /// The fused value and derivative have the bits of the separate ones,
+    /// in f32 (the fast-math functions) and f64, across the functions'
+    /// ranges.
+    #[test]
+    fn fused_value_and_derivative_have_the_separate_bits() {
+        for act in ALL {
+            for i in 0..4001 {
+                let x = -20.0 + 0.01 * i as f64;
+                let (f, d) = act.apply_and_derivative(x);
+                assert_eq!(f.to_bits(), act.apply(x).to_bits(), "{act} f at {x}");
+                assert_eq!(d.to_bits(), act.derivative(x).to_bits(), "{act} f' at {x}");
+                let x = x as f32;
+                let (f, d) = act.apply_and_derivative(x);
+                assert_eq!(f.to_bits(), act.apply(x).to_bits(), "{act} f at {x}");
+                assert_eq!(d.to_bits(), act.derivative(x).to_bits(), "{act} f' at {x}");
+            }
+            // And the block passes.
+            let pre: Vec<f32> = (0..1000).map(|i| -8.0 + 0.016 * i as f32).collect();
+            let mut out = vec![MaybeUninit::uninit(); pre.len()];
+            let mut der = vec![MaybeUninit::uninit(); pre.len()];
+            act.apply_and_derivative_block(&pre, &mut out, &mut der);
+            // SAFETY: the block pass wrote every value of both.
+            let (out, der): (Vec<f32>, Vec<f32>) = unsafe {
+                (
+                    out.iter().map(|v| v.assume_init()).collect(),
+                    der.iter().map(|v| v.assume_init()).collect(),
+                )
+            };
+            let mut want = vec![MaybeUninit::uninit(); pre.len()];
+            act.apply_block_uninit(&pre, &mut want);
+            for (o, w) in out.iter().zip(&want) {
+                // SAFETY: apply_block_uninit wrote every value.
+                assert_eq!(o.to_bits(), unsafe { w.assume_init() }.to_bits(), "{act}");
+            }
+            let g: Vec<f32> = (0..1000).map(|i| 1.0 - 0.0021 * i as f32).collect();
+            let (mut a, mut b) = (g.clone(), g.clone());
+            act.backward_block(&pre, &mut a);
+            Activation::backward_block_from_derivative(&der, &mut b);
+            assert_eq!(
+                a.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                b.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "{act}"
+            );
+        }
+    }
 
     #[test]
     fn derivatives_match_central_differences() {

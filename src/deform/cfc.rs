@@ -284,6 +284,7 @@ struct Scratch<T> {
     h: Vec<T>,
     h_next: Vec<T>,
     xs: Vec<Vec<T>>,
+    ds: Vec<Vec<T>>,
     gate: Vec<T>,
     dz: Vec<T>,
     dz_next: Vec<T>,
@@ -883,7 +884,10 @@ impl CfcNet {
         let states = (0..d).filter(|&l| self.reads_state(l)).count();
         vec![
             profile::TallyOp::elementwise(
-                &format!("{} recomputed from the saved pre-activations", self.act),
+                &format!(
+                    "{} and f′ recomputed from the saved pre-activations",
+                    self.act
+                ),
                 n,
                 units,
                 d * layers,
@@ -892,7 +896,7 @@ impl CfcNet {
             profile::TallyOp::product("heads weight grad Gᵀ·z, bias grad", 4 * w, n, units, d),
             profile::TallyOp::product("heads input grad G·W", n, 4 * w, units, d),
             profile::TallyOp::elementwise(
-                &format!("{} vjp (every backbone layer)", self.act),
+                &format!("{} vjp: G·f′ (every backbone layer)", self.act),
                 n,
                 units,
                 d * layers,
@@ -975,18 +979,23 @@ impl CfcNet {
         sized(&mut s.dz, rows * units);
         sized(&mut s.dz_next, rows * units);
         s.xs.resize_with(layers, Vec::new);
+        s.ds.resize_with(layers, Vec::new);
         let mut cells: Vec<CellGradients<T>> = Vec::with_capacity(self.cells.len());
         let mut skip = (Vec::new(), Vec::new());
         for l in (0..self.cells.len()).rev() {
             let (cc, cw) = (&c.cells[l], &bw.cells[l]);
             let reads = self.reads_state(l);
-            // The backbone's outputs, recomputed from the saved
-            // pre-activations (the same function: the same bits).
+            // The backbone's outputs and the activation's derivatives,
+            // recomputed from the saved pre-activations (the same functions:
+            // the same bits).
             timed(tally, BwdOp::Act as usize, || {
-                for (x, pre) in s.xs.iter_mut().zip(&cc.pres) {
+                for ((x, dx), pre) in s.xs.iter_mut().zip(s.ds.iter_mut()).zip(&cc.pres) {
                     let (a, b) = rm(units);
-                    self.act
-                        .apply_block_uninit(&pre[a..b], slots(sized(x, rows * units)));
+                    self.act.apply_and_derivative_block(
+                        &pre[a..b],
+                        slots(sized(x, rows * units)),
+                        slots(sized(dx, rows * units)),
+                    );
                 }
             });
             let zm = MatRef::row_major(&s.xs[layers - 1][..rows * units], rows, units);
@@ -1012,10 +1021,9 @@ impl CfcNet {
             });
             let mut later = Vec::with_capacity(layers - 1);
             for j in (1..layers).rev() {
-                let pre = &cc.pres[j];
-                let (a, b) = rm(units);
+                let ds = &s.ds[j][..rows * units];
                 timed(tally, BwdOp::ActVjp as usize, || {
-                    self.act.backward_block(&pre[a..b], dz)
+                    Activation::backward_block_from_derivative(ds, dz)
                 });
                 let xm = MatRef::row_major(&s.xs[j - 1][..rows * units], rows, units);
                 let gj = MatRef::row_major(&*dz, rows, units);
@@ -1029,9 +1037,8 @@ impl CfcNet {
                 dz = &mut s.dz[..rows * units];
             }
             later.reverse();
-            let (a, b) = rm(units);
             timed(tally, BwdOp::ActVjp as usize, || {
-                self.act.backward_block(&cc.pres[0][a..b], dz)
+                Activation::backward_block_from_derivative(&s.ds[0][..rows * units], dz)
             });
             let g0 = MatRef::row_major(&*dz, rows, units);
             // backbone.0's input is [γ(x) | t_feat | h]: its weight
