@@ -91,6 +91,7 @@ enum BwdOp {
     TInput,
     HInput,
     Skip,
+    Wide,
 }
 
 /// `f()`, its time added to operation `op` of the profile's tally (if on).
@@ -221,18 +222,19 @@ struct BackwardTask<'o, T> {
 
 /// A chunk's partial weight and bias gradients: per cell the stacked heads
 /// (weight, bias), each backbone layer after the first (weight, bias),
-/// backbone.0's `u` columns, bias and (where it reads the state) state
-/// columns; then the skip's weight and bias.
+/// backbone.0's state columns (where it reads the state); then the weight
+/// and bias gradients over `u` of every backbone.0 and of the skip.
 struct ChunkGradients<T> {
     cells: Vec<CellGradients<T>>,
-    skip: (Vec<T>, Vec<T>),
+    /// The weight gradients over `u` of every cell's backbone.0 and of the
+    /// skip (as rows: cell by cell, then the skip, `[D·U + W, |u|]`), and
+    /// their bias gradients.
+    wide: (Vec<T>, Vec<T>),
 }
 
 struct CellGradients<T> {
     heads: (Vec<T>, Vec<T>),
     later: Vec<(Vec<T>, Vec<T>)>,
-    u_part: Vec<T>,
-    bias0: Vec<T>,
     h_part: Vec<T>,
 }
 
@@ -249,12 +251,10 @@ impl<T: Real> ChunkGradients<T> {
                         .iter()
                         .map(|(w, b)| w.len() + b.len())
                         .sum::<usize>()
-                    + c.u_part.len()
-                    + c.bias0.len()
                     + c.h_part.len()
             })
             .sum();
-        cells + self.skip.0.len() + self.skip.1.len()
+        cells + self.wide.0.len() + self.wide.1.len()
     }
 
     /// Every partial, in a fixed order (for the sum over chunks).
@@ -267,12 +267,10 @@ impl<T: Real> ChunkGradients<T> {
                 v.push(w);
                 v.push(b);
             }
-            v.push(&mut c.u_part);
-            v.push(&mut c.bias0);
             v.push(&mut c.h_part);
         }
-        v.push(&mut self.skip.0);
-        v.push(&mut self.skip.1);
+        v.push(&mut self.wide.0);
+        v.push(&mut self.wide.1);
         v
     }
 }
@@ -285,6 +283,7 @@ struct Scratch<T> {
     h_next: Vec<T>,
     xs: Vec<Vec<T>>,
     ds: Vec<Vec<T>>,
+    gu: Vec<T>,
     gate: Vec<T>,
     dz: Vec<T>,
     dz_next: Vec<T>,
@@ -863,15 +862,19 @@ impl CfcNet {
             let lin = &cell.backbone[0];
             let in_dim = lin.shape.in_dim;
             for r in 0..units {
+                let (wide_w, wide_b) = (&total.wide.0, &total.wide.1);
+                let i = l * units + r;
                 let row = &mut gp[lin.w + r * in_dim..lin.w + (r + 1) * in_dim];
-                row[..ud].copy_from_slice(&cg.u_part[r * ud..(r + 1) * ud]);
+                row[..ud].copy_from_slice(&wide_w[i * ud..(i + 1) * ud]);
                 if self.reads_state(l) {
                     row[ud..].copy_from_slice(&cg.h_part[r * w..(r + 1) * w]);
                 }
-                gp[lin.b + r] = cg.bias0[r];
+                gp[lin.b + r] = wide_b[i];
             }
         }
-        self.skip.store_grads(gp, &total.skip.0, &total.skip.1);
+        let s0 = self.cells.len() * units;
+        self.skip
+            .store_grads(gp, &total.wide.0[s0 * ud..], &total.wide.1[s0..]);
     }
 
     /// The operations of the fused backward, in [`BwdOp`] order, for the
@@ -909,11 +912,10 @@ impl CfcNet {
                 later,
             ),
             profile::TallyOp::product("backbone.j > 0 input grad G·W", n, units, units, later),
-            profile::TallyOp::product(
-                "backbone.0 weight grad over u: Gᵀ·u, bias grad",
-                units,
+            profile::TallyOp::elementwise(
+                "backbone.0 output gradient into the wide gradient (copy)",
                 n,
-                ud,
+                units,
                 d,
             ),
             profile::TallyOp::product(
@@ -932,10 +934,17 @@ impl CfcNet {
                 states,
             ),
             profile::TallyOp::product(
-                "skip: weight grad Gᵀ·u, bias grad, input grad G·Wₜ",
+                "skip: input grad G·Wₜ, its gradient into the wide gradient",
                 n,
                 w,
-                ud + td,
+                td,
+                1,
+            ),
+            profile::TallyOp::product(
+                "weight grad over u of every backbone.0 and the skip: Gᵀ·u, bias grad",
+                d * units + w,
+                n,
+                ud,
                 1,
             ),
         ]
@@ -981,7 +990,8 @@ impl CfcNet {
         s.xs.resize_with(layers, Vec::new);
         s.ds.resize_with(layers, Vec::new);
         let mut cells: Vec<CellGradients<T>> = Vec::with_capacity(self.cells.len());
-        let mut skip = (Vec::new(), Vec::new());
+        let wide_n = self.cells.len() * units + w;
+        sized(&mut s.gu, rows * wide_n);
         for l in (0..self.cells.len()).rev() {
             let (cc, cw) = (&c.cells[l], &bw.cells[l]);
             let reads = self.reads_state(l);
@@ -1044,8 +1054,8 @@ impl CfcNet {
             // backbone.0's input is [γ(x) | t_feat | h]: its weight
             // gradient over u and its bias gradient; γ(x) is stop-gradient,
             // t_feat's gradient is collected, h's flows on.
-            let (u_part, bias0) = timed(tally, BwdOp::UWeight as usize, || {
-                (matmul_tn(g0, um), column_sums(dz, rows, units))
+            timed(tally, BwdOp::UWeight as usize, || {
+                set_columns(&mut s.gu[..rows * wide_n], wide_n, l * units, dz, units)
             });
             let h_part = if reads {
                 let (a, b) = rm(w);
@@ -1071,7 +1081,8 @@ impl CfcNet {
                 // h_in = h_prev + skip(u): the same gradient flows to both.
                 timed(tally, BwdOp::Skip as usize, || {
                     let dhm = MatRef::row_major(&s.h[..rows * w], rows, w);
-                    skip = (matmul_tn(dhm, um), column_sums(&s.h[..rows * w], rows, w));
+                    let c0 = self.cells.len() * units;
+                    set_columns(&mut s.gu[..rows * wide_n], wide_n, c0, &s.h[..rows * w], w);
                     let g_t = matmul_block_into(dhm, &bw.skip_t, slots(&mut s.tmp[..rows * td]));
                     for (acc, &v) in s.g_tfeat.iter_mut().zip(g_t.iter()) {
                         *acc += v;
@@ -1081,15 +1092,35 @@ impl CfcNet {
             cells.push(CellGradients {
                 heads,
                 later,
-                u_part,
-                bias0,
                 h_part,
             });
         }
         cells.reverse();
+        // The weight and bias gradients over u of every cell's backbone.0
+        // and of the skip: one product [D·U + W, rows]·[rows, |u|] and one
+        // column sum (each element its own sum over the chunk's rows, as
+        // layer by layer).
+        let wide = timed(tally, BwdOp::Wide as usize, || {
+            let gu = &s.gu[..rows * wide_n];
+            (
+                matmul_tn(MatRef::row_major(gu, rows, wide_n), um),
+                column_sums(gu, rows, wide_n),
+            )
+        });
         write_all(g_tfeat, &s.g_tfeat[..rows * td]);
         write_all(dt, &s.dt[..rows]);
-        ChunkGradients { cells, skip }
+        ChunkGradients { cells, wide }
+    }
+}
+
+/// Columns `c0..c0 + d` of the row-major `dst` (`ld` wide) set to `src`
+/// `[rows, d]`.
+fn set_columns<T: Copy>(dst: &mut [T], ld: usize, c0: usize, src: &[T], d: usize) {
+    if d == 0 || ld == 0 {
+        return;
+    }
+    for (orow, srow) in dst.chunks_exact_mut(ld).zip(src.chunks_exact(d)) {
+        orow[c0..c0 + d].copy_from_slice(srow);
     }
 }
 
