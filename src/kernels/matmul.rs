@@ -203,7 +203,14 @@ where
                     // The first part writes the block (unless it starts from
                     // `init`); the others continue its sums.
                     let resume = i > 0 || init.is_some();
-                    block_product(ASource::View(a.rows(r0, rows)), pb, a.cols, n, cb, resume);
+                    block_product(
+                        ASource::View(a.rows(r0, rows)),
+                        pb.panels(),
+                        a.cols,
+                        n,
+                        cb,
+                        resume,
+                    );
                 }
                 // SAFETY: `init` or the first block_product call wrote every element
                 // of cb.
@@ -247,66 +254,190 @@ pub fn matmul_block_into<'c, T: Real>(
         // SAFETY: an empty slice has nothing to initialise.
         return unsafe { &mut *(c as *mut [MaybeUninit<T>] as *mut [T]) };
     }
-    block_product(ASource::View(a), &b.b, b.k, b.n, c, false)
+    block_product(ASource::View(a), b.b.panels(), b.k, b.n, c, false)
 }
 
 /// `C = Aᵀ · B` for `A` `[r, m]` and `B` `[r, n]`: a reduction over the `r`
 /// rows, done in fixed chunks of [`REDUCTION_CHUNK`] rows whose partials are
 /// added in chunk order. Returns `[m, n]` row-major.
+///
+/// Element `(i, j)` is the same chain of fused multiply-adds
+/// `s = A[p][i]·B[p][j] + s` whichever operand the kernel treats as the left
+/// one (a fused multiply-add is exact before its single rounding, so the
+/// order of its two factors changes no bit). The product is therefore run as
+/// `(Bᵀ·A)ᵀ` when that wastes less of the register tile on padding (for
+/// example `m` = 64 against the tile's 12 rows), and the small result
+/// transposed.
 pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
     assert_eq!(a.rows, b.rows, "matmul_tn: row counts differ");
     let (r, m, n) = (a.rows, a.cols, b.cols);
     if r == 0 || m == 0 || n == 0 {
         return vec![T::ZERO; m * n];
     }
+    let (mr, nr) = tile_shape::<T>(kernel_path());
+    // Multiply-adds the tiles do, padding included.
+    let padded = |rows: usize, cols: usize| rows.div_ceil(mr) * mr * cols.div_ceil(nr) * nr;
+    if padded(n, m) < padded(m, n) {
+        let ct = tn_chunked(b, a);
+        transposed(&ct, n, m)
+    } else {
+        tn_chunked(a, b)
+    }
+}
+
+/// `c` (`[rows, cols]` row-major) transposed, in tiles that stay in cache.
+fn transposed<T: Real>(c: &[T], rows: usize, cols: usize) -> Vec<T> {
+    const B: usize = 32;
+    let mut out = Vec::with_capacity(rows * cols);
+    let dst = &mut out.spare_capacity_mut()[..rows * cols];
+    for i0 in (0..rows).step_by(B) {
+        for j0 in (0..cols).step_by(B) {
+            for i in i0..(i0 + B).min(rows) {
+                for j in j0..(j0 + B).min(cols) {
+                    dst[j * rows + i].write(c[i * cols + j]);
+                }
+            }
+        }
+    }
+    // SAFETY: the tiles cover every (i, j) of the `rows × cols` result once,
+    // so all `rows·cols` values were written.
+    unsafe { out.set_len(rows * cols) };
+    out
+}
+
+/// [`matmul_tn`] with `A` as the kernel's left operand.
+fn tn_chunked<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+    let (r, m, n) = (a.rows, a.cols, b.cols);
     let chunks = r.div_ceil(REDUCTION_CHUNK);
-    let partials: Vec<Vec<T>> = (0..chunks)
-        .into_par_iter()
-        .map(|c| {
+    // With fewer chunks than tasks to keep the threads busy, each chunk's
+    // output rows are split over the threads too (no effect on results).
+    let split = chunks < 2 * rayon::current_num_threads();
+    // Every chunk's partial, written in place, never zeroed.
+    let mut partials = vec_written_by(chunks * m * n, |buf| {
+        par_blocks_written(buf, m * n, &mut [(); 0], 0, |c, dst, _| {
             let r0 = c * REDUCTION_CHUNK;
             let rows = REDUCTION_CHUNK.min(r - r0);
-            // The chunk's rows in blocks of KC, each block's sums resumed
-            // from the previous one's (exact), so that both packed operands
-            // of a block stay in cache.
-            let passes: Vec<(PackedB<T>, Vec<T>, usize, usize)> = (0..rows)
-                .step_by(KC)
-                .map(|s0| {
-                    let kc = KC.min(rows - s0);
-                    let packed = pack_b(b.rows(r0 + s0, kc));
-                    let mr = tile_shape::<T>(packed.path).0;
-                    // Rows of Aᵀ are columns of A, far apart in memory: pack
-                    // them into the kernel's strips, reading A row by row.
-                    let strips = pack_a_transposed(a.rows(r0 + s0, kc), mr);
-                    (packed, strips, kc, mr)
-                })
-                .collect();
-            let (last, earlier) = passes.split_last().expect("a chunk has rows");
-            // Parallel over output rows inside a chunk too (helps when there
-            // are fewer chunks than threads); results do not depend on it.
-            vec_written_by(m * n, |o| {
-                par_blocks_written(o, ROW_BLOCK * n, &mut [(); 0], 0, |blk, cb, _| {
-                    let o0 = blk * ROW_BLOCK;
-                    let rows = cb.len() / n;
-                    // The first pass writes the block, the others resume it.
-                    for (i, (packed, data, kc, mr)) in earlier.iter().enumerate() {
-                        let a = ASource::Strips {
-                            data: &data[o0 / mr * kc * mr..],
-                            rows,
-                        };
-                        block_product(a, packed, *kc, n, cb, i > 0);
-                    }
-                    let (packed, data, kc, mr) = last;
-                    let resume = !earlier.is_empty();
-                    let a = ASource::Strips {
-                        data: &data[o0 / mr * kc * mr..],
-                        rows,
-                    };
-                    block_product(a, packed, *kc, n, cb, resume)
-                })
-            })
+            tn_chunk(a.rows(r0, rows), b.rows(r0, rows), dst, split)
         })
-        .collect();
-    sum_in_order(partials)
+    });
+    // The partials added in chunk order, the first taken as is.
+    let (total, rest) = partials.split_at_mut(m * n);
+    if !rest.is_empty() {
+        total.par_chunks_mut(4096).enumerate().for_each(|(i, out)| {
+            let o = i * 4096;
+            let len = out.len();
+            for p in rest.chunks_exact(m * n) {
+                for (acc, &v) in out.iter_mut().zip(&p[o..o + len]) {
+                    *acc += v;
+                }
+            }
+        });
+    }
+    partials.truncate(m * n);
+    partials
+}
+
+/// One chunk of [`tn_chunked`]: `out = Aᵀ · B` (`[m, n]`) for the chunk's
+/// rows of `A` `[rows, m]` and `B` `[rows, n]`, in passes of [`KC`] rows,
+/// each pass's sums resumed from the previous one's (exact). Both operands
+/// are read row by row (in memory order) into the kernel's layouts in this
+/// thread's scratch (A's columns in strips of `MR`, B's in panels of `NR`:
+/// for `Aᵀ·B` both are copies of row segments), used while they are in
+/// cache. Writes every value of `out` and returns it.
+fn tn_chunk<'o, T: Real>(
+    a: MatRef<'_, T>,
+    b: MatRef<'_, T>,
+    out: &'o mut [MaybeUninit<T>],
+    split: bool,
+) -> &'o mut [T] {
+    let (rows, m, n) = (a.rows, a.cols, b.cols);
+    debug_assert!(rows > 0 && out.len() == m * n);
+    let path = kernel_path();
+    let (mr, nr) = tile_shape::<T>(path);
+    let mut scratch = take_scratch::<T>();
+    for (pass, s0) in (0..rows).step_by(KC).enumerate() {
+        let kc = KC.min(rows - s0);
+        let (a_len, b_len) = (m.div_ceil(mr) * kc * mr, n.div_ceil(nr) * kc * nr);
+        if scratch.len() < a_len + b_len {
+            scratch.resize(a_len + b_len, T::ZERO);
+        }
+        let (strips, rest) = scratch.split_at_mut(a_len);
+        pack_panels(a.rows(s0, kc), mr, as_slots(strips));
+        pack_panels(b.rows(s0, kc), nr, as_slots(&mut rest[..b_len]));
+        let (strips, panels) = (
+            &*strips,
+            Panels {
+                data: &rest[..b_len],
+                width: nr,
+                path,
+            },
+        );
+        // The first pass writes the output, the others resume its sums.
+        let resume = pass > 0;
+        if split {
+            par_blocks_written(out, ROW_BLOCK * n, &mut [(); 0], 0, |blk, cb, _| {
+                let o0 = blk * ROW_BLOCK;
+                let a = ASource::Strips {
+                    data: &strips[o0 / mr * kc * mr..],
+                    rows: cb.len() / n,
+                };
+                block_product(a, panels, kc, n, cb, resume)
+            });
+        } else {
+            let a = ASource::Strips {
+                data: strips,
+                rows: m,
+            };
+            block_product(a, panels, kc, n, out, resume);
+        }
+    }
+    put_scratch(scratch);
+    // SAFETY: the first pass wrote every value of `out` (block_product and
+    // par_blocks_written write their whole output).
+    unsafe { &mut *(out as *mut [MaybeUninit<T>] as *mut [T]) }
+}
+
+thread_local! {
+    /// Per-thread scratch for packed operands, kept between calls so that
+    /// packing does not allocate, fault in and zero fresh pages every time.
+    static SCRATCH_F32: std::cell::Cell<Vec<f32>> = const { std::cell::Cell::new(Vec::new()) };
+    /// The f64 counterpart of `SCRATCH_F32`.
+    static SCRATCH_F64: std::cell::Cell<Vec<f64>> = const { std::cell::Cell::new(Vec::new()) };
+}
+
+/// This thread's scratch vector for `T` (stale contents), taken out of its
+/// slot until [`put_scratch`]: a nested use on the same thread (a parallel
+/// task run here while this one waits) gets an empty vector instead.
+fn take_scratch<T: Real>() -> Vec<T> {
+    use std::any::Any;
+    let mut v: Vec<T> = Vec::new();
+    let any = &mut v as &mut dyn Any;
+    if let Some(s) = any.downcast_mut::<Vec<f32>>() {
+        *s = SCRATCH_F32.take();
+    } else if let Some(s) = any.downcast_mut::<Vec<f64>>() {
+        *s = SCRATCH_F64.take();
+    }
+    v
+}
+
+/// Give a scratch vector back to this thread's slot (keeping the larger
+/// one when a nested use left one there).
+fn put_scratch<T: Real>(mut v: Vec<T>) {
+    use std::any::Any;
+    fn keep<U>(slot: &'static std::thread::LocalKey<std::cell::Cell<Vec<U>>>, v: Vec<U>) {
+        let old = slot.take();
+        slot.set(if old.capacity() > v.capacity() {
+            old
+        } else {
+            v
+        });
+    }
+    let any = &mut v as &mut dyn Any;
+    if let Some(s) = any.downcast_mut::<Vec<f32>>() {
+        keep(&SCRATCH_F32, std::mem::take(s));
+    } else if let Some(s) = any.downcast_mut::<Vec<f64>>() {
+        keep(&SCRATCH_F64, std::mem::take(s));
+    }
 }
 
 /// Column sums of a row-major `[r, n]` matrix, reduced over fixed chunks of
@@ -354,12 +485,31 @@ fn sum_in_order<T: Real>(mut partials: Vec<Vec<T>>) -> Vec<T> {
 }
 
 /// `B` `[k, n]` copied into column panels of `width` columns, the tile
-/// width of the kernel that reads them: panel `j` holds rows `0..k` of
-/// columns `j*width..`, each row `width` wide, so a tile streams one
-/// contiguous block (the last panel is zero-padded; padded columns are never
-/// stored).
+/// width of the kernel that reads them (see [`pack_panels`]).
 struct PackedB<T> {
     data: Vec<T>,
+    width: usize,
+    /// The kernel the panels are laid out for.
+    path: KernelPath,
+}
+
+impl<T> PackedB<T> {
+    /// The panels, borrowed.
+    fn panels(&self) -> Panels<'_, T> {
+        Panels {
+            data: &self.data,
+            width: self.width,
+            path: self.path,
+        }
+    }
+}
+
+/// Packed column panels of `B` as the micro-kernel driver reads them.
+#[derive(Clone, Copy)]
+struct Panels<'a, T> {
+    /// Panel `j` holds rows `0..k` of columns `j·width..`, `width` a row.
+    data: &'a [T],
+    /// The panel width: the tile width `NR` of the kernel below.
     width: usize,
     /// The kernel the panels are laid out for.
     path: KernelPath,
@@ -369,78 +519,128 @@ struct PackedB<T> {
 fn pack_b<T: Real>(b: MatRef<'_, T>) -> PackedB<T> {
     let path = kernel_path();
     let width = tile_shape::<T>(path).1;
+    let len = b.cols.div_ceil(width) * b.rows * width;
+    let data = vec_written_by(len, |buf| {
+        pack_panels(b, width, buf);
+        // SAFETY: pack_panels wrote every value of `buf`.
+        unsafe { &mut *(buf as *mut [MaybeUninit<T>] as *mut [T]) }
+    });
+    PackedB { data, width, path }
+}
+
+/// `M` `[k, c]` copied into `dst` as column panels `width` wide: panel `j`
+/// holds rows `0..k` of columns `j·width..`, each row `width` wide, at
+/// `j·k·width + p·width + q`, so a tile streams one contiguous block. Every
+/// value of `dst` (`c.div_ceil(width)·k·width` long) is written, the last
+/// panel's columns past `c` with zeros (read by the tile, never stored).
+///
+/// Used for `B` (panels `NR` wide) and, in `Aᵀ·B`, for `A` (strips `MR`
+/// wide: row `i` of `Aᵀ` is column `i` of `A`). Reads `M` in its own memory
+/// order: rows of a row-major `M` (each row split over the panels), columns
+/// of a transposed view.
+fn pack_panels<T: Real>(b: MatRef<'_, T>, width: usize, dst: &mut [MaybeUninit<T>]) {
     let (k, n) = (b.rows, b.cols);
-    let panels = n.div_ceil(width);
-    let mut data = vec![T::ZERO; panels * k * width];
-    // Sequential (the large packs run inside the weight gradient's parallel
-    // chunks), reading B in its own memory order: rows of a row-major B
-    // (each row split over the panels), columns of a transposed view.
+    assert_eq!(dst.len(), n.div_ceil(width) * k * width, "pack: wrong size");
+    if k == 0 || n == 0 {
+        return;
+    }
     if b.col_stride == 1 {
-        for kk in 0..k {
-            let row = &b.data[kk * b.row_stride..kk * b.row_stride + n];
-            for (p, panel) in data.chunks_exact_mut(k * width).enumerate() {
-                let j0 = p * width;
-                let w = width.min(n - j0);
-                copy_short(&mut panel[kk * width..kk * width + w], &row[j0..j0 + w]);
-            }
+        // The kernels' widths as fixed-size moves.
+        match width {
+            4 => pack_rows::<T, 4>(b, dst),
+            6 => pack_rows::<T, 6>(b, dst),
+            8 => pack_rows::<T, 8>(b, dst),
+            12 => pack_rows::<T, 12>(b, dst),
+            16 => pack_rows::<T, 16>(b, dst),
+            32 => pack_rows::<T, 32>(b, dst),
+            _ => unreachable!("no kernel has panels {width} wide"),
         }
     } else {
-        for j in 0..n {
-            let (p, q) = (j / width, j % width);
-            let panel = &mut data[p * k * width..(p + 1) * k * width];
-            for (kk, dst) in panel.chunks_exact_mut(width).enumerate() {
-                dst[q] = b.at(kk, j);
+        // Column by column (contiguous in a transposed view), each written
+        // down its panel (which stays in cache).
+        for (p, panel) in dst.chunks_exact_mut(k * width).enumerate() {
+            let j0 = p * width;
+            let w = width.min(n - j0);
+            for q in 0..w {
+                let c0 = (j0 + q) * b.col_stride;
+                for (kk, d) in panel.chunks_exact_mut(width).enumerate() {
+                    d[q].write(b.data[kk * b.row_stride + c0]);
+                }
+            }
+            if w < width {
+                for d in panel.chunks_exact_mut(width) {
+                    d[w..].iter_mut().for_each(|z| {
+                        z.write(T::ZERO);
+                    });
+                }
             }
         }
     }
-    PackedB { data, width, path }
+}
+
+/// [`pack_panels`] of a matrix with contiguous rows into panels `W` wide:
+/// each row split over the panels, full panels as fixed-size moves.
+#[inline(always)]
+fn pack_rows<T: Real, const W: usize>(b: MatRef<'_, T>, dst: &mut [MaybeUninit<T>]) {
+    let (k, n) = (b.rows, b.cols);
+    let full = n / W;
+    let tail = n - full * W;
+    for kk in 0..k {
+        let row = &b.data[kk * b.row_stride..kk * b.row_stride + n];
+        for p in 0..full {
+            copy_fixed::<T, W>(&mut dst[(p * k + kk) * W..], &row[p * W..]);
+        }
+        if tail > 0 {
+            let d = &mut dst[(full * k + kk) * W..(full * k + kk + 1) * W];
+            for (z, &v) in d.iter_mut().zip(&row[full * W..]) {
+                z.write(v);
+            }
+            d[tail..].iter_mut().for_each(|z| {
+                z.write(T::ZERO);
+            });
+        }
+    }
 }
 
 /// `dst.copy_from_slice(src)` for the short rows of packing, with the
 /// common lengths as fixed-size moves (a `memmove` call per row of 6 or 16
 /// values cost a third of a weight-gradient product).
 #[inline(always)]
-fn copy_short<T: Copy>(dst: &mut [T], src: &[T]) {
-    #[inline(always)]
-    fn fixed<T: Copy, const N: usize>(dst: &mut [T], src: &[T]) {
-        let d: &mut [T; N] = dst.try_into().expect("length checked");
-        *d = *<&[T; N]>::try_from(src).expect("same length");
-    }
+fn copy_short<T: Copy>(dst: &mut [MaybeUninit<T>], src: &[T]) {
+    assert_eq!(dst.len(), src.len(), "copy: lengths differ");
     match dst.len() {
-        4 => fixed::<T, 4>(dst, src),
-        6 => fixed::<T, 6>(dst, src),
-        8 => fixed::<T, 8>(dst, src),
-        12 => fixed::<T, 12>(dst, src),
-        16 => fixed::<T, 16>(dst, src),
-        32 => fixed::<T, 32>(dst, src),
-        _ => dst.copy_from_slice(src),
+        4 => copy_fixed::<T, 4>(dst, src),
+        6 => copy_fixed::<T, 6>(dst, src),
+        8 => copy_fixed::<T, 8>(dst, src),
+        12 => copy_fixed::<T, 12>(dst, src),
+        16 => copy_fixed::<T, 16>(dst, src),
+        32 => copy_fixed::<T, 32>(dst, src),
+        _ => {
+            for (d, &v) in dst.iter_mut().zip(src) {
+                d.write(v);
+            }
+        }
     }
 }
 
-/// `Aᵀ` for `A` `[k, m]` (row-major rows of any stride, columns contiguous)
-/// packed in strips of `mr` rows of `Aᵀ`: strip `t` holds `Aᵀ[t·mr + r][p]`
-/// at `t·k·mr + p·mr + r`, zero-padded past row `m`.
-fn pack_a_transposed<T: Real>(a: MatRef<'_, T>, mr: usize) -> Vec<T> {
-    let (k, m) = (a.rows, a.cols);
-    let tiles = m.div_ceil(mr);
-    let mut out = vec![T::ZERO; tiles * k * mr];
-    if a.col_stride == 1 {
-        for p in 0..k {
-            let row = &a.data[p * a.row_stride..p * a.row_stride + m];
-            for (t, strip) in out.chunks_exact_mut(k * mr).enumerate() {
-                let r0 = t * mr;
-                let w = mr.min(m - r0);
-                copy_short(&mut strip[p * mr..p * mr + w], &row[r0..r0 + w]);
-            }
-        }
-    } else {
-        for p in 0..k {
-            for i in 0..m {
-                out[(i / mr) * k * mr + p * mr + i % mr] = a.at(p, i);
-            }
-        }
-    }
-    out
+/// The first `N` values of `src` into the first `N` slots of `dst`, as one
+/// fixed-size move (a few vector loads and stores).
+#[inline(always)]
+fn copy_fixed<T: Copy, const N: usize>(dst: &mut [MaybeUninit<T>], src: &[T]) {
+    let (d, s) = (&mut dst[..N], &src[..N]);
+    // SAFETY: both slices are N values long (the slicing above checks it),
+    // and they do not overlap (`dst` is borrowed mutably, `src` shared);
+    // `MaybeUninit<T>` has the layout of `T`.
+    unsafe { std::ptr::copy_nonoverlapping(s.as_ptr(), d.as_mut_ptr().cast::<T>(), N) }
+}
+
+/// An initialised slice as slots to overwrite (only ever with initialised
+/// values, so it stays initialised).
+fn as_slots<T>(v: &mut [T]) -> &mut [MaybeUninit<T>] {
+    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the slots are only
+    // written through with initialised values (every writer in this module
+    // writes `T`s), so `v` holds valid values again when the borrow ends.
+    unsafe { &mut *(v as *mut [T] as *mut [MaybeUninit<T>]) }
 }
 
 /// Where a block's rows of `A` come from.
@@ -449,7 +649,7 @@ enum ASource<'a, T> {
     /// A view: full tiles of rows read in place by the vector kernels,
     /// other tiles gathered into a strip.
     View(MatRef<'a, T>),
-    /// Strips from [`pack_a_transposed`] (with the kernel's MR), starting at
+    /// Strips from [`pack_panels`] (`MR` wide), starting at
     /// the block's first tile.
     Strips { data: &'a [T], rows: usize },
 }
@@ -504,7 +704,7 @@ type TileFn = unsafe fn(*const u8, usize, usize, *const u8, usize, *mut u8, usiz
 /// term. Writes every element of `c` and returns it, initialised.
 fn block_product<'c, T: Real>(
     a: ASource<'_, T>,
-    b: &PackedB<T>,
+    b: Panels<'_, T>,
     k: usize,
     n: usize,
     c: &'c mut [MaybeUninit<T>],
@@ -549,7 +749,7 @@ const KC: usize = 256;
 #[inline(always)]
 fn block_body<T: Real, const MR: usize, const NR: usize>(
     a: ASource<'_, T>,
-    b: &PackedB<T>,
+    b: Panels<'_, T>,
     k: usize,
     n: usize,
     c: &mut [MaybeUninit<T>],
@@ -567,7 +767,8 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
     // strip[p*MR + r] = A[i+r, k0+p], missing rows zero. Same products, same
     // order: the same bits either way.
     let kc_max = KC.min(k).max(1);
-    let mut strip = vec![T::ZERO; kc_max * MR];
+    // Allocated when a tile first needs a gather (most products never do).
+    let mut strip: Vec<T> = Vec::new();
     let mut k0 = 0;
     loop {
         let kc = kc_max.min(k - k0);
@@ -634,7 +835,9 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
             };
             let direct =
                 simd.is_some() && mr == MR && kc > 0 && a.row_stride != 1 && packed.is_none();
-            if mr < MR && packed.is_none() {
+            if !direct && packed.is_none() && strip.is_empty() {
+                strip = vec![T::ZERO; kc_max * MR];
+            } else if mr < MR && packed.is_none() {
                 strip.fill(T::ZERO);
             }
             if direct || packed.is_some() {
@@ -643,7 +846,7 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                 // Columns of A are contiguous (a transposed view).
                 for (p, dst) in strip[..kc * MR].chunks_exact_mut(MR).enumerate() {
                     let s0 = (k0 + p) * a.col_stride + i;
-                    copy_short(&mut dst[..mr], &a.data[s0..s0 + mr]);
+                    copy_short(&mut as_slots(dst)[..mr], &a.data[s0..s0 + mr]);
                 }
             } else {
                 for r in 0..mr {
@@ -1049,6 +1252,84 @@ mod tests {
     #[test]
     fn fast_products_match_reference_bits_f64() {
         on_every_path(check_all::<f64>);
+    }
+
+    /// `A` `[rows, cols]` as a row-major matrix, a transposed view of its
+    /// transpose, and a view with padding columns (row stride above the
+    /// width): the same matrix in three layouts.
+    fn layouts<T: Real>(seed: u64, rows: usize, cols: usize) -> [(Vec<T>, MatRef<'static, T>); 3] {
+        let plain = random::<T>(seed, rows * cols);
+        let mut tr = vec![T::ZERO; rows * cols];
+        let mut padded = random::<T>(seed + 1, rows * (cols + 3));
+        for i in 0..rows {
+            for j in 0..cols {
+                tr[j * rows + i] = plain[i * cols + j];
+                padded[i * (cols + 3) + 2 + j] = plain[i * cols + j];
+            }
+        }
+        let leak = |v: Vec<T>| -> &'static [T] { Box::leak(v.into_boxed_slice()) };
+        let (p, t, d) = (leak(plain.clone()), leak(tr.clone()), leak(padded.clone()));
+        [
+            (plain, MatRef::row_major(p, rows, cols)),
+            (tr, MatRef::row_major(t, cols, rows).t()),
+            (padded, MatRef::row_major(d, rows, cols + 3).cols(2, cols)),
+        ]
+    }
+
+    /// Both products on shapes around the tile sizes (`m < MR`, `m`, `n`
+    /// and `k` off the tile multiples, `k` below and above `KC`, reductions
+    /// over one and several chunks, both orientations of `Aᵀ·B`) and on
+    /// row-major, transposed and strided views: the same bits as the plain
+    /// scalar loops.
+    fn check_shapes_and_views<T: Real>() {
+        for &(m, k, n) in &[
+            (5, 300, 40),
+            (11, 64, 64),
+            (64, 64, 64),
+            (61, 512, 64),
+            (37, KC - 1, 33),
+            (25, KC + 1, 97),
+            (1, 3, 31),
+        ] {
+            for (_, a) in layouts::<T>(20 + m as u64, m, k) {
+                for (_, b) in layouts::<T>(30 + n as u64, k, n) {
+                    assert_eq!(
+                        bits(&matmul(a, b)),
+                        bits(&reference::matmul(a, b)),
+                        "nn {m}x{k}x{n} strides {:?} {:?}",
+                        (a.row_stride, a.col_stride),
+                        (b.row_stride, b.col_stride)
+                    );
+                }
+            }
+        }
+        for &(r, m, n) in &[
+            (100, 7, 33),
+            (300, 64, 512),
+            (300, 512, 64),
+            (513, 5, 70),
+            (2 * REDUCTION_CHUNK + KC + 3, 13, 37),
+            (REDUCTION_CHUNK, 64, 64),
+            (700, 93, 12),
+        ] {
+            for (_, a) in layouts::<T>(40 + m as u64, r, m) {
+                for (_, b) in layouts::<T>(50 + n as u64, r, n) {
+                    assert_eq!(
+                        bits(&matmul_tn(a, b)),
+                        bits(&reference::matmul_tn(a, b)),
+                        "tn {r}x{m}x{n} strides {:?} {:?}",
+                        (a.row_stride, a.col_stride),
+                        (b.row_stride, b.col_stride)
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn odd_shapes_and_views_match_reference_bits() {
+        on_every_path(check_shapes_and_views::<f32>);
+        on_every_path(check_shapes_and_views::<f64>);
     }
 
     /// `[A₁ | A₂]·[B₁; B₂]` from the blocks equals the product of the
