@@ -274,15 +274,31 @@ pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
     if r == 0 || m == 0 || n == 0 {
         return vec![T::ZERO; m * n];
     }
-    let (mr, nr) = tile_shape::<T>(kernel_path());
-    // Multiply-adds the tiles do, padding included.
-    let padded = |rows: usize, cols: usize| rows.div_ceil(mr) * mr * cols.div_ceil(nr) * nr;
-    if padded(n, m) < padded(m, n) {
+    let path = kernel_path();
+    let (mr, nr) = tile_shape::<T>(path);
+    // Per row of the reduction: the multiply-adds the tiles do (padding
+    // included), plus the values copied into the kernel's layout, weighted
+    // as 32 multiply-adds each (measured order of magnitude): the left
+    // operand is read in place when its rows are contiguous, the right one
+    // is always packed.
+    let cost = |l: MatRef<'_, T>, r: MatRef<'_, T>| {
+        let (lp, rp) = (l.cols.div_ceil(mr) * mr, r.cols.div_ceil(nr) * nr);
+        let packed = rp + if tn_in_place(path, l) { 0 } else { lp };
+        lp * rp + 32 * packed
+    };
+    if cost(b, a) < cost(a, b) {
         let ct = tn_chunked(b, a);
         transposed(&ct, n, m)
     } else {
         tn_chunked(a, b)
     }
+}
+
+/// Whether [`tn_chunk`] reads the left operand `A` of `Aᵀ·B` in place: the
+/// vector tiles read `MR` consecutive values of a row of `A` per term
+/// (contiguous when its columns are), instead of a packed copy.
+fn tn_in_place<T>(path: KernelPath, a: MatRef<'_, T>) -> bool {
+    path != KernelPath::Baseline && a.col_stride == 1
 }
 
 /// `c` (`[rows, cols]` row-major) transposed, in tiles that stay in cache.
@@ -312,13 +328,16 @@ fn tn_chunked<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
     // With fewer chunks than tasks to keep the threads busy, each chunk's
     // output rows are split over the threads too (no effect on results).
     let split = chunks < 2 * rayon::current_num_threads();
-    // Every chunk's partial, written in place, never zeroed.
-    let mut partials = vec_written_by(chunks * m * n, |buf| {
-        par_blocks_written(buf, m * n, &mut [(); 0], 0, |c, dst, _| {
-            let r0 = c * REDUCTION_CHUNK;
-            let rows = REDUCTION_CHUNK.min(r - r0);
-            tn_chunk(a.rows(r0, rows), b.rows(r0, rows), dst, split)
-        })
+    // Every chunk's partial, written in place in this thread's scratch.
+    let mut scratch = take_scratch::<T>(PARTIALS);
+    if scratch.len() < chunks * m * n {
+        scratch.resize(chunks * m * n, T::ZERO);
+    }
+    let partials = &mut scratch[..chunks * m * n];
+    par_blocks_written(as_slots(partials), m * n, &mut [(); 0], 0, |c, dst, _| {
+        let r0 = c * REDUCTION_CHUNK;
+        let rows = REDUCTION_CHUNK.min(r - r0);
+        tn_chunk(a.rows(r0, rows), b.rows(r0, rows), dst, split)
     });
     // The partials added in chunk order, the first taken as is.
     let (total, rest) = partials.split_at_mut(m * n);
@@ -333,8 +352,9 @@ fn tn_chunked<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
             }
         });
     }
-    partials.truncate(m * n);
-    partials
+    let total = total.to_vec();
+    put_scratch(PARTIALS, scratch);
+    total
 }
 
 /// One chunk of [`tn_chunked`]: `out = Aᵀ · B` (`[m, n]`) for the chunk's
@@ -354,15 +374,19 @@ fn tn_chunk<'o, T: Real>(
     debug_assert!(rows > 0 && out.len() == m * n);
     let path = kernel_path();
     let (mr, nr) = tile_shape::<T>(path);
-    let mut scratch = take_scratch::<T>();
+    let mut scratch = take_scratch::<T>(PACK);
     for (pass, s0) in (0..rows).step_by(KC).enumerate() {
         let kc = KC.min(rows - s0);
         let (a_len, b_len) = (m.div_ceil(mr) * kc * mr, n.div_ceil(nr) * kc * nr);
         if scratch.len() < a_len + b_len {
             scratch.resize(a_len + b_len, T::ZERO);
         }
+        let in_place = tn_in_place(path, a);
+        let a_len = if in_place { 0 } else { a_len };
         let (strips, rest) = scratch.split_at_mut(a_len);
-        pack_panels(a.rows(s0, kc), mr, as_slots(strips));
+        if !in_place {
+            pack_panels(a.rows(s0, kc), mr, as_slots(strips));
+        }
         pack_panels(b.rows(s0, kc), nr, as_slots(&mut rest[..b_len]));
         let (strips, panels) = (
             &*strips,
@@ -377,66 +401,134 @@ fn tn_chunk<'o, T: Real>(
         if split {
             par_blocks_written(out, ROW_BLOCK * n, &mut [(); 0], 0, |blk, cb, _| {
                 let o0 = blk * ROW_BLOCK;
-                let a = ASource::Strips {
-                    data: &strips[o0 / mr * kc * mr..],
-                    rows: cb.len() / n,
+                let a = if in_place {
+                    ASource::Columns(a.rows(s0, kc).cols(o0, cb.len() / n).t())
+                } else {
+                    ASource::Strips {
+                        data: &strips[o0 / mr * kc * mr..],
+                        rows: cb.len() / n,
+                    }
                 };
                 block_product(a, panels, kc, n, cb, resume)
             });
         } else {
-            let a = ASource::Strips {
-                data: strips,
-                rows: m,
-            };
-            block_product(a, panels, kc, n, out, resume);
+            // Strip by strip, each followed by prefetches of its share of the
+            // next pass's rows, so that reading them from memory overlaps
+            // this pass's arithmetic instead of stalling the next packing.
+            let next = (s0 + kc < rows).then(|| {
+                let kn = KC.min(rows - s0 - kc);
+                (a.rows(s0 + kc, kn), b.rows(s0 + kc, kn))
+            });
+            let tiles = m.div_ceil(mr);
+            for (t, ob) in out.chunks_mut(mr * n).enumerate() {
+                let a = if in_place {
+                    ASource::Columns(a.rows(s0, kc).cols(t * mr, ob.len() / n).t())
+                } else {
+                    ASource::Strips {
+                        data: &strips[t * kc * mr..],
+                        rows: ob.len() / n,
+                    }
+                };
+                block_product(a, panels, kc, n, ob, resume);
+                if let Some((na, nb)) = next {
+                    prefetch_rows(na, t, tiles);
+                    prefetch_rows(nb, t, tiles);
+                }
+            }
         }
     }
-    put_scratch(scratch);
+    put_scratch(PACK, scratch);
     // SAFETY: the first pass wrote every value of `out` (block_product and
     // par_blocks_written write their whole output).
     unsafe { &mut *(out as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
-thread_local! {
-    /// Per-thread scratch for packed operands, kept between calls so that
-    /// packing does not allocate, fault in and zero fresh pages every time.
-    static SCRATCH_F32: std::cell::Cell<Vec<f32>> = const { std::cell::Cell::new(Vec::new()) };
-    /// The f64 counterpart of `SCRATCH_F32`.
-    static SCRATCH_F64: std::cell::Cell<Vec<f64>> = const { std::cell::Cell::new(Vec::new()) };
+/// Ask the cache to fetch part `part` of `parts` of the rows of `m` (each
+/// row's values, one request per cache line) ahead of their use. A hint
+/// only: no effect on results.
+fn prefetch_rows<T>(m: MatRef<'_, T>, part: usize, parts: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T1};
+        let per = m.rows.div_ceil(parts);
+        let line = (64 / std::mem::size_of::<T>()).max(1);
+        let span = if m.cols == 0 {
+            0
+        } else {
+            (m.cols - 1) * m.col_stride + 1
+        };
+        for r in (part * per).min(m.rows)..((part + 1) * per).min(m.rows) {
+            let row = r * m.row_stride;
+            for o in (0..span).step_by(line) {
+                if let Some(v) = m.data.get(row + o) {
+                    // SAFETY: a prefetch reads nothing architecturally and
+                    // cannot fault; the address is that of a value in `m`.
+                    unsafe { _mm_prefetch::<_MM_HINT_T1>((v as *const T).cast::<i8>()) };
+                }
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (m, part, parts);
 }
 
-/// This thread's scratch vector for `T` (stale contents), taken out of its
-/// slot until [`put_scratch`]: a nested use on the same thread (a parallel
-/// task run here while this one waits) gets an empty vector instead.
-fn take_scratch<T: Real>() -> Vec<T> {
+/// Slot of the per-thread scratch that holds packed operands.
+const PACK: usize = 0;
+/// Slot of the per-thread scratch that holds a reduction's partials.
+const PARTIALS: usize = 1;
+/// Scratch vectors above this many bytes are freed after use, not kept.
+const KEEP_BYTES: usize = 64 << 20;
+
+thread_local! {
+    /// Per-thread scratch for packed operands and partial sums, kept
+    /// between calls so that they do not allocate, fault in and zero fresh
+    /// pages every time (at most [`KEEP_BYTES`] each).
+    static SCRATCH_F32: [std::cell::Cell<Vec<f32>>; 2] =
+        const { [std::cell::Cell::new(Vec::new()), std::cell::Cell::new(Vec::new())] };
+    /// The f64 counterpart of `SCRATCH_F32`.
+    static SCRATCH_F64: [std::cell::Cell<Vec<f64>>; 2] =
+        const { [std::cell::Cell::new(Vec::new()), std::cell::Cell::new(Vec::new())] };
+}
+
+/// This thread's scratch vector `slot` for `T` (stale contents), taken out
+/// of its slot until [`put_scratch`]: a nested use on the same thread (a
+/// parallel task run here while this one waits) gets an empty vector
+/// instead.
+fn take_scratch<T: Real>(slot: usize) -> Vec<T> {
     use std::any::Any;
     let mut v: Vec<T> = Vec::new();
     let any = &mut v as &mut dyn Any;
     if let Some(s) = any.downcast_mut::<Vec<f32>>() {
-        *s = SCRATCH_F32.take();
+        *s = SCRATCH_F32.with(|c| c[slot].take());
     } else if let Some(s) = any.downcast_mut::<Vec<f64>>() {
-        *s = SCRATCH_F64.take();
+        *s = SCRATCH_F64.with(|c| c[slot].take());
     }
     v
 }
 
 /// Give a scratch vector back to this thread's slot (keeping the larger
-/// one when a nested use left one there).
-fn put_scratch<T: Real>(mut v: Vec<T>) {
+/// one when a nested use left one there; dropping one over
+/// [`KEEP_BYTES`]).
+fn put_scratch<T: Real>(slot: usize, mut v: Vec<T>) {
     use std::any::Any;
-    fn keep<U>(slot: &'static std::thread::LocalKey<std::cell::Cell<Vec<U>>>, v: Vec<U>) {
-        let old = slot.take();
-        slot.set(if old.capacity() > v.capacity() {
+    fn keep<U>(cell: &std::cell::Cell<Vec<U>>, v: Vec<U>) {
+        let old = cell.take();
+        let v = if old.capacity() > v.capacity() {
             old
         } else {
             v
-        });
+        };
+        if v.capacity() * std::mem::size_of::<U>() <= KEEP_BYTES {
+            cell.set(v);
+        }
     }
     let any = &mut v as &mut dyn Any;
     if let Some(s) = any.downcast_mut::<Vec<f32>>() {
-        keep(&SCRATCH_F32, std::mem::take(s));
+        let v = std::mem::take(s);
+        SCRATCH_F32.with(|c| keep(&c[slot], v));
     } else if let Some(s) = any.downcast_mut::<Vec<f64>>() {
-        keep(&SCRATCH_F64, std::mem::take(s));
+        let v = std::mem::take(s);
+        SCRATCH_F64.with(|c| keep(&c[slot], v));
     }
 }
 
@@ -578,26 +670,37 @@ fn pack_panels<T: Real>(b: MatRef<'_, T>, width: usize, dst: &mut [MaybeUninit<T
     }
 }
 
-/// [`pack_panels`] of a matrix with contiguous rows into panels `W` wide:
-/// each row split over the panels, full panels as fixed-size moves.
+/// [`pack_panels`] of a matrix with contiguous rows into panels `W` wide,
+/// full panels as fixed-size moves, in blocks of rows: the panels of a
+/// `KC`-row pass start a multiple of 4 KiB apart, so writing one row to
+/// every panel in turn would put all the writes in the same few cache sets
+/// (measured: packing then cost as much as the arithmetic); a block of rows
+/// (in cache) is written panel by panel instead, whole lines at a time.
 #[inline(always)]
 fn pack_rows<T: Real, const W: usize>(b: MatRef<'_, T>, dst: &mut [MaybeUninit<T>]) {
+    const ROWS: usize = 16;
     let (k, n) = (b.rows, b.cols);
     let full = n / W;
     let tail = n - full * W;
-    for kk in 0..k {
-        let row = &b.data[kk * b.row_stride..kk * b.row_stride + n];
+    for k0 in (0..k).step_by(ROWS) {
+        let k1 = (k0 + ROWS).min(k);
         for p in 0..full {
-            copy_fixed::<T, W>(&mut dst[(p * k + kk) * W..], &row[p * W..]);
+            for kk in k0..k1 {
+                let s0 = kk * b.row_stride + p * W;
+                copy_fixed::<T, W>(&mut dst[(p * k + kk) * W..], &b.data[s0..s0 + W]);
+            }
         }
         if tail > 0 {
-            let d = &mut dst[(full * k + kk) * W..(full * k + kk + 1) * W];
-            for (z, &v) in d.iter_mut().zip(&row[full * W..]) {
-                z.write(v);
+            for kk in k0..k1 {
+                let s0 = kk * b.row_stride + full * W;
+                let d = &mut dst[(full * k + kk) * W..(full * k + kk + 1) * W];
+                for (z, &v) in d.iter_mut().zip(&b.data[s0..s0 + tail]) {
+                    z.write(v);
+                }
+                d[tail..].iter_mut().for_each(|z| {
+                    z.write(T::ZERO);
+                });
             }
-            d[tail..].iter_mut().for_each(|z| {
-                z.write(T::ZERO);
-            });
         }
     }
 }
@@ -649,6 +752,8 @@ enum ASource<'a, T> {
     /// A view: full tiles of rows read in place by the vector kernels,
     /// other tiles gathered into a strip.
     View(MatRef<'a, T>),
+    /// A view with contiguous rows of `Aᵀ`... read in place by the vector tiles.
+    Columns(MatRef<'a, T>),
     /// Strips from [`pack_panels`] (`MR` wide), starting at
     /// the block's first tile.
     Strips { data: &'a [T], rows: usize },
@@ -757,9 +862,10 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
     simd: Option<TileFn>,
 ) {
     let rows = match a {
-        ASource::View(v) => v.rows,
+        ASource::View(v) | ASource::Columns(v) => v.rows,
         ASource::Strips { rows, .. } => rows,
     };
+    let a_src = a;
     debug_assert_eq!(c.len(), rows * n);
     debug_assert_eq!(b.width, NR);
     // The vector kernels read full blocks of MR rows of A in place; the
@@ -783,6 +889,9 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
         // A of row tile i: (pointer, row stride, column stride).
         let tile_a = |i: usize| -> Option<(*const T, usize, usize)> {
             match a {
+                ASource::Columns(v) => {
+                    Some((v.data[i + k0 * v.col_stride..].as_ptr(), 1, v.col_stride))
+                }
                 ASource::View(v) if v.row_stride != 1 => Some((
                     v.data[i * v.row_stride + k0 * v.col_stride..].as_ptr(),
                     v.row_stride,
@@ -828,13 +937,14 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
             // once per row of tiles is cheaper than the strided reads.
             let (a, packed) = match a {
                 ASource::View(v) => (v, None),
+                ASource::Columns(v) => (v, None),
                 ASource::Strips { data, .. } => {
                     let s0 = (i / MR) * k * MR + k0 * MR;
                     (MatRef::row_major(&[], 0, 0), Some(&data[s0..s0 + kc * MR]))
                 }
             };
-            let direct =
-                simd.is_some() && mr == MR && kc > 0 && a.row_stride != 1 && packed.is_none();
+            let in_place = a.row_stride != 1 || matches!(a_src, ASource::Columns(_));
+            let direct = simd.is_some() && mr == MR && kc > 0 && in_place && packed.is_none();
             if !direct && packed.is_none() && strip.is_empty() {
                 strip = vec![T::ZERO; kc_max * MR];
             } else if mr < MR && packed.is_none() {
@@ -1311,6 +1421,9 @@ mod tests {
             (2 * REDUCTION_CHUNK + KC + 3, 13, 37),
             (REDUCTION_CHUNK, 64, 64),
             (700, 93, 12),
+            // More chunks than twice the threads of a small machine: chunks
+            // not split over output rows.
+            (5 * REDUCTION_CHUNK + 7, 29, 40),
         ] {
             for (_, a) in layouts::<T>(40 + m as u64, r, m) {
                 for (_, b) in layouts::<T>(50 + n as u64, r, n) {
