@@ -412,64 +412,21 @@ fn tn_chunk<'o, T: Real>(
                 block_product(a, panels, kc, n, cb, resume)
             });
         } else {
-            // Strip by strip, each followed by prefetches of its share of the
-            // next pass's rows, so that reading them from memory overlaps
-            // this pass's arithmetic instead of stalling the next packing.
-            let next = (s0 + kc < rows).then(|| {
-                let kn = KC.min(rows - s0 - kc);
-                (a.rows(s0 + kc, kn), b.rows(s0 + kc, kn))
-            });
-            let tiles = m.div_ceil(mr);
-            for (t, ob) in out.chunks_mut(mr * n).enumerate() {
-                let a = if in_place {
-                    ASource::Columns(a.rows(s0, kc).cols(t * mr, ob.len() / n).t())
-                } else {
-                    ASource::Strips {
-                        data: &strips[t * kc * mr..],
-                        rows: ob.len() / n,
-                    }
-                };
-                block_product(a, panels, kc, n, ob, resume);
-                if let Some((na, nb)) = next {
-                    prefetch_rows(na, t, tiles);
-                    prefetch_rows(nb, t, tiles);
+            let a = if in_place {
+                ASource::Columns(a.rows(s0, kc).t())
+            } else {
+                ASource::Strips {
+                    data: strips,
+                    rows: m,
                 }
-            }
+            };
+            block_product(a, panels, kc, n, out, resume);
         }
     }
     put_scratch(PACK, scratch);
     // SAFETY: the first pass wrote every value of `out` (block_product and
     // par_blocks_written write their whole output).
     unsafe { &mut *(out as *mut [MaybeUninit<T>] as *mut [T]) }
-}
-
-/// Ask the cache to fetch part `part` of `parts` of the rows of `m` (each
-/// row's values, one request per cache line) ahead of their use. A hint
-/// only: no effect on results.
-fn prefetch_rows<T>(m: MatRef<'_, T>, part: usize, parts: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T1};
-        let per = m.rows.div_ceil(parts);
-        let line = (64 / std::mem::size_of::<T>()).max(1);
-        let span = if m.cols == 0 {
-            0
-        } else {
-            (m.cols - 1) * m.col_stride + 1
-        };
-        for r in (part * per).min(m.rows)..((part + 1) * per).min(m.rows) {
-            let row = r * m.row_stride;
-            for o in (0..span).step_by(line) {
-                if let Some(v) = m.data.get(row + o) {
-                    // SAFETY: a prefetch reads nothing architecturally and
-                    // cannot fault; the address is that of a value in `m`.
-                    unsafe { _mm_prefetch::<_MM_HINT_T1>((v as *const T).cast::<i8>()) };
-                }
-            }
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (m, part, parts);
 }
 
 /// Slot of the per-thread scratch that holds packed operands.
@@ -752,7 +709,9 @@ enum ASource<'a, T> {
     /// A view: full tiles of rows read in place by the vector kernels,
     /// other tiles gathered into a strip.
     View(MatRef<'a, T>),
-    /// A view with contiguous rows of `Aᵀ`... read in place by the vector tiles.
+    /// A view whose rows are adjacent (`row_stride` 1, columns apart: `Aᵀ`
+    /// of a row-major `A`), full tiles read in place by the vector tiles
+    /// (`MR` consecutive values per term), partial ones gathered.
     Columns(MatRef<'a, T>),
     /// Strips from [`pack_panels`] (`MR` wide), starting at
     /// the block's first tile.
