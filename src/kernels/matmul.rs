@@ -16,7 +16,7 @@
 //! columns) compiled three times: for AVX-512, for AVX2 and for the baseline
 //! target. The widest one the CPU supports is picked at run time, so a default
 //! build reaches the fast path too. Work is split over rayon threads by fixed
-//! blocks of output rows.
+//! blocks of output rows ([`matmul_tn`]: by chunks of its reduction).
 //!
 //! The reduction over rows in [`matmul_tn`] (the weight gradient `Gᵀ X`) and
 //! [`column_sums`] (the bias gradient) is split into fixed chunks of
@@ -334,7 +334,9 @@ fn tn_chunked<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
         scratch.resize(chunks * m * n, T::ZERO);
     }
     let partials = &mut scratch[..chunks * m * n];
-    par_blocks_written(as_slots(partials), m * n, &mut [(); 0], 0, |c, dst, _| {
+    // SAFETY: par_blocks_written's writers (tn_chunk) write values only.
+    let slots = unsafe { as_slots(partials) };
+    par_blocks_written(slots, m * n, &mut [(); 0], 0, |c, dst, _| {
         let r0 = c * REDUCTION_CHUNK;
         let rows = REDUCTION_CHUNK.min(r - r0);
         tn_chunk(a.rows(r0, rows), b.rows(r0, rows), dst, split)
@@ -359,11 +361,11 @@ fn tn_chunked<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
 
 /// One chunk of [`tn_chunked`]: `out = Aᵀ · B` (`[m, n]`) for the chunk's
 /// rows of `A` `[rows, m]` and `B` `[rows, n]`, in passes of [`KC`] rows,
-/// each pass's sums resumed from the previous one's (exact). Both operands
-/// are read row by row (in memory order) into the kernel's layouts in this
-/// thread's scratch (A's columns in strips of `MR`, B's in panels of `NR`:
-/// for `Aᵀ·B` both are copies of row segments), used while they are in
-/// cache. Writes every value of `out` and returns it.
+/// each pass's sums resumed from the previous one's (exact). `A` is read in
+/// place where [`tn_in_place`] allows (else packed in strips of `MR`), `B`
+/// packed in panels of `NR` in this thread's scratch (for `Aᵀ·B` both are
+/// copies of row segments), used while it is in cache. Writes every value of
+/// `out` and returns it.
 fn tn_chunk<'o, T: Real>(
     a: MatRef<'_, T>,
     b: MatRef<'_, T>,
@@ -377,17 +379,25 @@ fn tn_chunk<'o, T: Real>(
     let mut scratch = take_scratch::<T>(PACK);
     for (pass, s0) in (0..rows).step_by(KC).enumerate() {
         let kc = KC.min(rows - s0);
-        let (a_len, b_len) = (m.div_ceil(mr) * kc * mr, n.div_ceil(nr) * kc * nr);
+        let in_place = tn_in_place(path, a);
+        let a_len = if in_place {
+            0
+        } else {
+            m.div_ceil(mr) * kc * mr
+        };
+        let b_len = n.div_ceil(nr) * kc * nr;
         if scratch.len() < a_len + b_len {
             scratch.resize(a_len + b_len, T::ZERO);
         }
-        let in_place = tn_in_place(path, a);
-        let a_len = if in_place { 0 } else { a_len };
         let (strips, rest) = scratch.split_at_mut(a_len);
         if !in_place {
-            pack_panels(a.rows(s0, kc), mr, as_slots(strips));
+            // SAFETY: pack_panels writes values only.
+            let slots = unsafe { as_slots(strips) };
+            pack_panels(a.rows(s0, kc), mr, slots);
         }
-        pack_panels(b.rows(s0, kc), nr, as_slots(&mut rest[..b_len]));
+        // SAFETY: pack_panels writes values only.
+        let slots = unsafe { as_slots(&mut rest[..b_len]) };
+        pack_panels(b.rows(s0, kc), nr, slots);
         let (strips, panels) = (
             &*strips,
             Panels {
@@ -694,12 +704,15 @@ fn copy_fixed<T: Copy, const N: usize>(dst: &mut [MaybeUninit<T>], src: &[T]) {
     unsafe { std::ptr::copy_nonoverlapping(s.as_ptr(), d.as_mut_ptr().cast::<T>(), N) }
 }
 
-/// An initialised slice as slots to overwrite (only ever with initialised
-/// values, so it stays initialised).
-fn as_slots<T>(v: &mut [T]) -> &mut [MaybeUninit<T>] {
-    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the slots are only
-    // written through with initialised values (every writer in this module
-    // writes `T`s), so `v` holds valid values again when the borrow ends.
+/// An initialised slice as slots to overwrite.
+///
+/// # Safety
+/// Only initialised values may be written through the result (no
+/// `MaybeUninit::uninit()`), so that `v` holds valid values again when the
+/// borrow ends.
+unsafe fn as_slots<T>(v: &mut [T]) -> &mut [MaybeUninit<T>] {
+    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the caller writes only
+    // initialised values.
     unsafe { &mut *(v as *mut [T] as *mut [MaybeUninit<T>]) }
 }
 
@@ -915,7 +928,9 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                 // Columns of A are contiguous (a transposed view).
                 for (p, dst) in strip[..kc * MR].chunks_exact_mut(MR).enumerate() {
                     let s0 = (k0 + p) * a.col_stride + i;
-                    copy_short(&mut as_slots(dst)[..mr], &a.data[s0..s0 + mr]);
+                    // SAFETY: copy_short writes values only.
+                    let slots = unsafe { as_slots(dst) };
+                    copy_short(&mut slots[..mr], &a.data[s0..s0 + mr]);
                 }
             } else {
                 for r in 0..mr {
