@@ -16,7 +16,7 @@
 //! columns) compiled three times: for AVX-512, for AVX2 and for the baseline
 //! target. The widest one the CPU supports is picked at run time, so a default
 //! build reaches the fast path too. Work is split over rayon threads by fixed
-//! blocks of output rows.
+//! blocks of output rows ([`matmul_tn`]: by chunks of its reduction).
 //!
 //! The reduction over rows in [`matmul_tn`] (the weight gradient `Gᵀ X`) and
 //! [`column_sums`] (the bias gradient) is split into fixed chunks of
@@ -203,7 +203,14 @@ where
                     // The first part writes the block (unless it starts from
                     // `init`); the others continue its sums.
                     let resume = i > 0 || init.is_some();
-                    block_product(ASource::View(a.rows(r0, rows)), pb, a.cols, n, cb, resume);
+                    block_product(
+                        ASource::View(a.rows(r0, rows)),
+                        pb.panels(),
+                        a.cols,
+                        n,
+                        cb,
+                        resume,
+                    );
                 }
                 // SAFETY: `init` or the first block_product call wrote every element
                 // of cb.
@@ -247,7 +254,7 @@ pub fn matmul_block_into<'c, T: Real>(
         // SAFETY: an empty slice has nothing to initialise.
         return unsafe { &mut *(c as *mut [MaybeUninit<T>] as *mut [T]) };
     }
-    block_product(ASource::View(a), &b.b, b.k, b.n, c, false)
+    block_product(ASource::View(a), b.b.panels(), b.k, b.n, c, false)
 }
 
 /// `c += A · B` for a block of rows of `A` (`[rows, k]`, any strides) and a
@@ -271,60 +278,243 @@ pub fn matmul_block_resume<T: Real>(a: MatRef<'_, T>, b: &Packed<T>, c: &mut [T]
 /// `C = Aᵀ · B` for `A` `[r, m]` and `B` `[r, n]`: a reduction over the `r`
 /// rows, done in fixed chunks of [`REDUCTION_CHUNK`] rows whose partials are
 /// added in chunk order. Returns `[m, n]` row-major.
+///
+/// Element `(i, j)` is the same chain of fused multiply-adds
+/// `s = A[p][i]·B[p][j] + s` whichever operand the kernel treats as the left
+/// one (a fused multiply-add is exact before its single rounding, so the
+/// order of its two factors changes no bit). The product is therefore run as
+/// `(Bᵀ·A)ᵀ` when that wastes less of the register tile on padding (for
+/// example `m` = 64 against the tile's 12 rows), and the small result
+/// transposed.
 pub fn matmul_tn<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
     assert_eq!(a.rows, b.rows, "matmul_tn: row counts differ");
     let (r, m, n) = (a.rows, a.cols, b.cols);
     if r == 0 || m == 0 || n == 0 {
         return vec![T::ZERO; m * n];
     }
+    let path = kernel_path();
+    let (mr, nr) = tile_shape::<T>(path);
+    // Per row of the reduction: the multiply-adds the tiles do (padding
+    // included), plus the values copied into the kernel's layout, weighted
+    // as 32 multiply-adds each (measured order of magnitude): the left
+    // operand is read in place when its rows are contiguous, the right one
+    // is always packed.
+    let cost = |l: MatRef<'_, T>, r: MatRef<'_, T>| {
+        let (lp, rp) = (l.cols.div_ceil(mr) * mr, r.cols.div_ceil(nr) * nr);
+        let packed = rp + if tn_in_place(path, l) { 0 } else { lp };
+        lp * rp + 32 * packed
+    };
+    if cost(b, a) < cost(a, b) {
+        let ct = tn_chunked(b, a);
+        transposed(&ct, n, m)
+    } else {
+        tn_chunked(a, b)
+    }
+}
+
+/// Whether [`tn_chunk`] reads the left operand `A` of `Aᵀ·B` in place: the
+/// vector tiles read `MR` consecutive values of a row of `A` per term
+/// (contiguous when its columns are), instead of a packed copy.
+fn tn_in_place<T>(path: KernelPath, a: MatRef<'_, T>) -> bool {
+    path != KernelPath::Baseline && a.col_stride == 1
+}
+
+/// `c` (`[rows, cols]` row-major) transposed, in tiles that stay in cache.
+fn transposed<T: Real>(c: &[T], rows: usize, cols: usize) -> Vec<T> {
+    const B: usize = 32;
+    let mut out = Vec::with_capacity(rows * cols);
+    let dst = &mut out.spare_capacity_mut()[..rows * cols];
+    for i0 in (0..rows).step_by(B) {
+        for j0 in (0..cols).step_by(B) {
+            for i in i0..(i0 + B).min(rows) {
+                for j in j0..(j0 + B).min(cols) {
+                    dst[j * rows + i].write(c[i * cols + j]);
+                }
+            }
+        }
+    }
+    // SAFETY: the tiles cover every (i, j) of the `rows × cols` result once,
+    // so all `rows·cols` values were written.
+    unsafe { out.set_len(rows * cols) };
+    out
+}
+
+/// [`matmul_tn`] with `A` as the kernel's left operand.
+fn tn_chunked<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> Vec<T> {
+    let (r, m, n) = (a.rows, a.cols, b.cols);
     let chunks = r.div_ceil(REDUCTION_CHUNK);
-    let partials: Vec<Vec<T>> = (0..chunks)
-        .into_par_iter()
-        .map(|c| {
-            let r0 = c * REDUCTION_CHUNK;
-            let rows = REDUCTION_CHUNK.min(r - r0);
-            // The chunk's rows in blocks of KC, each block's sums resumed
-            // from the previous one's (exact), so that both packed operands
-            // of a block stay in cache.
-            let passes: Vec<(PackedB<T>, Vec<T>, usize, usize)> = (0..rows)
-                .step_by(KC)
-                .map(|s0| {
-                    let kc = KC.min(rows - s0);
-                    let packed = pack_b(b.rows(r0 + s0, kc));
-                    let mr = tile_shape::<T>(packed.path).0;
-                    // Rows of Aᵀ are columns of A, far apart in memory: pack
-                    // them into the kernel's strips, reading A row by row.
-                    let strips = pack_a_transposed(a.rows(r0 + s0, kc), mr);
-                    (packed, strips, kc, mr)
-                })
-                .collect();
-            let (last, earlier) = passes.split_last().expect("a chunk has rows");
-            // Parallel over output rows inside a chunk too (helps when there
-            // are fewer chunks than threads); results do not depend on it.
-            vec_written_by(m * n, |o| {
-                par_blocks_written(o, ROW_BLOCK * n, &mut [(); 0], 0, |blk, cb, _| {
-                    let o0 = blk * ROW_BLOCK;
-                    let rows = cb.len() / n;
-                    // The first pass writes the block, the others resume it.
-                    for (i, (packed, data, kc, mr)) in earlier.iter().enumerate() {
-                        let a = ASource::Strips {
-                            data: &data[o0 / mr * kc * mr..],
-                            rows,
-                        };
-                        block_product(a, packed, *kc, n, cb, i > 0);
+    // With fewer chunks than tasks to keep the threads busy, each chunk's
+    // output rows are split over the threads too (no effect on results).
+    let split = chunks < 2 * rayon::current_num_threads();
+    // Every chunk's partial, written in place in this thread's scratch.
+    let mut scratch = take_scratch::<T>(PARTIALS);
+    if scratch.len() < chunks * m * n {
+        scratch.resize(chunks * m * n, T::ZERO);
+    }
+    let partials = &mut scratch[..chunks * m * n];
+    // SAFETY: par_blocks_written's writers (tn_chunk) write values only.
+    let slots = unsafe { as_slots(partials) };
+    par_blocks_written(slots, m * n, &mut [(); 0], 0, |c, dst, _| {
+        let r0 = c * REDUCTION_CHUNK;
+        let rows = REDUCTION_CHUNK.min(r - r0);
+        tn_chunk(a.rows(r0, rows), b.rows(r0, rows), dst, split)
+    });
+    // The partials added in chunk order, the first taken as is.
+    let (total, rest) = partials.split_at_mut(m * n);
+    if !rest.is_empty() {
+        total.par_chunks_mut(4096).enumerate().for_each(|(i, out)| {
+            let o = i * 4096;
+            let len = out.len();
+            for p in rest.chunks_exact(m * n) {
+                for (acc, &v) in out.iter_mut().zip(&p[o..o + len]) {
+                    *acc += v;
+                }
+            }
+        });
+    }
+    let total = total.to_vec();
+    put_scratch(PARTIALS, scratch);
+    total
+}
+
+/// One chunk of [`tn_chunked`]: `out = Aᵀ · B` (`[m, n]`) for the chunk's
+/// rows of `A` `[rows, m]` and `B` `[rows, n]`, in passes of [`KC`] rows,
+/// each pass's sums resumed from the previous one's (exact). `A` is read in
+/// place where [`tn_in_place`] allows (else packed in strips of `MR`), `B`
+/// packed in panels of `NR` in this thread's scratch (for `Aᵀ·B` both are
+/// copies of row segments), used while it is in cache. Writes every value of
+/// `out` and returns it.
+fn tn_chunk<'o, T: Real>(
+    a: MatRef<'_, T>,
+    b: MatRef<'_, T>,
+    out: &'o mut [MaybeUninit<T>],
+    split: bool,
+) -> &'o mut [T] {
+    let (rows, m, n) = (a.rows, a.cols, b.cols);
+    debug_assert!(rows > 0 && out.len() == m * n);
+    let path = kernel_path();
+    let (mr, nr) = tile_shape::<T>(path);
+    let mut scratch = take_scratch::<T>(PACK);
+    for (pass, s0) in (0..rows).step_by(KC).enumerate() {
+        let kc = KC.min(rows - s0);
+        let in_place = tn_in_place(path, a);
+        let a_len = if in_place {
+            0
+        } else {
+            m.div_ceil(mr) * kc * mr
+        };
+        let b_len = n.div_ceil(nr) * kc * nr;
+        if scratch.len() < a_len + b_len {
+            scratch.resize(a_len + b_len, T::ZERO);
+        }
+        let (strips, rest) = scratch.split_at_mut(a_len);
+        if !in_place {
+            // SAFETY: pack_panels writes values only.
+            let slots = unsafe { as_slots(strips) };
+            pack_panels(a.rows(s0, kc), mr, slots);
+        }
+        // SAFETY: pack_panels writes values only.
+        let slots = unsafe { as_slots(&mut rest[..b_len]) };
+        pack_panels(b.rows(s0, kc), nr, slots);
+        let (strips, panels) = (
+            &*strips,
+            Panels {
+                data: &rest[..b_len],
+                width: nr,
+                path,
+            },
+        );
+        // The first pass writes the output, the others resume its sums.
+        let resume = pass > 0;
+        if split {
+            par_blocks_written(out, ROW_BLOCK * n, &mut [(); 0], 0, |blk, cb, _| {
+                let o0 = blk * ROW_BLOCK;
+                let a = if in_place {
+                    ASource::Columns(a.rows(s0, kc).cols(o0, cb.len() / n).t())
+                } else {
+                    ASource::Strips {
+                        data: &strips[o0 / mr * kc * mr..],
+                        rows: cb.len() / n,
                     }
-                    let (packed, data, kc, mr) = last;
-                    let resume = !earlier.is_empty();
-                    let a = ASource::Strips {
-                        data: &data[o0 / mr * kc * mr..],
-                        rows,
-                    };
-                    block_product(a, packed, *kc, n, cb, resume)
-                })
-            })
-        })
-        .collect();
-    sum_in_order(partials)
+                };
+                block_product(a, panels, kc, n, cb, resume)
+            });
+        } else {
+            let a = if in_place {
+                ASource::Columns(a.rows(s0, kc).t())
+            } else {
+                ASource::Strips {
+                    data: strips,
+                    rows: m,
+                }
+            };
+            block_product(a, panels, kc, n, out, resume);
+        }
+    }
+    put_scratch(PACK, scratch);
+    // SAFETY: the first pass wrote every value of `out` (block_product and
+    // par_blocks_written write their whole output).
+    unsafe { &mut *(out as *mut [MaybeUninit<T>] as *mut [T]) }
+}
+
+/// Slot of the per-thread scratch that holds packed operands.
+const PACK: usize = 0;
+/// Slot of the per-thread scratch that holds a reduction's partials.
+const PARTIALS: usize = 1;
+/// Scratch vectors above this many bytes are freed after use, not kept.
+const KEEP_BYTES: usize = 64 << 20;
+
+thread_local! {
+    /// Per-thread scratch for packed operands and partial sums, kept
+    /// between calls so that they do not allocate, fault in and zero fresh
+    /// pages every time (at most [`KEEP_BYTES`] each).
+    static SCRATCH_F32: [std::cell::Cell<Vec<f32>>; 2] =
+        const { [std::cell::Cell::new(Vec::new()), std::cell::Cell::new(Vec::new())] };
+    /// The f64 counterpart of `SCRATCH_F32`.
+    static SCRATCH_F64: [std::cell::Cell<Vec<f64>>; 2] =
+        const { [std::cell::Cell::new(Vec::new()), std::cell::Cell::new(Vec::new())] };
+}
+
+/// This thread's scratch vector `slot` for `T` (stale contents), taken out
+/// of its slot until [`put_scratch`]: a nested use on the same thread (a
+/// parallel task run here while this one waits) gets an empty vector
+/// instead.
+fn take_scratch<T: Real>(slot: usize) -> Vec<T> {
+    use std::any::Any;
+    let mut v: Vec<T> = Vec::new();
+    let any = &mut v as &mut dyn Any;
+    if let Some(s) = any.downcast_mut::<Vec<f32>>() {
+        *s = SCRATCH_F32.with(|c| c[slot].take());
+    } else if let Some(s) = any.downcast_mut::<Vec<f64>>() {
+        *s = SCRATCH_F64.with(|c| c[slot].take());
+    }
+    v
+}
+
+/// Give a scratch vector back to this thread's slot (keeping the larger
+/// one when a nested use left one there; dropping one over
+/// [`KEEP_BYTES`]).
+fn put_scratch<T: Real>(slot: usize, mut v: Vec<T>) {
+    use std::any::Any;
+    fn keep<U>(cell: &std::cell::Cell<Vec<U>>, v: Vec<U>) {
+        let old = cell.take();
+        let v = if old.capacity() > v.capacity() {
+            old
+        } else {
+            v
+        };
+        if v.capacity() * std::mem::size_of::<U>() <= KEEP_BYTES {
+            cell.set(v);
+        }
+    }
+    let any = &mut v as &mut dyn Any;
+    if let Some(s) = any.downcast_mut::<Vec<f32>>() {
+        let v = std::mem::take(s);
+        SCRATCH_F32.with(|c| keep(&c[slot], v));
+    } else if let Some(s) = any.downcast_mut::<Vec<f64>>() {
+        let v = std::mem::take(s);
+        SCRATCH_F64.with(|c| keep(&c[slot], v));
+    }
 }
 
 /// Column sums of a row-major `[r, n]` matrix, reduced over fixed chunks of
@@ -372,12 +562,31 @@ fn sum_in_order<T: Real>(mut partials: Vec<Vec<T>>) -> Vec<T> {
 }
 
 /// `B` `[k, n]` copied into column panels of `width` columns, the tile
-/// width of the kernel that reads them: panel `j` holds rows `0..k` of
-/// columns `j*width..`, each row `width` wide, so a tile streams one
-/// contiguous block (the last panel is zero-padded; padded columns are never
-/// stored).
+/// width of the kernel that reads them (see [`pack_panels`]).
 struct PackedB<T> {
     data: Vec<T>,
+    width: usize,
+    /// The kernel the panels are laid out for.
+    path: KernelPath,
+}
+
+impl<T> PackedB<T> {
+    /// The panels, borrowed.
+    fn panels(&self) -> Panels<'_, T> {
+        Panels {
+            data: &self.data,
+            width: self.width,
+            path: self.path,
+        }
+    }
+}
+
+/// Packed column panels of `B` as the micro-kernel driver reads them.
+#[derive(Clone, Copy)]
+struct Panels<'a, T> {
+    /// Panel `j` holds rows `0..k` of columns `j·width..`, `width` a row.
+    data: &'a [T],
+    /// The panel width: the tile width `NR` of the kernel below.
     width: usize,
     /// The kernel the panels are laid out for.
     path: KernelPath,
@@ -387,78 +596,142 @@ struct PackedB<T> {
 fn pack_b<T: Real>(b: MatRef<'_, T>) -> PackedB<T> {
     let path = kernel_path();
     let width = tile_shape::<T>(path).1;
+    let len = b.cols.div_ceil(width) * b.rows * width;
+    let data = vec_written_by(len, |buf| {
+        pack_panels(b, width, buf);
+        // SAFETY: pack_panels wrote every value of `buf`.
+        unsafe { &mut *(buf as *mut [MaybeUninit<T>] as *mut [T]) }
+    });
+    PackedB { data, width, path }
+}
+
+/// `M` `[k, c]` copied into `dst` as column panels `width` wide: panel `j`
+/// holds rows `0..k` of columns `j·width..`, each row `width` wide, at
+/// `j·k·width + p·width + q`, so a tile streams one contiguous block. Every
+/// value of `dst` (`c.div_ceil(width)·k·width` long) is written, the last
+/// panel's columns past `c` with zeros (read by the tile, never stored).
+///
+/// Used for `B` (panels `NR` wide) and, in `Aᵀ·B`, for `A` (strips `MR`
+/// wide: row `i` of `Aᵀ` is column `i` of `A`). Reads `M` in its own memory
+/// order: rows of a row-major `M` (each row split over the panels), columns
+/// of a transposed view.
+fn pack_panels<T: Real>(b: MatRef<'_, T>, width: usize, dst: &mut [MaybeUninit<T>]) {
     let (k, n) = (b.rows, b.cols);
-    let panels = n.div_ceil(width);
-    let mut data = vec![T::ZERO; panels * k * width];
-    // Sequential (the large packs run inside the weight gradient's parallel
-    // chunks), reading B in its own memory order: rows of a row-major B
-    // (each row split over the panels), columns of a transposed view.
+    assert_eq!(dst.len(), n.div_ceil(width) * k * width, "pack: wrong size");
+    if k == 0 || n == 0 {
+        return;
+    }
     if b.col_stride == 1 {
-        for kk in 0..k {
-            let row = &b.data[kk * b.row_stride..kk * b.row_stride + n];
-            for (p, panel) in data.chunks_exact_mut(k * width).enumerate() {
-                let j0 = p * width;
-                let w = width.min(n - j0);
-                copy_short(&mut panel[kk * width..kk * width + w], &row[j0..j0 + w]);
-            }
+        // The kernels' widths as fixed-size moves.
+        match width {
+            4 => pack_rows::<T, 4>(b, dst),
+            6 => pack_rows::<T, 6>(b, dst),
+            8 => pack_rows::<T, 8>(b, dst),
+            12 => pack_rows::<T, 12>(b, dst),
+            16 => pack_rows::<T, 16>(b, dst),
+            32 => pack_rows::<T, 32>(b, dst),
+            _ => unreachable!("no kernel has panels {width} wide"),
         }
     } else {
-        for j in 0..n {
-            let (p, q) = (j / width, j % width);
-            let panel = &mut data[p * k * width..(p + 1) * k * width];
-            for (kk, dst) in panel.chunks_exact_mut(width).enumerate() {
-                dst[q] = b.at(kk, j);
+        // Column by column (contiguous in a transposed view), each written
+        // down its panel (which stays in cache).
+        for (p, panel) in dst.chunks_exact_mut(k * width).enumerate() {
+            let j0 = p * width;
+            let w = width.min(n - j0);
+            for q in 0..w {
+                let c0 = (j0 + q) * b.col_stride;
+                for (kk, d) in panel.chunks_exact_mut(width).enumerate() {
+                    d[q].write(b.data[kk * b.row_stride + c0]);
+                }
+            }
+            if w < width {
+                for d in panel.chunks_exact_mut(width) {
+                    d[w..].iter_mut().for_each(|z| {
+                        z.write(T::ZERO);
+                    });
+                }
             }
         }
     }
-    PackedB { data, width, path }
+}
+
+/// [`pack_panels`] of a matrix with contiguous rows into panels `W` wide,
+/// full panels as fixed-size moves, in blocks of rows: the panels of a
+/// `KC`-row pass start a multiple of 4 KiB apart, so writing one row to
+/// every panel in turn would put all the writes in the same few cache sets
+/// (measured: packing then cost as much as the arithmetic); a block of rows
+/// (in cache) is written panel by panel instead, whole lines at a time.
+#[inline(always)]
+fn pack_rows<T: Real, const W: usize>(b: MatRef<'_, T>, dst: &mut [MaybeUninit<T>]) {
+    const ROWS: usize = 16;
+    let (k, n) = (b.rows, b.cols);
+    let full = n / W;
+    let tail = n - full * W;
+    for k0 in (0..k).step_by(ROWS) {
+        let k1 = (k0 + ROWS).min(k);
+        for p in 0..full {
+            for kk in k0..k1 {
+                let s0 = kk * b.row_stride + p * W;
+                copy_fixed::<T, W>(&mut dst[(p * k + kk) * W..], &b.data[s0..s0 + W]);
+            }
+        }
+        if tail > 0 {
+            for kk in k0..k1 {
+                let s0 = kk * b.row_stride + full * W;
+                let d = &mut dst[(full * k + kk) * W..(full * k + kk + 1) * W];
+                for (z, &v) in d.iter_mut().zip(&b.data[s0..s0 + tail]) {
+                    z.write(v);
+                }
+                d[tail..].iter_mut().for_each(|z| {
+                    z.write(T::ZERO);
+                });
+            }
+        }
+    }
 }
 
 /// `dst.copy_from_slice(src)` for the short rows of packing, with the
 /// common lengths as fixed-size moves (a `memmove` call per row of 6 or 16
 /// values cost a third of a weight-gradient product).
 #[inline(always)]
-fn copy_short<T: Copy>(dst: &mut [T], src: &[T]) {
-    #[inline(always)]
-    fn fixed<T: Copy, const N: usize>(dst: &mut [T], src: &[T]) {
-        let d: &mut [T; N] = dst.try_into().expect("length checked");
-        *d = *<&[T; N]>::try_from(src).expect("same length");
-    }
+fn copy_short<T: Copy>(dst: &mut [MaybeUninit<T>], src: &[T]) {
+    assert_eq!(dst.len(), src.len(), "copy: lengths differ");
     match dst.len() {
-        4 => fixed::<T, 4>(dst, src),
-        6 => fixed::<T, 6>(dst, src),
-        8 => fixed::<T, 8>(dst, src),
-        12 => fixed::<T, 12>(dst, src),
-        16 => fixed::<T, 16>(dst, src),
-        32 => fixed::<T, 32>(dst, src),
-        _ => dst.copy_from_slice(src),
+        4 => copy_fixed::<T, 4>(dst, src),
+        6 => copy_fixed::<T, 6>(dst, src),
+        8 => copy_fixed::<T, 8>(dst, src),
+        12 => copy_fixed::<T, 12>(dst, src),
+        16 => copy_fixed::<T, 16>(dst, src),
+        32 => copy_fixed::<T, 32>(dst, src),
+        _ => {
+            for (d, &v) in dst.iter_mut().zip(src) {
+                d.write(v);
+            }
+        }
     }
 }
 
-/// `Aᵀ` for `A` `[k, m]` (row-major rows of any stride, columns contiguous)
-/// packed in strips of `mr` rows of `Aᵀ`: strip `t` holds `Aᵀ[t·mr + r][p]`
-/// at `t·k·mr + p·mr + r`, zero-padded past row `m`.
-fn pack_a_transposed<T: Real>(a: MatRef<'_, T>, mr: usize) -> Vec<T> {
-    let (k, m) = (a.rows, a.cols);
-    let tiles = m.div_ceil(mr);
-    let mut out = vec![T::ZERO; tiles * k * mr];
-    if a.col_stride == 1 {
-        for p in 0..k {
-            let row = &a.data[p * a.row_stride..p * a.row_stride + m];
-            for (t, strip) in out.chunks_exact_mut(k * mr).enumerate() {
-                let r0 = t * mr;
-                let w = mr.min(m - r0);
-                copy_short(&mut strip[p * mr..p * mr + w], &row[r0..r0 + w]);
-            }
-        }
-    } else {
-        for p in 0..k {
-            for i in 0..m {
-                out[(i / mr) * k * mr + p * mr + i % mr] = a.at(p, i);
-            }
-        }
-    }
-    out
+/// The first `N` values of `src` into the first `N` slots of `dst`, as one
+/// fixed-size move (a few vector loads and stores).
+#[inline(always)]
+fn copy_fixed<T: Copy, const N: usize>(dst: &mut [MaybeUninit<T>], src: &[T]) {
+    let (d, s) = (&mut dst[..N], &src[..N]);
+    // SAFETY: both slices are N values long (the slicing above checks it),
+    // and they do not overlap (`dst` is borrowed mutably, `src` shared);
+    // `MaybeUninit<T>` has the layout of `T`.
+    unsafe { std::ptr::copy_nonoverlapping(s.as_ptr(), d.as_mut_ptr().cast::<T>(), N) }
+}
+
+/// An initialised slice as slots to overwrite.
+///
+/// # Safety
+/// Only initialised values may be written through the result (no
+/// `MaybeUninit::uninit()`), so that `v` holds valid values again when the
+/// borrow ends.
+unsafe fn as_slots<T>(v: &mut [T]) -> &mut [MaybeUninit<T>] {
+    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the caller writes only
+    // initialised values.
+    unsafe { &mut *(v as *mut [T] as *mut [MaybeUninit<T>]) }
 }
 
 /// Where a block's rows of `A` come from.
@@ -467,7 +740,11 @@ enum ASource<'a, T> {
     /// A view: full tiles of rows read in place by the vector kernels,
     /// other tiles gathered into a strip.
     View(MatRef<'a, T>),
-    /// Strips from [`pack_a_transposed`] (with the kernel's MR), starting at
+    /// A view whose rows are adjacent (`row_stride` 1, columns apart: `Aᵀ`
+    /// of a row-major `A`), full tiles read in place by the vector tiles
+    /// (`MR` consecutive values per term), partial ones gathered.
+    Columns(MatRef<'a, T>),
+    /// Strips from [`pack_panels`] (`MR` wide), starting at
     /// the block's first tile.
     Strips { data: &'a [T], rows: usize },
 }
@@ -522,7 +799,7 @@ type TileFn = unsafe fn(*const u8, usize, usize, *const u8, usize, *mut u8, usiz
 /// term. Writes every element of `c` and returns it, initialised.
 fn block_product<'c, T: Real>(
     a: ASource<'_, T>,
-    b: &PackedB<T>,
+    b: Panels<'_, T>,
     k: usize,
     n: usize,
     c: &'c mut [MaybeUninit<T>],
@@ -567,7 +844,7 @@ const KC: usize = 256;
 #[inline(always)]
 fn block_body<T: Real, const MR: usize, const NR: usize>(
     a: ASource<'_, T>,
-    b: &PackedB<T>,
+    b: Panels<'_, T>,
     k: usize,
     n: usize,
     c: &mut [MaybeUninit<T>],
@@ -575,9 +852,10 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
     simd: Option<TileFn>,
 ) {
     let rows = match a {
-        ASource::View(v) => v.rows,
+        ASource::View(v) | ASource::Columns(v) => v.rows,
         ASource::Strips { rows, .. } => rows,
     };
+    let a_src = a;
     debug_assert_eq!(c.len(), rows * n);
     debug_assert_eq!(b.width, NR);
     // The vector kernels read full blocks of MR rows of A in place; the
@@ -585,7 +863,8 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
     // strip[p*MR + r] = A[i+r, k0+p], missing rows zero. Same products, same
     // order: the same bits either way.
     let kc_max = KC.min(k).max(1);
-    let mut strip = vec![T::ZERO; kc_max * MR];
+    // Allocated when a tile first needs a gather (most products never do).
+    let mut strip: Vec<T> = Vec::new();
     let mut k0 = 0;
     loop {
         let kc = kc_max.min(k - k0);
@@ -600,6 +879,9 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
         // A of row tile i: (pointer, row stride, column stride).
         let tile_a = |i: usize| -> Option<(*const T, usize, usize)> {
             match a {
+                ASource::Columns(v) => {
+                    Some((v.data[i + k0 * v.col_stride..].as_ptr(), 1, v.col_stride))
+                }
                 ASource::View(v) if v.row_stride != 1 => Some((
                     v.data[i * v.row_stride + k0 * v.col_stride..].as_ptr(),
                     v.row_stride,
@@ -645,14 +927,17 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
             // once per row of tiles is cheaper than the strided reads.
             let (a, packed) = match a {
                 ASource::View(v) => (v, None),
+                ASource::Columns(v) => (v, None),
                 ASource::Strips { data, .. } => {
                     let s0 = (i / MR) * k * MR + k0 * MR;
                     (MatRef::row_major(&[], 0, 0), Some(&data[s0..s0 + kc * MR]))
                 }
             };
-            let direct =
-                simd.is_some() && mr == MR && kc > 0 && a.row_stride != 1 && packed.is_none();
-            if mr < MR && packed.is_none() {
+            let in_place = a.row_stride != 1 || matches!(a_src, ASource::Columns(_));
+            let direct = simd.is_some() && mr == MR && kc > 0 && in_place && packed.is_none();
+            if !direct && packed.is_none() && strip.is_empty() {
+                strip = vec![T::ZERO; kc_max * MR];
+            } else if mr < MR && packed.is_none() {
                 strip.fill(T::ZERO);
             }
             if direct || packed.is_some() {
@@ -661,7 +946,9 @@ fn block_body<T: Real, const MR: usize, const NR: usize>(
                 // Columns of A are contiguous (a transposed view).
                 for (p, dst) in strip[..kc * MR].chunks_exact_mut(MR).enumerate() {
                     let s0 = (k0 + p) * a.col_stride + i;
-                    copy_short(&mut dst[..mr], &a.data[s0..s0 + mr]);
+                    // SAFETY: copy_short writes values only.
+                    let slots = unsafe { as_slots(dst) };
+                    copy_short(&mut slots[..mr], &a.data[s0..s0 + mr]);
                 }
             } else {
                 for r in 0..mr {
@@ -1067,6 +1354,87 @@ mod tests {
     #[test]
     fn fast_products_match_reference_bits_f64() {
         on_every_path(check_all::<f64>);
+    }
+
+    /// `A` `[rows, cols]` as a row-major matrix, a transposed view of its
+    /// transpose, and a view with padding columns (row stride above the
+    /// width): the same matrix in three layouts.
+    fn layouts<T: Real>(seed: u64, rows: usize, cols: usize) -> [(Vec<T>, MatRef<'static, T>); 3] {
+        let plain = random::<T>(seed, rows * cols);
+        let mut tr = vec![T::ZERO; rows * cols];
+        let mut padded = random::<T>(seed + 1, rows * (cols + 3));
+        for i in 0..rows {
+            for j in 0..cols {
+                tr[j * rows + i] = plain[i * cols + j];
+                padded[i * (cols + 3) + 2 + j] = plain[i * cols + j];
+            }
+        }
+        let leak = |v: Vec<T>| -> &'static [T] { Box::leak(v.into_boxed_slice()) };
+        let (p, t, d) = (leak(plain.clone()), leak(tr.clone()), leak(padded.clone()));
+        [
+            (plain, MatRef::row_major(p, rows, cols)),
+            (tr, MatRef::row_major(t, cols, rows).t()),
+            (padded, MatRef::row_major(d, rows, cols + 3).cols(2, cols)),
+        ]
+    }
+
+    /// Both products on shapes around the tile sizes (`m < MR`, `m`, `n`
+    /// and `k` off the tile multiples, `k` below and above `KC`, reductions
+    /// over one and several chunks, both orientations of `Aᵀ·B`) and on
+    /// row-major, transposed and strided views: the same bits as the plain
+    /// scalar loops.
+    fn check_shapes_and_views<T: Real>() {
+        for &(m, k, n) in &[
+            (5, 300, 40),
+            (11, 64, 64),
+            (64, 64, 64),
+            (61, 512, 64),
+            (37, KC - 1, 33),
+            (25, KC + 1, 97),
+            (1, 3, 31),
+        ] {
+            for (_, a) in layouts::<T>(20 + m as u64, m, k) {
+                for (_, b) in layouts::<T>(30 + n as u64, k, n) {
+                    assert_eq!(
+                        bits(&matmul(a, b)),
+                        bits(&reference::matmul(a, b)),
+                        "nn {m}x{k}x{n} strides {:?} {:?}",
+                        (a.row_stride, a.col_stride),
+                        (b.row_stride, b.col_stride)
+                    );
+                }
+            }
+        }
+        for &(r, m, n) in &[
+            (100, 7, 33),
+            (300, 64, 512),
+            (300, 512, 64),
+            (513, 5, 70),
+            (2 * REDUCTION_CHUNK + KC + 3, 13, 37),
+            (REDUCTION_CHUNK, 64, 64),
+            (700, 93, 12),
+            // More chunks than twice the threads of a small machine: chunks
+            // not split over output rows.
+            (5 * REDUCTION_CHUNK + 7, 29, 40),
+        ] {
+            for (_, a) in layouts::<T>(40 + m as u64, r, m) {
+                for (_, b) in layouts::<T>(50 + n as u64, r, n) {
+                    assert_eq!(
+                        bits(&matmul_tn(a, b)),
+                        bits(&reference::matmul_tn(a, b)),
+                        "tn {r}x{m}x{n} strides {:?} {:?}",
+                        (a.row_stride, a.col_stride),
+                        (b.row_stride, b.col_stride)
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn odd_shapes_and_views_match_reference_bits() {
+        on_every_path(check_shapes_and_views::<f32>);
+        on_every_path(check_shapes_and_views::<f64>);
     }
 
     /// `[A₁ | A₂]·[B₁; B₂]` from the blocks equals the product of the
