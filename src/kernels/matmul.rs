@@ -272,7 +272,7 @@ pub fn matmul_block_resume<T: Real>(a: MatRef<'_, T>, b: &Packed<T>, c: &mut [T]
     // reads `c`'s values (resumed sums) and writes initialised ones, so `c`
     // stays initialised.
     let cu = unsafe { &mut *(c as *mut [T] as *mut [MaybeUninit<T>]) };
-    block_product(ASource::View(a), &b.b, b.k, b.n, cu, true);
+    block_product(ASource::View(a), b.b.panels(), b.k, b.n, cu, true);
 }
 
 /// `C = Aᵀ · B` for `A` `[r, m]` and `B` `[r, n]`: a reduction over the `r`
