@@ -51,6 +51,7 @@ pub(crate) mod project;
 pub(crate) mod rasterize;
 pub(crate) mod rasterize_vjp;
 pub mod scene;
+pub mod stages;
 pub(crate) mod tiles;
 
 use crate::camera::RasterCamera;
@@ -498,9 +499,11 @@ fn forward<T: Real>(
         colors.push(c);
         covs.push(v);
     }
+    stages::mark("project");
 
     // 2. Binning, and the splat data of every entry in list order.
     let binning = tiles::bin(&proj, intr.grid);
+    stages::mark("bin");
     let power_mins: Vec<T> = input
         .opacities
         .par_iter()
@@ -522,6 +525,7 @@ fn forward<T: Real>(
             }
         })
         .collect();
+    stages::mark("gather");
 
     // 3. Per-row blending.
     let grid_x = intr.grid[0] as usize;
@@ -543,6 +547,7 @@ fn forward<T: Real>(
     };
     let mut blended: Vec<Vec<Blended>> = vec![Vec::new(); h];
     let mut blended_end = vec![0u32; h * grid_x];
+    stages::mark("allocate");
     let (c0, rest) = out.color.split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
     let evaluated: u64 = (
@@ -573,6 +578,7 @@ fn forward<T: Real>(
             },
         )
         .sum();
+    stages::mark("blend");
     let state = RasterizeSaved {
         intr,
         proj,

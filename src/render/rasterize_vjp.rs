@@ -352,9 +352,10 @@ pub fn rasterize_vjp<T: Real>(
     check_cotangents(input, saved, grad_color, grad_depth)?;
     let entry = entry_gradients(input, saved, grad_color, grad_depth, mode);
     let (start, index) = gaussian_entries(saved);
-    Ok(gaussian_gradients(
-        input, saved, &entry, &start, &index, mode,
-    ))
+    super::stages::mark("entry index");
+    let grads = gaussian_gradients(input, saved, &entry, &start, &index, mode);
+    super::stages::mark("per Gaussian");
+    Ok(grads)
 }
 
 /// Check that `input` is the one `saved` was computed from (count and image
@@ -411,6 +412,7 @@ fn entry_gradients<T: Real>(
     let (w, h) = (saved.intr.width, saved.intr.height);
     let grid_x = saved.intr.grid[0] as usize;
     let mut entry = vec![EntryGrad::ZERO; saved.num_rendered()];
+    super::stages::mark("entry alloc");
     let mut rest: &mut [EntryGrad<T>] = &mut entry;
     let mut chunks = Vec::with_capacity(saved.binning.ranges.len());
     let mut pos = 0usize;
@@ -445,6 +447,7 @@ fn entry_gradients<T: Real>(
             };
             tile_vjp(&job, buf, rec);
         });
+    super::stages::mark("tiles");
     entry
 }
 
