@@ -475,7 +475,7 @@ fn forward<T: Real>(
     let (w, h) = (intr.width, intr.height);
 
     // 1. Per-Gaussian preprocessing.
-    let per: Vec<(Projected<T>, ShColorSaved<T>, [T; 6])> = (0..n)
+    let (proj, (colors, covs)): (Vec<Projected<T>>, (Vec<ShColorSaved<T>>, Vec<[T; 6]>)) = (0..n)
         .into_par_iter()
         .map(|i| {
             let cov = input.cov3d(i);
@@ -489,17 +489,9 @@ fn forward<T: Real>(
                     clamped: [false; 3],
                 }
             };
-            (p, c, cov)
+            (p, (c, cov))
         })
-        .collect();
-    let mut proj = Vec::with_capacity(n);
-    let mut colors = Vec::with_capacity(n);
-    let mut covs = Vec::with_capacity(n);
-    for (p, c, v) in per {
-        proj.push(p);
-        colors.push(c);
-        covs.push(v);
-    }
+        .unzip();
     stages::mark("project");
 
     // 2. Binning, and the splat data of every entry in list order.
@@ -534,11 +526,15 @@ fn forward<T: Real>(
     let mut out = RasterOutput {
         color: vec![T::ZERO; 3 * hw],
         depth: vec![T::ZERO; hw],
-        radii: proj.iter().map(|p| p.radius).collect(),
+        radii: proj.par_iter().map(|p| p.radius).collect(),
         final_t: vec![T::ZERO; hw],
         n_contrib: vec![0; hw],
-        means2d: proj.iter().flat_map(|p| p.xy).collect(),
+        means2d: vec![T::ZERO; 2 * n],
     };
+    out.means2d
+        .par_chunks_mut(2)
+        .zip(&proj)
+        .for_each(|(m, p)| m.copy_from_slice(&p.xy));
     let frame = rasterize::Frame {
         splats: &splats,
         ranges: &binning.ranges,
