@@ -475,7 +475,7 @@ fn forward<T: Real>(
     let (w, h) = (intr.width, intr.height);
 
     // 1. Per-Gaussian preprocessing.
-    let (proj, (colors, covs)): (Vec<Projected<T>>, (Vec<ShColorSaved<T>>, Vec<[T; 6]>)) = (0..n)
+    let (proj, (colors, covs)): (Vec<Projected<T>>, (Vec<_>, Vec<_>)) = (0..n)
         .into_par_iter()
         .map(|i| {
             let cov = input.cov3d(i);
