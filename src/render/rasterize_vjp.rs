@@ -433,29 +433,14 @@ fn entry_gradients<T: Real>(
             continue;
         }
         let (head, tail) = rest.split_at_mut(e - s);
-        // The tile's cost: the entries its rows replay, and per row a fixed
-        // part.
-        let [_, _, y0, y1] = raster::tile_bounds(tile, grid_x, w, h);
-        let tx = tile % grid_x;
-        let cost: usize = (y0..y1)
-            .map(|py| {
-                let ends = &saved.blended_end[py * grid_x..(py + 1) * grid_x];
-                let start = if tx == 0 { 0 } else { ends[tx - 1] };
-                (ends[tx] - start) as usize + 4
-            })
-            .sum();
-        chunks.push((cost, tile, s, head));
+        chunks.push((tile, s, head));
         rest = tail;
         pos = e;
     }
     assert!(pos == m, "tile ranges do not cover the list");
-    // The most expensive tiles first, each taken by the next free worker, so
-    // that the pass ends with short tiles on every worker. Every tile writes
-    // only its own entries: the order changes no result.
-    chunks.sort_unstable_by_key(|c| (std::cmp::Reverse(c.0), c.1));
-    chunks.into_iter().par_bridge().for_each_init(
+    chunks.into_par_iter().for_each_init(
         || (Vec::new(), Vec::new()),
-        |(rec, scratch), (_, tile, s, out)| {
+        |(rec, scratch), (tile, s, out)| {
             let job = TileJob {
                 splats: &saved.splats[s..s + out.len()],
                 blended: &saved.blended,
