@@ -38,9 +38,8 @@
 //! bits on every path (see the private modules `lanes` and `rasterize`). In f32
 //! the rasterizer's `exp` is [`crate::kernels::fastmath::exp_f32`] (≤ 1 ulp);
 //! f64 uses the pinned libm.
-//! Forward: parallel over Gaussians (independent), over bands of tile rows
-//! (binning) and over image rows (each row owns its pixels). Backward: each
-//! tile accumulates into a buffer
+//! Forward: parallel over Gaussians (independent) and over image rows (each
+//! row owns its pixels). Backward: each tile accumulates into a buffer
 //! indexed by list position, per entry the fixed pairwise sum of a row's 16
 //! pixels, rows in ascending order; each Gaussian then sums its entries in
 //! ascending list position; the chain rule runs per Gaussian. No result

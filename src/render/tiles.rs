@@ -6,15 +6,9 @@
 //! Gaussian index: the order is `(tile, depth bits, gaussian index)`. Here a
 //! counting sort by tile (in ascending Gaussian index) is followed by a sort
 //! of each tile's entries by `(depth bits, gaussian index)`; because that pair
-//! is unique within a tile, an unstable sort gives one result. Depth is
+//! is unique within a tile, an unstable sort gives one result, and tiles are
+//! sorted in parallel with the same result on any thread count. Depth is
 //! positive (> 0.2), so its IEEE bit pattern orders like its value.
-//!
-//! The work runs in parallel over bands of tile rows (about 16 per image,
-//! fixed by the image size): one serial pass lists the Gaussians crossing
-//! each band in ascending index and counts the band's entries, which fixes
-//! where each band's part of the list starts; then each band counts its
-//! tiles, fills them and sorts them on its own. The list is the same on any
-//! thread count.
 
 use super::project::Projected;
 use crate::math::Real;
@@ -29,115 +23,72 @@ pub(crate) struct Binning {
     pub ranges: Vec<[u32; 2]>,
 }
 
-/// Tile rows per band of the binning: about 16 bands per image, each a
-/// parallel task (the same bands on every thread count).
-fn band_rows(grid_y: usize) -> usize {
-    grid_y.div_ceil(16).max(1)
-}
-
 pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
-    let (gx, gy) = (grid[0] as usize, grid[1] as usize);
-    let rows = band_rows(gy);
-    let n_bands = gy.div_ceil(rows);
-    // The visible Gaussians crossing each band of tile rows, in ascending
-    // index, with their tile rectangles `[x0, x1, y0, y1]`, and the number
-    // of entries each band receives.
-    let mut members: Vec<Vec<(u32, [u32; 4])>> = vec![Vec::new(); n_bands];
-    let mut band_len = vec![0usize; n_bands];
-    for (i, p) in proj.iter().enumerate() {
-        if p.radius > 0 && p.rect_min[0] < p.rect_max[0] {
-            let [x0, y0] = p.rect_min;
-            let [x1, y1] = p.rect_max;
-            let mut y = y0;
-            while y < y1 {
-                let b = y as usize / rows;
-                let end = y1.min(((b + 1) * rows) as u32);
-                members[b].push((i as u32, [x0, x1, y0, y1]));
-                band_len[b] += (x1 - x0) as usize * (end - y) as usize;
-                y = end;
+    let n_tiles = grid[0] as usize * grid[1] as usize;
+    // Entries per tile, then each tile's start by an exclusive prefix sum.
+    let mut ranges = vec![[0u32; 2]; n_tiles];
+    for p in proj {
+        if p.radius > 0 {
+            for y in p.rect_min[1]..p.rect_max[1] {
+                let row = (y * grid[0]) as usize;
+                for x in p.rect_min[0]..p.rect_max[0] {
+                    ranges[row + x as usize][1] += 1;
+                }
             }
         }
     }
-    // Per band in parallel: entries per tile, each tile's range by an
-    // exclusive prefix sum from the band's start, the fill in ascending
-    // Gaussian index, then each tile sorted by depth bits, then index.
-    let mut ranges = vec![[0u32; 2]; gx * gy];
-    let mut list = vec![0u32; band_len.iter().sum()];
-    let mut pieces = Vec::with_capacity(n_bands);
-    let (mut rest_r, mut rest_l): (&mut [[u32; 2]], &mut [u32]) = (&mut ranges, &mut list);
-    let mut base = 0usize;
-    for (b, (m, &len)) in members.iter().zip(&band_len).enumerate() {
-        let (r, tail_r) = rest_r.split_at_mut((rows * gx).min(rest_r.len()));
-        let (l, tail_l) = rest_l.split_at_mut(len);
-        pieces.push(((b * rows) as u32, m, base as u32, r, l));
-        (rest_r, rest_l) = (tail_r, tail_l);
-        base += len;
+    let mut total = 0u32;
+    for r in ranges.iter_mut() {
+        let n = r[1];
+        *r = [total, total];
+        total += n;
     }
-    pieces
-        .into_par_iter()
-        .for_each(|(ty0, members, base, ranges, out)| {
-            let ty1 = ty0 + (ranges.len() / gx) as u32;
-            for &(_, [x0, x1, y0, y1]) in members.iter() {
-                for y in y0.max(ty0)..y1.min(ty1) {
-                    let row = (y - ty0) as usize * gx;
-                    for r in &mut ranges[row + x0 as usize..row + x1 as usize] {
-                        r[1] += 1;
-                    }
+    // Fill in ascending Gaussian index; `ranges[t][1]` is the fill cursor and
+    // ends at the tile's end.
+    let mut list = vec![0u32; total as usize];
+    for (i, p) in proj.iter().enumerate() {
+        if p.radius > 0 {
+            for y in p.rect_min[1]..p.rect_max[1] {
+                let row = (y * grid[0]) as usize;
+                for x in p.rect_min[0]..p.rect_max[0] {
+                    let r = &mut ranges[row + x as usize];
+                    list[r[1] as usize] = i as u32;
+                    r[1] += 1;
                 }
             }
-            // `r[1]` becomes the fill cursor and ends at the tile's end.
-            let mut total = base;
-            for r in ranges.iter_mut() {
-                let n = r[1];
-                *r = [total, total];
-                total += n;
-            }
-            for &(g, [x0, x1, y0, y1]) in members.iter() {
-                for y in y0.max(ty0)..y1.min(ty1) {
-                    let row = (y - ty0) as usize * gx;
-                    for r in &mut ranges[row + x0 as usize..row + x1 as usize] {
-                        out[(r[1] - base) as usize] = g;
-                        r[1] += 1;
-                    }
-                }
-            }
-            let mut keys = (Vec::new(), Vec::new());
-            for r in ranges.iter() {
-                let tile = &mut out[(r[0] - base) as usize..(r[1] - base) as usize];
-                sort_tile(proj, tile, &mut keys);
-            }
-        });
-    Binning { list, ranges }
-}
-
-/// Sort one tile's Gaussians by (depth bits, index); the pair is unique, so
-/// the order is one. `keys` is scratch (u64 keys for f32 depths, u128 for
-/// f64).
-fn sort_tile<T: Real>(proj: &[Projected<T>], tile: &mut [u32], keys: &mut (Vec<u64>, Vec<u128>)) {
-    if tile.len() < 2 {
-        return;
+        }
+    }
+    // Per tile: by depth bits, then index, as one packed integer key.
+    let mut chunks = Vec::with_capacity(n_tiles);
+    let mut rest: &mut [u32] = &mut list;
+    for r in &ranges {
+        let (head, tail) = rest.split_at_mut((r[1] - r[0]) as usize);
+        if head.len() > 1 {
+            chunks.push(head);
+        }
+        rest = tail;
     }
     let depth_bits = |g: u32| proj[g as usize].depth.bits();
     if std::mem::size_of::<T>() <= 4 {
-        let k = &mut keys.0;
-        k.clear();
-        k.extend(tile.iter().map(|&g| depth_bits(g) << 32 | g as u64));
-        k.sort_unstable();
-        for (o, k) in tile.iter_mut().zip(k.iter()) {
-            *o = *k as u32;
-        }
+        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
+            keys.clear();
+            keys.extend(c.iter().map(|&g| depth_bits(g) << 32 | g as u64));
+            keys.sort_unstable();
+            for (o, k) in c.iter_mut().zip(keys.iter()) {
+                *o = *k as u32;
+            }
+        });
     } else {
-        let k = &mut keys.1;
-        k.clear();
-        k.extend(
-            tile.iter()
-                .map(|&g| (depth_bits(g) as u128) << 32 | g as u128),
-        );
-        k.sort_unstable();
-        for (o, k) in tile.iter_mut().zip(k.iter()) {
-            *o = *k as u32;
-        }
+        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
+            keys.clear();
+            keys.extend(c.iter().map(|&g| (depth_bits(g) as u128) << 32 | g as u128));
+            keys.sort_unstable();
+            for (o, k) in c.iter_mut().zip(keys.iter()) {
+                *o = *k as u32;
+            }
+        });
     }
+    Binning { list, ranges }
 }
 
 #[cfg(test)]
@@ -166,12 +117,12 @@ mod tests {
         assert_eq!(b.ranges, vec![[0, 2], [2, 4]]);
     }
 
-    /// The banded binning against one sort of every `(tile, depth bits,
-    /// index)` key, on grids of one band, of one-row bands and of several-row
-    /// bands with a short last band, with rectangles spanning many bands,
-    /// empty rectangles, culled Gaussians and tied depths.
+    /// The binning against one sort of every `(tile, depth bits, index)`
+    /// key, on grids of one tile row, one column and several of each, with
+    /// rectangles spanning many tile rows, empty rectangles, culled Gaussians
+    /// and tied depths.
     #[test]
-    fn bands_give_the_order_of_one_global_sort() {
+    fn order_is_that_of_one_global_sort() {
         let mut rng = crate::math::rng::Rng::new(17);
         let mut next = |m: u32| (rng.next_u64() % m as u64) as u32;
         for grid in [[6u32, 1u32], [5, 11], [4, 37], [1, 50]] {
