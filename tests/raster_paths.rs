@@ -2,8 +2,7 @@
 //! AVX2, portable; those the CPU has) and every thread count: forward outputs
 //! and backward gradients in both gradient modes, f32, on scenes with partial
 //! tiles, stopped pixels, clamped alphas and imbalanced tiles (the parallel
-//! binning, tile and per-Gaussian stages see different splits on each thread
-//! count).
+//! tile and per-Gaussian stages see different splits on each thread count).
 
 mod support;
 
@@ -54,9 +53,7 @@ fn cases() -> Vec<(SceneSpec, ColorSource, CovSource)> {
     dense.opacity_range = (0.5, 0.999);
     dense.scale_range = (0.01, 0.08);
     // Imbalanced tiles: Gaussians crowded in the middle of the frame, some
-    // large enough to span many tiles and many bands of the binning (one
-    // tile row per band at 200×170; two per band, the last one short, at
-    // 96×300).
+    // large enough to span many tiles and tile rows.
     let mut crowded = SceneSpec::bench(200, 170, 1500, 5);
     crowded.spread = 0.25;
     crowded.scale_range = (0.005, 0.25);
