@@ -1,7 +1,8 @@
 //! The rasterizer gives the same bits on every instruction-set path (AVX-512,
 //! AVX2, portable; those the CPU has) and every thread count: forward outputs
 //! and backward gradients in both gradient modes, f32, on scenes with partial
-//! tiles, stopped pixels and clamped alphas.
+//! tiles, stopped pixels, clamped alphas and imbalanced tiles (the parallel
+//! tile and per-Gaussian stages see different splits on each thread count).
 
 mod support;
 
@@ -51,7 +52,17 @@ fn cases() -> Vec<(SceneSpec, ColorSource, CovSource)> {
     let mut dense = SceneSpec::bench(70, 45, 3000, 11);
     dense.opacity_range = (0.5, 0.999);
     dense.scale_range = (0.01, 0.08);
+    // Imbalanced tiles: Gaussians crowded in the middle of the frame, some
+    // large enough to span many tiles and tile rows.
+    let mut crowded = SceneSpec::bench(200, 170, 1500, 5);
+    crowded.spread = 0.25;
+    crowded.scale_range = (0.005, 0.25);
+    let mut tall = SceneSpec::bench(96, 300, 1200, 9);
+    tall.spread = 0.4;
+    tall.scale_range = (0.005, 0.3);
     vec![
+        (crowded, ColorSource::Sh, CovSource::ScaleRotation),
+        (tall, ColorSource::Precomputed, CovSource::ScaleRotation),
         (
             SceneSpec::bench(70, 45, 400, 3),
             ColorSource::Sh,

@@ -132,6 +132,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
         ("bwd %", 6),
     ]);
     table.print_header();
+    let mut stage_lines = Vec::new();
     for (w, h, n) in [
         (800usize, 800usize, 50_000usize),
         (400, 400, 20_000),
@@ -166,6 +167,27 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
                     r?;
                     b.push(t);
                 }
+                // Stage times, in separate runs (each mark reads the
+                // process CPU clock): the stages of the fastest of `reps` runs.
+                let mut stages = [Vec::new(), Vec::new()];
+                for _ in 0..reps {
+                    let (r, fs) = render::stages::record(|| render::rasterize(&input));
+                    let (_, state) = r?;
+                    let (r, bs) = render::stages::record(|| {
+                        render::rasterize_vjp(
+                            &input,
+                            &state,
+                            &grad,
+                            None,
+                            render::GradientMode::Exact,
+                        )
+                    });
+                    r?;
+                    for (acc, new) in stages.iter_mut().zip([fs, bs]) {
+                        fastest_stages(acc, new);
+                    }
+                }
+                stage_lines.push((format!("{w}x{h} {n}"), threads, stages));
                 Ok((f.min(), b.min(), pairs))
             })?;
             let rate = [pairs as f64 / fwd, pairs as f64 / bwd];
@@ -195,7 +217,31 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
          (backward) FLOP per pair over the FMA peak)",
         RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
     );
+    println!(
+        "stages, ms wall (ms CPU of the process, all threads), of the fastest of {reps} runs:"
+    );
+    for (scene, threads, passes) in &stage_lines {
+        for (pass, st) in ["fwd", "bwd"].iter().zip(passes) {
+            let cells: Vec<String> = st
+                .iter()
+                .map(|s| match s.cpu {
+                    Some(c) => format!("{} {:.2} ({:.2})", s.name, s.wall * 1e3, c * 1e3),
+                    None => format!("{} {:.2}", s.name, s.wall * 1e3),
+                })
+                .collect();
+            println!("  {scene:<14} {threads:>2} {pass}: {}", cells.join(", "));
+        }
+    }
     Ok(())
+}
+
+/// Keep in `acc` the stages of the faster run (by total wall time) of `acc`
+/// and `new`.
+fn fastest_stages(acc: &mut Vec<render::stages::StageTime>, new: Vec<render::stages::StageTime>) {
+    let total = |v: &[render::stages::StageTime]| v.iter().map(|s| s.wall).sum::<f64>();
+    if acc.is_empty() || total(&new) < total(acc) {
+        *acc = new;
+    }
 }
 
 /// Train `spec` in memory (no files) in its precision and print the mean

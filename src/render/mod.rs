@@ -51,6 +51,7 @@ pub(crate) mod project;
 pub(crate) mod rasterize;
 pub(crate) mod rasterize_vjp;
 pub mod scene;
+pub mod stages;
 pub(crate) mod tiles;
 
 use crate::camera::RasterCamera;
@@ -473,7 +474,7 @@ fn forward<T: Real>(
     let (w, h) = (intr.width, intr.height);
 
     // 1. Per-Gaussian preprocessing.
-    let per: Vec<(Projected<T>, ShColorSaved<T>, [T; 6])> = (0..n)
+    let (proj, (colors, covs)): (Vec<Projected<T>>, (Vec<_>, Vec<_>)) = (0..n)
         .into_par_iter()
         .map(|i| {
             let cov = input.cov3d(i);
@@ -487,20 +488,14 @@ fn forward<T: Real>(
                     clamped: [false; 3],
                 }
             };
-            (p, c, cov)
+            (p, (c, cov))
         })
-        .collect();
-    let mut proj = Vec::with_capacity(n);
-    let mut colors = Vec::with_capacity(n);
-    let mut covs = Vec::with_capacity(n);
-    for (p, c, v) in per {
-        proj.push(p);
-        colors.push(c);
-        covs.push(v);
-    }
+        .unzip();
+    stages::mark("project");
 
     // 2. Binning, and the splat data of every entry in list order.
     let binning = tiles::bin(&proj, intr.grid);
+    stages::mark("bin");
     let power_mins: Vec<T> = input
         .opacities
         .par_iter()
@@ -522,6 +517,7 @@ fn forward<T: Real>(
             }
         })
         .collect();
+    stages::mark("gather");
 
     // 3. Per-row blending.
     let grid_x = intr.grid[0] as usize;
@@ -529,11 +525,15 @@ fn forward<T: Real>(
     let mut out = RasterOutput {
         color: vec![T::ZERO; 3 * hw],
         depth: vec![T::ZERO; hw],
-        radii: proj.iter().map(|p| p.radius).collect(),
+        radii: proj.par_iter().map(|p| p.radius).collect(),
         final_t: vec![T::ZERO; hw],
         n_contrib: vec![0; hw],
-        means2d: proj.iter().flat_map(|p| p.xy).collect(),
+        means2d: vec![T::ZERO; 2 * n],
     };
+    out.means2d
+        .par_chunks_mut(2)
+        .zip(&proj)
+        .for_each(|(m, p)| m.copy_from_slice(&p.xy));
     let frame = rasterize::Frame {
         splats: &splats,
         ranges: &binning.ranges,
@@ -543,6 +543,7 @@ fn forward<T: Real>(
     };
     let mut blended: Vec<Vec<Blended>> = vec![Vec::new(); h];
     let mut blended_end = vec![0u32; h * grid_x];
+    stages::mark("allocate");
     let (c0, rest) = out.color.split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
     let evaluated: u64 = (
@@ -573,6 +574,7 @@ fn forward<T: Real>(
             },
         )
         .sum();
+    stages::mark("blend");
     let state = RasterizeSaved {
         intr,
         proj,

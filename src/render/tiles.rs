@@ -116,4 +116,52 @@ mod tests {
         assert_eq!(b.list, vec![0, 2, 1, 0]);
         assert_eq!(b.ranges, vec![[0, 2], [2, 4]]);
     }
+
+    /// The binning against one sort of every `(tile, depth bits, index)`
+    /// key, on grids of one tile row, one column and several of each, with
+    /// rectangles spanning many tile rows, empty rectangles, culled Gaussians
+    /// and tied depths.
+    #[test]
+    fn order_is_that_of_one_global_sort() {
+        let mut rng = crate::math::rng::Rng::new(17);
+        let mut next = |m: u32| (rng.next_u64() % m as u64) as u32;
+        for grid in [[6u32, 1u32], [5, 11], [4, 37], [1, 50]] {
+            let proj: Vec<Projected<f64>> = (0..400)
+                .map(|_| {
+                    if next(10) == 0 {
+                        return Projected::culled();
+                    }
+                    let x0 = next(grid[0]);
+                    let y0 = next(grid[1]);
+                    let x1 = (x0 + next(3)).min(grid[0]);
+                    let tall = next(4) == 0;
+                    let y1 = (y0 + 1 + next(if tall { grid[1] } else { 3 })).min(grid[1]);
+                    splat(1.0 + next(7) as f64, [x0, y0], [x1, y1])
+                })
+                .collect();
+            let mut keys = Vec::new();
+            for (i, p) in proj.iter().enumerate() {
+                if p.radius > 0 {
+                    for y in p.rect_min[1]..p.rect_max[1] {
+                        for x in p.rect_min[0]..p.rect_max[0] {
+                            let tile = (y * grid[0] + x) as u64;
+                            keys.push((tile, p.depth.to_bits(), i as u32));
+                        }
+                    }
+                }
+            }
+            keys.sort_unstable();
+            let b = bin(&proj, grid);
+            let want: Vec<u32> = keys.iter().map(|k| k.2).collect();
+            assert_eq!(b.list, want, "grid {grid:?}");
+            let n_tiles = (grid[0] * grid[1]) as usize;
+            let ranges: Vec<[u32; 2]> = (0..n_tiles as u64)
+                .map(|t| {
+                    let s = keys.partition_point(|k| k.0 < t) as u32;
+                    [s, keys.partition_point(|k| k.0 <= t) as u32]
+                })
+                .collect();
+            assert_eq!(b.ranges, ranges, "grid {grid:?}");
+        }
+    }
 }
