@@ -1,6 +1,7 @@
 // The OpenSplat half of benches/compare_opensplat.sh: OpenSplat's CPU
 // renderer (rasterizer/gsplat-cpu/gsplat_cpu.cpp, compiled in from an
-// OpenSplat checkout) run on the scene benches/opensplat_scene.rs wrote, as
+// OpenSplat checkout) run on the scene benches/opensplat_scene.rs wrote (per
+// camera, the Gaussians the rasterizer receives there), as
 // OpenSplat's Model::forward runs it on the CPU (projection and SH as
 // libtorch operations, the untiled rasterizer), with the same output
 // gradients; the backward is OpenSplat's rasterize_backward_tensor_cpu
@@ -92,13 +93,6 @@ int main(int argc, char **argv) {
         }
     }
     const int64_t K = 16;
-    auto g = read_f32(dir + "/gaussians.f32", n * (3 + 3 + 4 + 1 + 3 * K));
-    size_t o = 0;
-    auto means0 = tensor(g, o, {n, 3}); o += 3 * n;
-    auto scales0 = tensor(g, o, {n, 3}); o += 3 * n;
-    auto quats0 = tensor(g, o, {n, 4}); o += 4 * n;
-    auto opac0 = tensor(g, o, {n, 1}); o += n;
-    auto sh0 = tensor(g, o, {n, K, 3});
 
     double fwd_total = 0, bwd_total = 0, fwd_cpu = 0, bwd_cpu = 0;
     // Tolerances of the agreement check (see benches/README.md). The two
@@ -118,6 +112,14 @@ int main(int argc, char **argv) {
     std::printf("%-6s %12s %12s %10s %10s %10s %10s %10s\n", "camera", "image max", "image rel",
                 "means", "scales", "quats", "opacity", "sh");
     for (int64_t k = 0; k < cams; k++) {
+        // The Gaussians the rasterizer receives at camera k (deformed at its time).
+        auto g = read_f32(dir + "/gaussians" + std::to_string(k) + ".f32", n * (3 + 3 + 4 + 1 + 3 * K));
+        size_t o = 0;
+        auto means0 = tensor(g, o, {n, 3}); o += 3 * n;
+        auto scales0 = tensor(g, o, {n, 3}); o += 3 * n;
+        auto quats0 = tensor(g, o, {n, 4}); o += 4 * n;
+        auto opac0 = tensor(g, o, {n, 1}); o += n;
+        auto sh0 = tensor(g, o, {n, K, 3});
         auto c = read_f32(dir + "/camera" + std::to_string(k) + ".f32", 16 + 16 + 2 + 3 + 3);
         auto viewmat = tensor(c, 0, {4, 4});
         auto projmat = tensor(c, 16, {4, 4});
