@@ -69,6 +69,67 @@ static double rel_l2(const torch::Tensor &a, const torch::Tensor &b) {
     return r == 0.0 ? d : d / r;
 }
 
+// OpenSplat's projection normalises each quaternion before it builds the
+// rotation (quatToRot in gsplat_cpu.cpp); upstream's rasterizer, which
+// liquid-splat follows, uses the quaternion as given (computeCov3D in
+// diff-gaussian-rasterization's forward.cu), and a deformed Gaussian's
+// quaternion (rotation + d_rotation) is not unit. To hand OpenSplat the same
+// Gaussians, each one whose quaternion is not unit is rewritten in OpenSplat's
+// terms: its covariance R(q) S^2 R(q)^T from the quaternion as given (in
+// double), eigendecomposed into a rotation (as a unit quaternion) and scales
+// (the square roots of the eigenvalues). The covariance, hence the image and
+// the means and opacity gradients, are the same; the scales' and
+// quaternions' gradients are then of other parameters. Returns how many
+// Gaussians were rewritten.
+static int64_t to_unit_quaternions(torch::Tensor &scales, torch::Tensor &quats) {
+    auto q = quats.to(torch::kFloat64);
+    auto norm = q.norm(2, {-1});
+    auto rewrite = ((norm - 1.0).abs() > 1e-6).nonzero().reshape({-1});
+    int64_t m = rewrite.size(0);
+    if (m == 0) return 0;
+    auto qs = q.index_select(0, rewrite);
+    auto ss = scales.to(torch::kFloat64).index_select(0, rewrite);
+    auto u = qs.unbind(-1);
+    auto w = u[0], x = u[1], y = u[2], z = u[3];
+    auto R = torch::stack({torch::stack({1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)}, -1),
+                           torch::stack({2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)}, -1),
+                           torch::stack({2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)}, -1)},
+                          -2);
+    auto M = R * ss.index({"...", torch::indexing::None, torch::indexing::Slice()});
+    auto cov = torch::matmul(M, M.transpose(-1, -2));
+    auto [lambda, V] = torch::linalg_eigh(cov);
+    // A proper rotation: flip the last eigenvector where det(V) = -1.
+    auto sign = torch::sign(torch::linalg_det(V));
+    V.index_put_({"...", 2}, V.index({"...", 2}) * sign.index({"...", torch::indexing::None}));
+    auto new_s = torch::sqrt(torch::clamp_min(lambda, 0.0));
+    auto new_q = torch::empty({m, 4}, torch::kFloat64);
+    auto Va = V.accessor<double, 3>();
+    auto qa = new_q.accessor<double, 2>();
+    for (int64_t i = 0; i < m; i++) {
+        double r00 = Va[i][0][0], r01 = Va[i][0][1], r02 = Va[i][0][2];
+        double r10 = Va[i][1][0], r11 = Va[i][1][1], r12 = Va[i][1][2];
+        double r20 = Va[i][2][0], r21 = Va[i][2][1], r22 = Va[i][2][2];
+        double tr = r00 + r11 + r22, qw, qx, qy, qz;
+        if (tr > 0) {
+            double s = std::sqrt(tr + 1.0) * 2;
+            qw = s / 4; qx = (r21 - r12) / s; qy = (r02 - r20) / s; qz = (r10 - r01) / s;
+        } else if (r00 > r11 && r00 > r22) {
+            double s = std::sqrt(1.0 + r00 - r11 - r22) * 2;
+            qw = (r21 - r12) / s; qx = s / 4; qy = (r01 + r10) / s; qz = (r02 + r20) / s;
+        } else if (r11 > r22) {
+            double s = std::sqrt(1.0 + r11 - r00 - r22) * 2;
+            qw = (r02 - r20) / s; qx = (r01 + r10) / s; qy = s / 4; qz = (r12 + r21) / s;
+        } else {
+            double s = std::sqrt(1.0 + r22 - r00 - r11) * 2;
+            qw = (r10 - r01) / s; qx = (r02 + r20) / s; qy = (r12 + r21) / s; qz = s / 4;
+        }
+        qa[i][0] = qw; qa[i][1] = qx; qa[i][2] = qy; qa[i][3] = qz;
+    }
+    scales.index_copy_(0, rewrite, new_s.to(torch::kFloat32));
+    quats.index_copy_(0, rewrite, new_q.to(torch::kFloat32));
+    return m;
+}
+
 struct Outputs {
     torch::Tensor image;  // [H, W, 3]
     torch::Tensor means, scales, quats, opacities, sh;  // gradients
@@ -108,6 +169,7 @@ int main(int argc, char **argv) {
     // benches/README.md).
     const double tol_image_max = 2e-3, tol_image_rel = 1e-4, tol_grad_rel = 1e-2;
     bool ok = true;
+    int64_t rewritten_min = n, rewritten_max = 0;
     std::printf("relative L2 difference of OpenSplat's outputs from liquid-splat's, per camera:\n");
     std::printf("%-6s %12s %12s %10s %10s %10s %10s %10s\n", "camera", "image max", "image rel",
                 "means", "scales", "quats", "opacity", "sh");
@@ -120,6 +182,9 @@ int main(int argc, char **argv) {
         auto quats0 = tensor(g, o, {n, 4}); o += 4 * n;
         auto opac0 = tensor(g, o, {n, 1}); o += n;
         auto sh0 = tensor(g, o, {n, K, 3});
+        int64_t rewritten = to_unit_quaternions(scales0, quats0);
+        rewritten_min = std::min(rewritten_min, rewritten);
+        rewritten_max = std::max(rewritten_max, rewritten);
         auto c = read_f32(dir + "/camera" + std::to_string(k) + ".f32", 16 + 16 + 2 + 3 + 3);
         auto viewmat = tensor(c, 0, {4, 4});
         auto projmat = tensor(c, 16, {4, 4});
@@ -196,6 +261,10 @@ int main(int argc, char **argv) {
         if (!(img_max <= tol_image_max && img_rel <= tol_image_rel)) ok = false;
         if (!(e[0] <= tol_grad_rel && e[3] <= tol_grad_rel)) ok = false;
     }
+    if (rewritten_max > 0)
+        std::printf("quaternions not unit, rewritten for OpenSplat with the same covariance: %lld to %lld "
+                    "of %lld per camera (scales and quats gradients of those are of other parameters)\n",
+                    (long long)rewritten_min, (long long)rewritten_max, (long long)n);
     std::printf("checked: image max |diff| <= %.0e and relative L2 <= %.0e; means and opacity "
                 "gradients relative L2 <= %.0e (scales, quats, sh: printed only)\n",
                 tol_image_max, tol_image_rel, tol_grad_rel);
