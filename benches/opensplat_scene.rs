@@ -1,19 +1,29 @@
 //! The liquid-splat half of `benches/compare_opensplat.sh`: writes one
-//! D-NeRF scene's rasterizer inputs (the initial Gaussians of a run, as the
-//! rasterizer receives them during warm-up), its first training cameras and
-//! one output gradient per camera as raw little-endian f32 files for the
-//! OpenSplat harness (`benches/opensplat_harness.cpp`), times liquid-splat's
-//! forward and backward on them at 1 and 2 threads, and writes its outputs
-//! for the numerical comparison.
+//! D-NeRF scene's rasterizer inputs in one of two states, its first
+//! training cameras and one output gradient per camera as raw little-endian
+//! f32 files for the OpenSplat harness (`benches/opensplat_harness.cpp`),
+//! times liquid-splat's forward and backward on them at 1 and 2 threads, and
+//! writes its outputs for the numerical comparison.
+//!
+//! The state: with `STEPS = 0`, the initial Gaussians of a run as the
+//! rasterizer receives them during warm-up (the same at every camera); with
+//! `STEPS > 0`, the Gaussians after `STEPS` training iterations of
+//! `liquid-splat train --iterations STEPS --seed SEED` with the paper's CfC
+//! field (D6 W128): the library's [`Trainer`](liquid_splat::train::Trainer)
+//! with the scene's training configuration (every schedule scaled to
+//! `STEPS`, densification and opacity reset included), then at each camera
+//! the Gaussians deformed by the field at that camera's time, with the
+//! model's SH (bands above its active degree zeroed, so evaluating degree 3
+//! renders what the model renders).
 //!
 //! ```text
-//! cargo bench --bench opensplat_scene -- DATA_DIR OUT_DIR [DOWNSCALE=2] [POINTS=20000] [CAMERAS=10] [REPS=3]
+//! cargo bench --bench opensplat_scene -- DATA_DIR OUT_DIR [DOWNSCALE=2] [POINTS=20000] [CAMERAS=10] [REPS=3] [STEPS=0] [SEED=0]
 //! ```
 //!
 //! Files in `OUT_DIR`: `meta.txt` (`n width height cameras sh_degree`),
-//! `gaussians.f32` (means `[N,3]`, activated scales `[N,3]`, unit
-//! quaternions `[N,4]` (w, x, y, z), activated opacities `[N]`, SH `[N,16,3]`),
-//! per camera `k`: `camera{k}.f32` (world-to-camera `[4,4]` and full
+//! per camera `k`: `gaussians{k}.f32` (means `[N,3]`, activated scales
+//! `[N,3]`, unit quaternions `[N,4]` (w, x, y, z), activated opacities
+//! `[N]`, SH `[N,16,3]`), `camera{k}.f32` (world-to-camera `[4,4]` and full
 //! projection `[4,4]`, both row-major for column vectors, then `tanfovx,
 //! tanfovy, campos[3], background[3]`), `grad{k}.f32` (`dL/dcolor` `[3,H,W]`),
 //! `ls_color{k}.f32` (`[3,H,W]`) and `ls_grads{k}.f32` (gradients of the
@@ -26,9 +36,11 @@
 //! takes with the cores to itself.
 
 use liquid_splat::dataset::{self, LoadOptions, Splits};
+use liquid_splat::deform::{CfcConfig, FieldConfig};
 use liquid_splat::gaussians::init::initial_gaussians;
 use liquid_splat::render::{rasterize, rasterize_vjp, Colors, Covariances, GradientMode};
 use liquid_splat::train::deformed::deform_gaussians;
+use liquid_splat::train::{run, TrainConfig};
 use std::io::Write;
 use std::path::Path;
 use std::time::Instant;
@@ -66,7 +78,7 @@ fn main() {
         .collect();
     if args.len() < 2 {
         eprintln!(
-            "usage: opensplat_scene DATA_DIR OUT_DIR [DOWNSCALE=2] [POINTS=20000] [CAMERAS=10] [REPS=3]"
+            "usage: opensplat_scene DATA_DIR OUT_DIR [DOWNSCALE=2] [POINTS=20000] [CAMERAS=10] [REPS=3] [STEPS=0] [SEED=0]"
         );
         std::process::exit(2);
     }
@@ -77,6 +89,7 @@ fn main() {
     };
     let (data_dir, out) = (Path::new(&args[0]), Path::new(&args[1]));
     let (downscale, points, cameras, reps) = (num(2, 2), num(3, 20_000), num(4, 10), num(5, 3));
+    let (steps, seed) = (num(6, 0) as u64, num(7, 0) as u64);
     std::fs::create_dir_all(out).expect("create OUT_DIR");
     let opts = LoadOptions {
         downscale,
@@ -89,29 +102,69 @@ fn main() {
         ..LoadOptions::default()
     };
     let data = dataset::load(data_dir, &opts).expect("load the dataset");
-    let g = initial_gaussians::<f32>(&data.init).expect("initial Gaussians");
-    let d = deform_gaussians(&g, None);
-    let n = g.len();
-    // SH padded to degree 3 (the initial Gaussians may store fewer bands).
-    let k_in = g.coeffs();
-    let mut sh = vec![0f32; n * SH_COEFFS * 3];
-    for i in 0..n {
-        for c in 0..k_in.min(SH_COEFFS) * 3 {
-            sh[i * SH_COEFFS * 3 + c] = g.sh[i * k_in * 3 + c];
-        }
-    }
     let bg = [if data.white_background { 1f32 } else { 0f32 }; 3];
     let frames = &data.train[..cameras.min(data.train.len())];
     let (w, h) = (frames[0].width, frames[0].height);
+    // The Gaussians the rasterizer receives at each camera, and their SH
+    // (`stride` coefficients per Gaussian, `degree` bands evaluated).
+    let (deformed, g_sh, stride, degree) = if steps == 0 {
+        let g = initial_gaussians::<f32>(&data.init).expect("initial Gaussians");
+        let d = deform_gaussians(&g, None);
+        let (k, deg) = (g.coeffs(), g.max_sh_degree);
+        (vec![d; frames.len()], g.sh, k, deg)
+    } else {
+        let config = TrainConfig::new(steps, seed, FieldConfig::Cfc(CfcConfig::paper()));
+        let views = run::views::<f32>(&data.train);
+        let mut trainer = run::new_trainer::<f32>(&config, &data).expect("a trainer");
+        let t0 = Instant::now();
+        let mut last = None;
+        while trainer.iteration() < steps {
+            last = Some(trainer.step(&views).expect("a training step"));
+        }
+        let r = last.expect("at least one step");
+        println!(
+            "trained {steps} iterations ({}, seed {seed}, {} train views) in {:.0} s: last loss {:.4}, {} Gaussians, SH degree {}, field {}",
+            liquid_splat::report::field_label(&config.field),
+            views.len(),
+            t0.elapsed().as_secs_f64(),
+            r.loss,
+            r.gaussians,
+            trainer.model().active_sh_degree,
+            if trainer.field_active(steps) { "on" } else { "off (warm-up)" }
+        );
+        let d: Vec<_> = frames
+            .iter()
+            .map(|f| trainer.deformed(f.time).expect("deformed Gaussians"))
+            .collect();
+        let m = trainer.model();
+        (
+            d,
+            m.gaussians.sh.clone(),
+            m.gaussians.coeffs(),
+            m.active_sh_degree,
+        )
+    };
+    let n = deformed[0].opacities.len();
+    // SH padded to degree 3, bands above `degree` zeroed: evaluated at
+    // degree 3 they give the colours the model's degree gives.
+    let used = (degree + 1) * (degree + 1);
+    let mut sh = vec![0f32; n * SH_COEFFS * 3];
+    for i in 0..n {
+        for c in 0..used.min(stride).min(SH_COEFFS) * 3 {
+            sh[i * SH_COEFFS * 3 + c] = g_sh[i * stride * 3 + c];
+        }
+    }
     std::fs::write(
         out.join("meta.txt"),
         format!("{n} {w} {h} {} {SH_DEGREE}\n", frames.len()),
     )
     .expect("write meta.txt");
-    write_f32(
-        &out.join("gaussians.f32"),
-        &[&d.means, &d.scales, &d.rotations, &d.opacities, &sh],
-    );
+    for (k, d) in deformed.iter().enumerate() {
+        write_f32(
+            &out.join(format!("gaussians{k}.f32")),
+            &[&d.means, &d.scales, &d.rotations, &d.opacities, &sh],
+        );
+    }
     let cams: Vec<_> = frames.iter().map(|f| f.camera.raster::<f32>()).collect();
     let grads: Vec<Vec<f32>> = (0..cams.len())
         .map(|k| {
@@ -122,16 +175,16 @@ fn main() {
         })
         .collect();
     let input = |k: usize| liquid_splat::render::RasterInput {
-        means3d: &d.means,
+        means3d: &deformed[k].means,
         colors: Colors::Sh {
             coeffs: &sh,
             stride: SH_COEFFS,
             degree: SH_DEGREE,
         },
-        opacities: &d.opacities,
+        opacities: &deformed[k].opacities,
         covariances: Covariances::ScaleRotation {
-            scales: &d.scales,
-            rotations: &d.rotations,
+            scales: &deformed[k].scales,
+            rotations: &deformed[k].rotations,
             scale_modifier: 1.0,
         },
         camera: &cams[k],
@@ -165,7 +218,8 @@ fn main() {
         );
     }
     println!(
-        "liquid-splat: {n} Gaussians, {w}x{h}, {} cameras, f32, SH degree {SH_DEGREE}, instruction set {:?}",
+        "liquid-splat: {}, {n} Gaussians, {w}x{h}, {} cameras, f32, SH degree {SH_DEGREE}, instruction set {:?}",
+        if steps == 0 { "initial state".to_string() } else { format!("after {steps} training steps") },
         cams.len(),
         liquid_splat::kernels::fastmath::isa()
     );
