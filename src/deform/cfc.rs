@@ -279,17 +279,30 @@ impl<T: Real> ChunkGradients<T> {
 /// a thread runs (every value is written before it is read).
 #[derive(Default)]
 struct Scratch<T> {
+    /// Backward: the gradient of the state leaving the cell (`[rows, W]`).
     h: Vec<T>,
+    /// Backward: the gradient of the state entering it.
     h_next: Vec<T>,
+    /// The activations' outputs (forward: one layer's; backward: every
+    /// layer's, recomputed).
     xs: Vec<Vec<T>>,
+    /// Backward: the activations' derivatives, every layer's.
     ds: Vec<Vec<T>>,
+    /// Backward: the gradient of every cell's backbone.0 output and of the
+    /// skip, side by side (`[rows, D·U + W]`).
     gu: Vec<T>,
+    /// Backward: the heads' output gradient (`[rows, 4W]`).
     gate: Vec<T>,
+    /// Backward: a backbone layer's output gradient, and the next one's.
     dz: Vec<T>,
     dz_next: Vec<T>,
+    /// Forward: the skip's sums; backward: a `t_feat` gradient term.
     tmp: Vec<T>,
+    /// Backward: the `t_feat` gradient and the gate's τ gradient, summed
+    /// over the cells.
     g_tfeat: Vec<T>,
     dt: Vec<T>,
+    /// Backward: per-unit products of the τ gradient, summed in order.
     prod: Vec<T>,
 }
 
@@ -974,10 +987,10 @@ impl CfcNet {
         let td = ud - xd;
         let um = MatRef::row_major(&c.u[r0 * ud..(r0 + rows) * ud], rows, ud);
         let tb = &t[r0..r0 + rows];
-        let rm = |d: usize| (r0 * d, (r0 + rows) * d);
+        let rows_of = |d: usize| (r0 * d, (r0 + rows) * d);
         // The state gradient entering the last cell, the t_feat gradient
         // and the gate's τ gradient, accumulated cell by cell (from zero).
-        let (a, b) = rm(w);
+        let (a, b) = rows_of(w);
         sized(&mut s.h, rows * w).copy_from_slice(&dh_all[a..b]);
         sized(&mut s.h_next, rows * w);
         sized(&mut s.g_tfeat, rows * td).fill(T::ZERO);
@@ -1000,7 +1013,7 @@ impl CfcNet {
             // the same bits).
             timed(tally, BwdOp::Act as usize, || {
                 for ((x, dx), pre) in s.xs.iter_mut().zip(s.ds.iter_mut()).zip(&cc.pres) {
-                    let (a, b) = rm(units);
+                    let (a, b) = rows_of(units);
                     self.act.apply_and_derivative_block(
                         &pre[a..b],
                         slots(sized(x, rows * units)),
@@ -1058,7 +1071,7 @@ impl CfcNet {
                 set_columns(&mut s.gu[..rows * wide_n], wide_n, l * units, dz, units)
             });
             let h_part = if reads {
-                let (a, b) = rm(w);
+                let (a, b) = rows_of(w);
                 timed(tally, BwdOp::HWeight as usize, || {
                     matmul_tn(g0, MatRef::row_major(&cc.h_in[a..b], rows, w))
                 })
