@@ -7,6 +7,7 @@
 const N: usize = 20_000;
 
 fn main() -> liquid_splat::Result<()> {
+    liquid_splat::memory::keep_freed_memory();
     let pool = liquid_splat::bench::harness::thread_pool(2)?;
     pool.install(|| liquid_splat::bench::deform::<f32>(N, 10, None, false))
 }

@@ -72,6 +72,8 @@ fn cpu_ns() -> u64 {
 }
 
 fn main() {
+    // As the command-line tool: freed memory is reused, not returned.
+    liquid_splat::memory::keep_freed_memory();
     let args: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| a != "--bench")

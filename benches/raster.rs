@@ -4,5 +4,6 @@
 //! runs (there on 1 thread and every core), fastest of 10 runs.
 
 fn main() -> liquid_splat::Result<()> {
+    liquid_splat::memory::keep_freed_memory();
     liquid_splat::bench::raster(10, &[1, 2])
 }

@@ -88,6 +88,7 @@ pub mod kernels;
 pub mod loss;
 pub mod lpips;
 pub mod math;
+pub mod memory;
 pub mod optim;
 pub mod oracle;
 pub mod render;
