@@ -144,6 +144,10 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
             .into_iter()
             .map(|v| v as f32)
             .collect();
+        // The backward of a forward's saved state, as timed below.
+        let backward = |state: &render::RasterizeSaved<f32>| {
+            render::rasterize_vjp(&input, state, &grad, None, render::GradientMode::Exact)
+        };
         for (&threads, peak) in thread_counts.iter().zip(&peaks) {
             let pool = harness::thread_pool(threads)?;
             let (fwd, bwd, pairs) = pool.install(|| -> crate::Result<_> {
@@ -155,15 +159,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
                     let (_, state) = r?;
                     f.push(t);
                     pairs = state.pairs_evaluated();
-                    let (r, t) = harness::timed(|| {
-                        render::rasterize_vjp(
-                            &input,
-                            &state,
-                            &grad,
-                            None,
-                            render::GradientMode::Exact,
-                        )
-                    });
+                    let (r, t) = harness::timed(|| backward(&state));
                     r?;
                     b.push(t);
                 }
@@ -173,15 +169,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
                 for _ in 0..reps {
                     let (r, fs) = render::stages::record(|| render::rasterize(&input));
                     let (_, state) = r?;
-                    let (r, bs) = render::stages::record(|| {
-                        render::rasterize_vjp(
-                            &input,
-                            &state,
-                            &grad,
-                            None,
-                            render::GradientMode::Exact,
-                        )
-                    });
+                    let (r, bs) = render::stages::record(|| backward(&state));
                     r?;
                     for (acc, new) in stages.iter_mut().zip([fs, bs]) {
                         fastest_stages(acc, new);
