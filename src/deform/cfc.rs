@@ -39,12 +39,13 @@
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
-use super::linear::{add_bias, InputGrad, OutputGrad};
+use super::linear::{add_bias, InputGrad, OutputGrad, PackedLinear};
 use super::profile::{self, Tally};
 use super::{
-    CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, TimeEmbedding, TimeEmbeddingSaved,
-    XYZ_LEVELS,
+    CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
+    TimeEmbeddingSaved, XYZ_LEVELS,
 };
+use crate::kernels::as_slots;
 use crate::kernels::fastmath::{self, multiversion};
 use crate::kernels::matmul::{
     column_sums, matmul_block_into, matmul_block_resume, matmul_tn, pack, MatRef, Packed,
@@ -92,23 +93,6 @@ enum BwdOp {
     HInput,
     Skip,
     Wide,
-}
-
-/// `f()`, its time added to operation `op` of the profile's tally (if on).
-#[inline(always)]
-fn timed<R>(tally: Option<&Tally>, op: usize, f: impl FnOnce() -> R) -> R {
-    Tally::time(tally, op, f)
-}
-
-/// A cell's four heads stacked by rows: `W` `[4W, U]` and `b` `[4W]`.
-fn stacked_heads<T: Real>(cell: &Cell, p: &[T]) -> (Vec<T>, Vec<T>) {
-    let mut w = Vec::new();
-    let mut b = Vec::new();
-    for h in &cell.heads {
-        w.extend_from_slice(h.weight(p));
-        b.extend_from_slice(h.bias(p));
-    }
-    (w, b)
 }
 
 /// One CfC cell's parameter places.
@@ -161,22 +145,19 @@ struct CellForward<'p, T> {
     u_part: Packed<T>,
     /// backbone.0's state columns, `Wᵀ` `[W, U]`.
     h_part: Packed<T>,
-    /// The backbone layers after the first, `Wᵀ` `[U, U]`.
-    later: Vec<Packed<T>>,
-    /// Every backbone layer's bias.
-    biases: Vec<&'p [T]>,
-    /// ff1 | ff2 | time_a | time_b stacked, `Wᵀ` `[U, 4W]`.
-    heads: Packed<T>,
-    heads_bias: Vec<T>,
+    /// backbone.0's bias (added after the sums over both).
+    bias0: &'p [T],
+    /// The backbone layers after the first.
+    later: Vec<PackedLinear<T>>,
+    /// ff1 | ff2 | time_a | time_b as one layer `4W` wide.
+    heads: PackedLinear<T>,
 }
 
 /// The field's weights packed for the forward.
 struct ForwardWeights<'p, T> {
     cells: Vec<CellForward<'p, T>>,
-    skip: Packed<T>,
-    skip_bias: &'p [T],
-    head: Packed<T>,
-    head_bias: &'p [T],
+    skip: PackedLinear<T>,
+    head: PackedLinear<T>,
 }
 
 /// One cell's weights packed for the backward's chunks.
@@ -312,12 +293,12 @@ fn sized<T: Real>(v: &mut Vec<T>, len: usize) -> &mut [T] {
     &mut v[..len]
 }
 
-/// An initialised slice viewed as slots to overwrite.
+/// An initialised slice viewed as slots to overwrite ([`as_slots`]); only
+/// handed to writers that write initialised values (the matrix products,
+/// the activations, the cell pass).
 fn slots<T>(s: &mut [T]) -> &mut [MaybeUninit<T>] {
-    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the writers these
-    // slots are given (matrix products, element-wise passes) write only
-    // initialised values, so the slice stays initialised.
-    unsafe { &mut *(s as *mut [T] as *mut [MaybeUninit<T>]) }
+    // SAFETY: every caller in this file passes the slots to such a writer.
+    unsafe { as_slots(s) }
 }
 
 /// Slots that have all been written, as values.
@@ -419,32 +400,29 @@ impl CfcNet {
     }
 
     fn forward_weights<'p, T: Real>(&self, p: &'p [T]) -> ForwardWeights<'p, T> {
-        let (w, ud, units) = (self.width, self.u_dim, self.units());
-        let wt = |lin: &LinearParams| {
-            MatRef::row_major(lin.weight(p), lin.shape.out_dim, lin.shape.in_dim).t()
-        };
+        let (w, ud) = (self.width, self.u_dim);
         let cells = self
             .cells
             .iter()
             .map(|cell| {
-                let b0 = wt(&cell.backbone[0]);
-                let (hw, hb) = stacked_heads(cell, p);
+                let lin = &cell.backbone[0];
+                let b0 = MatRef::row_major(lin.weight(p), lin.shape.out_dim, lin.shape.in_dim).t();
                 CellForward {
                     u_part: pack(b0.rows(0, ud)),
                     h_part: pack(b0.rows(ud, w)),
-                    later: cell.backbone[1..].iter().map(|l| pack(wt(l))).collect(),
-                    biases: cell.backbone.iter().map(|l| l.bias(p)).collect(),
-                    heads: pack(MatRef::row_major(&hw, hb.len(), units).t()),
-                    heads_bias: hb,
+                    bias0: lin.bias(p),
+                    later: cell.backbone[1..]
+                        .iter()
+                        .map(|l| l.linear(p).packed())
+                        .collect(),
+                    heads: Stacked(&cell.heads).linear(p).packed(),
                 }
             })
             .collect();
         ForwardWeights {
             cells,
-            skip: pack(wt(&self.skip)),
-            skip_bias: self.skip.bias(p),
-            head: pack(wt(&self.head)),
-            head_bias: self.head.bias(p),
+            skip: self.skip.linear(p).packed(),
+            head: self.head.linear(p).packed(),
         }
     }
 
@@ -631,7 +609,8 @@ impl CfcNet {
             out,
         } = task;
         let (w, ud, units) = (self.width, self.u_dim, self.units());
-        let um = MatRef::row_major(&u[r0 * ud..(r0 + rows) * ud], rows, ud);
+        let u_rows = &u[r0 * ud..(r0 + rows) * ud];
+        let um = MatRef::row_major(u_rows, rows, ud);
         let tb = &t[r0..r0 + rows];
         sized(&mut s.tmp, rows * w);
         if s.xs.is_empty() {
@@ -651,22 +630,20 @@ impl CfcNet {
                 // h += skip(u): the skip's sums plus its bias (added after the
                 // sum, as in every linear layer), added to the state (+0 for
                 // the zero state).
-                timed(tally, FwdOp::Skip as usize, || {
-                    let sk = matmul_block_into(um, &fw.skip, slots(&mut s.tmp[..rows * w]));
+                Tally::time(tally, FwdOp::Skip as usize, || {
+                    let sk =
+                        fw.skip
+                            .forward_block_into(u_rows, rows, slots(&mut s.tmp[..rows * w]));
                     match h.as_deref_mut() {
                         Some(h) => {
-                            for (hr, sr) in h.chunks_exact_mut(w).zip(sk.chunks_exact(w)) {
-                                for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(fw.skip_bias) {
-                                    *hv += sv + b;
-                                }
+                            for (hv, &sv) in h.iter_mut().zip(sk.iter()) {
+                                *hv += sv;
                             }
                         }
                         None => {
                             let slot = first.take().expect("the first cell's state slot");
-                            for (hr, sr) in slot.chunks_exact_mut(w).zip(sk.chunks_exact(w)) {
-                                for ((hv, &sv), &b) in hr.iter_mut().zip(sr).zip(fw.skip_bias) {
-                                    hv.write(T::ZERO + (sv + b));
-                                }
+                            for (hv, &sv) in slot.iter_mut().zip(sk.iter()) {
+                                hv.write(T::ZERO + sv);
                             }
                             // SAFETY: every value of the slot was written.
                             h = Some(unsafe { assume_init(slot) });
@@ -676,59 +653,52 @@ impl CfcNet {
             }
             let reads = self.reads_state(l);
             debug_assert_eq!(reads, h.is_some());
-            for j in 0..cw.biases.len() {
+            for j in 0..=cw.later.len() {
                 let slot = pres.next().expect("a saved block per layer");
-                // The layer's sums, written into its saved pre-activation.
+                // The layer's sums plus its bias (added after the sums), written
+                // into its saved pre-activation.
                 let pre: &mut [T] = if j == 0 {
                     // The u columns, then the sums continued over the state
                     // columns (none where the state is zero, see
                     // reads_state): the same bits as one sum over [u; h].
-                    let pre = timed(tally, FwdOp::UPart as usize, || {
+                    let pre = Tally::time(tally, FwdOp::UPart as usize, || {
                         matmul_block_into(um, &cw.u_part, slot)
                     });
                     if let Some(h) = h.as_deref() {
-                        timed(tally, FwdOp::HPart as usize, || {
+                        Tally::time(tally, FwdOp::HPart as usize, || {
                             matmul_block_resume(MatRef::row_major(h, rows, w), &cw.h_part, pre)
                         });
                     }
+                    Tally::time(tally, FwdOp::Act as usize, || {
+                        add_bias(pre, cw.bias0, units)
+                    });
                     pre
                 } else {
-                    timed(tally, FwdOp::Later as usize, || {
-                        matmul_block_into(
-                            MatRef::row_major(&s.xs[0][..rows * units], rows, units),
-                            &cw.later[j - 1],
-                            slot,
-                        )
+                    Tally::time(tally, FwdOp::Later as usize, || {
+                        cw.later[j - 1].forward_block_into(&s.xs[0][..rows * units], rows, slot)
                     })
                 };
-                timed(tally, FwdOp::Act as usize, || {
-                    add_bias(pre, cw.biases[j], units);
+                Tally::time(tally, FwdOp::Act as usize, || {
                     self.act
                         .apply_block_uninit(pre, slots(&mut s.xs[0][..rows * units]));
                 });
             }
             // The heads as one product 4W wide, then the gate and the new
             // state (the gate's values are saved).
-            let gate = timed(tally, FwdOp::Heads as usize, || {
-                let g = matmul_block_into(
-                    MatRef::row_major(&s.xs[0][..rows * units], rows, units),
-                    &cw.heads,
-                    gate,
-                );
-                add_bias(g, &cw.heads_bias, 4 * w);
-                g
+            let gate = Tally::time(tally, FwdOp::Heads as usize, || {
+                cw.heads
+                    .forward_block_into(&s.xs[0][..rows * units], rows, gate)
             });
             let next = states.next().expect("a state slot per cell");
-            timed(tally, FwdOp::Gate as usize, || {
+            Tally::time(tally, FwdOp::Gate as usize, || {
                 cell_forward_rows(gate, &mut *next, tb, w)
             });
             // SAFETY: cell_forward_rows wrote every value of its rows.
             h = Some(unsafe { assume_init(next) });
         }
         let h = h.expect("at least one cell");
-        timed(tally, FwdOp::Head as usize, || {
-            let o = matmul_block_into(MatRef::row_major(h, rows, w), &fw.head, out);
-            add_bias(o, fw.head_bias, 10);
+        Tally::time(tally, FwdOp::Head as usize, || {
+            fw.head.forward_block_into(h, rows, out);
         });
     }
 
@@ -743,10 +713,10 @@ impl CfcNet {
             .cells
             .iter()
             .map(|cell| {
-                let (hw, hb) = stacked_heads(cell, p);
+                let heads = Stacked(&cell.heads).linear(p);
                 let b0 = wm(&cell.backbone[0]);
                 CellBackward {
-                    heads: pack(MatRef::row_major(&hw, hb.len(), units)),
+                    heads: pack(MatRef::row_major(heads.weight(), 4 * w, units)),
                     later: cell.backbone[1..].iter().map(|l| pack(wm(l))).collect(),
                     t_part: pack(b0.cols(xd, td)),
                     h_part: pack(b0.cols(ud, w)),
@@ -1011,7 +981,7 @@ impl CfcNet {
             // The backbone's outputs and the activation's derivatives,
             // recomputed from the saved pre-activations (the same functions:
             // the same bits).
-            timed(tally, BwdOp::Act as usize, || {
+            Tally::time(tally, BwdOp::Act as usize, || {
                 for ((x, dx), pre) in s.xs.iter_mut().zip(s.ds.iter_mut()).zip(&cc.pres) {
                     let (a, b) = rows_of(units);
                     self.act.apply_and_derivative_block(
@@ -1024,7 +994,7 @@ impl CfcNet {
             let zm = MatRef::row_major(&s.xs[layers - 1][..rows * units], rows, units);
             // The gate and update vjp: the heads' output gradient G.
             let gate = &mut s.gate[..rows * 4 * w];
-            timed(tally, BwdOp::Gate as usize, || {
+            Tally::time(tally, BwdOp::Gate as usize, || {
                 cell_backward_rows(
                     gate,
                     &cc.gate[r0 * 4 * w..(r0 + rows) * 4 * w],
@@ -1036,63 +1006,63 @@ impl CfcNet {
                 )
             });
             let gm = MatRef::row_major(&*gate, rows, 4 * w);
-            let heads = timed(tally, BwdOp::HeadsWeight as usize, || {
+            let heads = Tally::time(tally, BwdOp::HeadsWeight as usize, || {
                 (matmul_tn(gm, zm), column_sums(gate, rows, 4 * w))
             });
-            let mut dz = timed(tally, BwdOp::HeadsInput as usize, || {
+            let mut dz = Tally::time(tally, BwdOp::HeadsInput as usize, || {
                 matmul_block_into(gm, &cw.heads, slots(&mut s.dz[..rows * units]))
             });
             let mut later = Vec::with_capacity(layers - 1);
             for j in (1..layers).rev() {
                 let ds = &s.ds[j][..rows * units];
-                timed(tally, BwdOp::ActVjp as usize, || {
+                Tally::time(tally, BwdOp::ActVjp as usize, || {
                     Activation::backward_block_from_derivative(ds, dz)
                 });
                 let xm = MatRef::row_major(&s.xs[j - 1][..rows * units], rows, units);
                 let gj = MatRef::row_major(&*dz, rows, units);
-                later.push(timed(tally, BwdOp::LaterWeight as usize, || {
+                later.push(Tally::time(tally, BwdOp::LaterWeight as usize, || {
                     (matmul_tn(gj, xm), column_sums(dz, rows, units))
                 }));
-                timed(tally, BwdOp::LaterInput as usize, || {
+                Tally::time(tally, BwdOp::LaterInput as usize, || {
                     matmul_block_into(gj, &cw.later[j - 1], slots(&mut s.dz_next[..rows * units]));
                 });
                 std::mem::swap(&mut s.dz, &mut s.dz_next);
                 dz = &mut s.dz[..rows * units];
             }
             later.reverse();
-            timed(tally, BwdOp::ActVjp as usize, || {
+            Tally::time(tally, BwdOp::ActVjp as usize, || {
                 Activation::backward_block_from_derivative(&s.ds[0][..rows * units], dz)
             });
             let g0 = MatRef::row_major(&*dz, rows, units);
             // backbone.0's input is [γ(x) | t_feat | h]: its weight
             // gradient over u and its bias gradient; γ(x) is stop-gradient,
             // t_feat's gradient is collected, h's flows on.
-            timed(tally, BwdOp::UWeight as usize, || {
+            Tally::time(tally, BwdOp::UWeight as usize, || {
                 set_columns(&mut s.gu[..rows * wide_n], wide_n, l * units, dz, units)
             });
             let h_part = if reads {
                 let (a, b) = rows_of(w);
-                timed(tally, BwdOp::HWeight as usize, || {
+                Tally::time(tally, BwdOp::HWeight as usize, || {
                     matmul_tn(g0, MatRef::row_major(&cc.h_in[a..b], rows, w))
                 })
             } else {
                 Vec::new()
             };
-            timed(tally, BwdOp::TInput as usize, || {
+            Tally::time(tally, BwdOp::TInput as usize, || {
                 let g_t = matmul_block_into(g0, &cw.t_part, slots(&mut s.tmp[..rows * td]));
                 for (acc, &v) in s.g_tfeat.iter_mut().zip(g_t.iter()) {
                     *acc += v;
                 }
             });
             if reads {
-                timed(tally, BwdOp::HInput as usize, || {
+                Tally::time(tally, BwdOp::HInput as usize, || {
                     matmul_block_into(g0, &cw.h_part, slots(&mut s.h_next[..rows * w]));
                 });
                 std::mem::swap(&mut s.h, &mut s.h_next);
             }
             if l == self.skip_at {
                 // h_in = h_prev + skip(u): the same gradient flows to both.
-                timed(tally, BwdOp::Skip as usize, || {
+                Tally::time(tally, BwdOp::Skip as usize, || {
                     let dhm = MatRef::row_major(&s.h[..rows * w], rows, w);
                     let c0 = self.cells.len() * units;
                     set_columns(&mut s.gu[..rows * wide_n], wide_n, c0, &s.h[..rows * w], w);
@@ -1113,7 +1083,7 @@ impl CfcNet {
         // and of the skip: one product [D·U + W, rows]·[rows, |u|] and one
         // column sum (each element its own sum over the chunk's rows, as
         // layer by layer).
-        let wide = timed(tally, BwdOp::Wide as usize, || {
+        let wide = Tally::time(tally, BwdOp::Wide as usize, || {
             let gu = &s.gu[..rows * wide_n];
             (
                 matmul_tn(MatRef::row_major(gu, rows, wide_n), um),

@@ -198,6 +198,11 @@ impl<'a, T: Real> Linear<'a, T> {
         }
     }
 
+    /// The weight `W`, `[out, in]` row-major.
+    pub fn weight(&self) -> &[T] {
+        &self.weight
+    }
+
     /// The layer's shape.
     pub fn shape(&self) -> LinearShape {
         self.shape
@@ -328,10 +333,16 @@ impl<T: Real> PackedLinear<T> {
     }
 
     /// `y = x·Wᵀ + b` for the `rows` rows of `x` (`[rows, in]`), written into
-    /// `out` (`[rows, out]`, may start uninitialised).
-    pub fn forward_block_into(&self, x: &[T], rows: usize, out: &mut [MaybeUninit<T>]) {
+    /// `out` (`[rows, out]`, may start uninitialised); returns `out`, written.
+    pub fn forward_block_into<'o>(
+        &self,
+        x: &[T],
+        rows: usize,
+        out: &'o mut [MaybeUninit<T>],
+    ) -> &'o mut [T] {
         let y = matmul_block_into(MatRef::row_major(x, rows, self.shape.in_dim), &self.wt, out);
         add_bias(y, &self.b, self.shape.out_dim);
+        y
     }
 }
 

@@ -108,7 +108,7 @@ impl MlpNet {
         let heads = Stacked(&self.heads).linear(p).packed();
         let hw = heads.out_dim();
         let chain = |_: usize, blk: &mut [T], out: &mut [MaybeUninit<T>]| {
-            heads.forward_block_into(blk, out.len() / hw.max(1), out)
+            heads.forward_block_into(blk, out.len() / hw.max(1), out);
         };
         let mut head_out: Vec<T> = Vec::new();
         let last = self.layers.len() - 1;

@@ -54,7 +54,7 @@ impl TimeEmbedding {
                 let next = l1.linear(p).packed();
                 let nw = next.out_dim();
                 let chain = |_: usize, blk: &mut [T], out: &mut [MaybeUninit<T>]| {
-                    next.forward_block_into(blk, out.len() / nw.max(1), out)
+                    next.forward_block_into(blk, out.len() / nw.max(1), out);
                 };
                 let mut hidden = Vec::new();
                 let feat = vec_written_by(n * nw, |feat| {

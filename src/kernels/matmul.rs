@@ -24,7 +24,7 @@
 //! partial sum is computed in row order, and the partials are added in chunk
 //! order (`((p0 + p1) + p2) + ...`).
 
-use super::{par_blocks_written, vec_written_by};
+use super::{as_slots, par_blocks_written, vec_written_by};
 use crate::math::{Precision, Real};
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -268,10 +268,9 @@ pub fn matmul_block_resume<T: Real>(a: MatRef<'_, T>, b: &Packed<T>, c: &mut [T]
     if c.is_empty() {
         return;
     }
-    // SAFETY: `MaybeUninit<T>` has the layout of `T`; block_product only
-    // reads `c`'s values (resumed sums) and writes initialised ones, so `c`
-    // stays initialised.
-    let cu = unsafe { &mut *(c as *mut [T] as *mut [MaybeUninit<T>]) };
+    // SAFETY: block_product only reads `c`'s values (resumed sums) and
+    // writes initialised ones.
+    let cu = unsafe { as_slots(c) };
     block_product(ASource::View(a), b.b.panels(), b.k, b.n, cu, true);
 }
 
@@ -720,18 +719,6 @@ fn copy_fixed<T: Copy, const N: usize>(dst: &mut [MaybeUninit<T>], src: &[T]) {
     // and they do not overlap (`dst` is borrowed mutably, `src` shared);
     // `MaybeUninit<T>` has the layout of `T`.
     unsafe { std::ptr::copy_nonoverlapping(s.as_ptr(), d.as_mut_ptr().cast::<T>(), N) }
-}
-
-/// An initialised slice as slots to overwrite.
-///
-/// # Safety
-/// Only initialised values may be written through the result (no
-/// `MaybeUninit::uninit()`), so that `v` holds valid values again when the
-/// borrow ends.
-unsafe fn as_slots<T>(v: &mut [T]) -> &mut [MaybeUninit<T>] {
-    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the caller writes only
-    // initialised values.
-    unsafe { &mut *(v as *mut [T] as *mut [MaybeUninit<T>]) }
 }
 
 /// Where a block's rows of `A` come from.

@@ -100,6 +100,18 @@ where
     unsafe { &mut *(buf as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
+/// An initialised slice as slots to overwrite.
+///
+/// # Safety
+/// Only initialised values may be written through the result (no
+/// `MaybeUninit::uninit()`), so that `v` holds valid values again when the
+/// borrow ends.
+pub(crate) unsafe fn as_slots<T>(v: &mut [T]) -> &mut [MaybeUninit<T>] {
+    // SAFETY: `MaybeUninit<T>` has the layout of `T`; the caller writes only
+    // initialised values.
+    unsafe { &mut *(v as *mut [T] as *mut [MaybeUninit<T>]) }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
