@@ -33,12 +33,14 @@
 //! `REPS` runs, and CPU milliseconds of all threads (Linux), each the sum
 //! over the cameras of the mean over the runs. On a shared machine the CPU
 //! time divided by the thread count estimates the wall time the same work
-//! takes with the cores to itself.
+//! takes with the cores to itself. Before each such line, a `stages` line:
+//! the rasterizer's stages (`render::stages`) of one more run per camera,
+//! wall (CPU) milliseconds summed over the cameras.
 
 use liquid_splat::dataset::{self, LoadOptions, Splits};
 use liquid_splat::deform::{CfcConfig, FieldConfig};
 use liquid_splat::gaussians::init::initial_gaussians;
-use liquid_splat::render::{rasterize, rasterize_vjp, Colors, Covariances, GradientMode};
+use liquid_splat::render::{rasterize, rasterize_vjp, stages, Colors, Covariances, GradientMode};
 use liquid_splat::train::deformed::deform_gaussians;
 use liquid_splat::train::{run, TrainConfig};
 use std::io::Write;
@@ -251,6 +253,33 @@ fn main() {
                 bwd += b;
             }
         });
+        // One more run per camera with the stage clock on: each stage's wall
+        // (CPU) milliseconds summed over the cameras.
+        let mut sums: Vec<(&'static str, f64, f64)> = Vec::new();
+        pool.install(|| {
+            for (k, grad) in grads.iter().enumerate() {
+                let ((_, saved), fs) = stages::record(|| rasterize(&input(k)).expect("rasterize"));
+                let (_, bs) = stages::record(|| {
+                    rasterize_vjp(&input(k), &saved, grad, None, GradientMode::Exact)
+                        .expect("rasterize_vjp")
+                });
+                for (i, st) in fs.iter().chain(&bs).enumerate() {
+                    if sums.len() <= i {
+                        sums.push((st.name, 0.0, 0.0));
+                    }
+                    sums[i].1 += st.wall * 1e3;
+                    sums[i].2 += st.cpu.unwrap_or(f64::NAN) * 1e3;
+                }
+            }
+        });
+        let list: Vec<String> = sums
+            .iter()
+            .map(|(name, wall, cpu)| format!("{name} {wall:.1} ({cpu:.1})"))
+            .collect();
+        println!(
+            "stages threads={threads}, ms wall (CPU), one run, sum over the cameras: {}",
+            list.join(", ")
+        );
         println!(
             "liquid-splat threads={threads} fwd_ms={:.1} bwd_ms={:.1} fwd_cpu_ms={:.1} bwd_cpu_ms={:.1}",
             fwd * 1e3,
