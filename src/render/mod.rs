@@ -188,7 +188,10 @@ impl<T: Real> RasterizeSaved<T> {
     }
     /// (pixel, Gaussian) pairs the forward evaluated: Σ over pixels of the
     /// entries of its tile's list up to and including the one that stopped
-    /// it (all of them if none did). The backward's forward walk evaluates
+    /// it (all of them if none did). Entries a row passes over because they
+    /// cannot reach it (`rasterize::candidate_rows`) count too, as pairs
+    /// decided without arithmetic; the count does not depend on that
+    /// shortcut. The backward's forward walk evaluates
     /// the same pairs, then walks back over the blended ones.
     pub fn pairs_evaluated(&self) -> u64 {
         self.evaluated
@@ -496,10 +499,19 @@ fn forward<T: Real>(
     // 2. Binning, and the splat data of every entry in list order.
     let binning = tiles::bin(&proj, intr.grid);
     stages::mark("bin");
-    let power_mins: Vec<T> = input
+    let power_mins: Vec<(T, [u32; 2])> = input
         .opacities
         .par_iter()
-        .map(|&o| rasterize::power_min(o))
+        .zip(&proj)
+        .map(|(&o, p)| {
+            let pm = rasterize::power_min(o);
+            let rows = if p.radius > 0 {
+                rasterize::candidate_rows(p.xy, p.conic, pm, h)
+            } else {
+                [0, 0]
+            };
+            (pm, rows)
+        })
         .collect();
     let splats: Vec<Splat<T>> = binning
         .list
@@ -513,7 +525,8 @@ fn forward<T: Real>(
                 opacity: input.opacities[g],
                 color: colors[g].color,
                 depth: p.depth,
-                power_min: power_mins[g],
+                power_min: power_mins[g].0,
+                rows: power_mins[g].1,
             }
         })
         .collect();
