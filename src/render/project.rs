@@ -127,6 +127,7 @@ struct Ewa<T> {
     clamped_y: bool,
 }
 
+#[inline(always)]
 fn ewa<T: Real>(k: &Intrinsics<T>, t: [T; 3]) -> Ewa<T> {
     let txtz = t[0] / t[2];
     let tytz = t[1] / t[2];
@@ -153,22 +154,43 @@ fn ewa<T: Real>(k: &Intrinsics<T>, t: [T; 3]) -> Ewa<T> {
     }
 }
 
-/// Forward for one Gaussian. `ndc_offset` is added to the projected NDC
-/// centre (zero for ordinary rendering; see `rasterize_with_ndc_offset`).
-pub(crate) fn project<T: Real>(
+/// The branch-free part of [`project`] for one Gaussian: the same operations
+/// for every Gaussian, culled or not, so that a loop over a batch of
+/// Gaussians runs it lane by lane in vector registers (see
+/// `super::preprocess`). Values of a Gaussian that [`project_finish`] culls
+/// are meaningless (possibly NaN or infinite).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ProjectCore<T> {
+    /// View-space depth `t.z`.
+    pub depth: T,
+    /// Projected NDC centre, offset added.
+    pub ndc: [T; 2],
+    /// Dilated 2D covariance `(a, b, c)`.
+    pub cov2d: [T; 3],
+    /// `a·c − b²`.
+    pub det: T,
+    /// Conic `(c, −b, a)/det`.
+    pub conic: [T; 3],
+    /// `3·sqrt(λmax)`, the radius before rounding up.
+    pub radius3: T,
+    /// Whether `t.x/t.z` (resp. `t.y/t.z`) was clamped.
+    pub clamped_x: bool,
+    pub clamped_y: bool,
+}
+
+/// Steps 1 to 5 of [`project`] without the culls (see [`ProjectCore`]).
+#[inline(always)]
+pub(crate) fn project_core<T: Real>(
     k: &Intrinsics<T>,
     mean: [T; 3],
     cov3d: &[T; 6],
     ndc_offset: [T; 2],
-) -> Projected<T> {
+) -> ProjectCore<T> {
     let t = [
         transform(&k.view, mean, 0),
         transform(&k.view, mean, 1),
         transform(&k.view, mean, 2),
     ];
-    if t[2] <= T::from_f64(0.2) || t[2].is_nan() {
-        return Projected::culled();
-    }
     let hx = transform(&k.proj, mean, 0);
     let hy = transform(&k.proj, mean, 1);
     let hw = transform(&k.proj, mean, 3);
@@ -192,18 +214,34 @@ pub(crate) fn project<T: Real>(
     let c = dot(1, 1) + dil;
 
     let det = a * c - b * b;
-    if det == T::ZERO {
-        return Projected::culled();
-    }
     let det_inv = T::ONE / det;
     let conic = [c * det_inv, -b * det_inv, a * det_inv];
     let mid = T::from_f64(0.5) * (a + c);
     let disc = T::from_f64(0.1).max(mid * mid - det).sqrt();
     let l1 = mid + disc;
     let l2 = mid - disc;
-    let radius_f = (T::from_f64(3.0) * l1.max(l2).sqrt()).ceil();
+    ProjectCore {
+        depth: t[2],
+        ndc,
+        cov2d: [a, b, c],
+        det,
+        conic,
+        radius3: T::from_f64(3.0) * l1.max(l2).sqrt(),
+        clamped_x: e.clamped_x,
+        clamped_y: e.clamped_y,
+    }
+}
+
+/// Steps 5 to 7 of [`project`] and its culls, on the result of
+/// [`project_core`].
+#[inline(always)]
+pub(crate) fn project_finish<T: Real>(k: &Intrinsics<T>, p: &ProjectCore<T>) -> Projected<T> {
+    if p.depth <= T::from_f64(0.2) || p.depth.is_nan() || p.det == T::ZERO {
+        return Projected::culled();
+    }
+    let radius_f = p.radius3.ceil();
     let radius = radius_f.to_f64().clamp(0.0, i32::MAX as f64) as i32;
-    let xy = [ndc2pix(ndc[0], k.width), ndc2pix(ndc[1], k.height)];
+    let xy = [ndc2pix(p.ndc[0], k.width), ndc2pix(p.ndc[1], k.height)];
 
     let rf = T::from_f64(radius as f64);
     let blk = T::from_usize(BLOCK);
@@ -222,15 +260,30 @@ pub(crate) fn project<T: Real>(
     }
     Projected {
         radius,
-        depth: t[2],
+        depth: p.depth,
         xy,
-        conic,
-        cov2d: [a, b, c],
+        conic: p.conic,
+        cov2d: p.cov2d,
         rect_min,
         rect_max,
-        clamped_x: e.clamped_x,
-        clamped_y: e.clamped_y,
+        clamped_x: p.clamped_x,
+        clamped_y: p.clamped_y,
     }
+}
+
+/// Forward for one Gaussian. `ndc_offset` is added to the projected NDC
+/// centre (zero for ordinary rendering; see `rasterize_with_ndc_offset`).
+/// The rasterizer runs it in batches (`super::preprocess`), as
+/// [`project_core`] then [`project_finish`]; this is the one-Gaussian form
+/// the batches are tested against.
+#[cfg_attr(not(test), allow(dead_code))]
+pub(crate) fn project<T: Real>(
+    k: &Intrinsics<T>,
+    mean: [T; 3],
+    cov3d: &[T; 6],
+    ndc_offset: [T; 2],
+) -> Projected<T> {
+    project_finish(k, &project_core(k, mean, cov3d, ndc_offset))
 }
 
 /// Gradients arriving at one Gaussian's projected quantities.
