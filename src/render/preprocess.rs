@@ -5,11 +5,11 @@
 //! A batch is evaluated as vectors: the inputs are transposed so that lane
 //! `l` holds Gaussian `first + l`, then one loop over the lanes runs the
 //! branch-free part of the stage for every lane ([`cov3d`],
-//! [`project_core`], [`sh_to_color_with`] at a constant degree), which the
-//! compiler turns into vector instructions; the culls, the rounding of the
-//! radius, the pixel centre and the tile rectangle ([`project_finish`]) and
-//! the opacity threshold ([`power_min`], only for visible Gaussians) then
-//! run per Gaussian. The loop is compiled for AVX-512, AVX2 and the
+//! [`project_core`], [`sh_to_color_with`] at a constant degree, then the
+//! radius, pixel centre, tile rectangle and culls, [`footprint`]), which
+//! the compiler turns into vector instructions; the records and the
+//! opacity threshold ([`power_min`], only for visible Gaussians) are then
+//! written per Gaussian. The loop is compiled for AVX-512, AVX2 and the
 //! baseline and picked at run time ([`crate::kernels::fastmath::isa`]).
 //! Every lane does the scalar operations of one Gaussian in the scalar order
 //! (IEEE additions, multiplications, divisions and square roots, comparisons
@@ -25,7 +25,9 @@
 //!
 //! [`project`]: super::project::project
 
-use super::project::{project_core, project_finish, Intrinsics, ProjectCore, Projected};
+use super::project::{
+    assemble, footprint, project_core, Footprint, Intrinsics, ProjectCore, Projected,
+};
 use super::rasterize::{power_min, Splat};
 use super::{Colors, Covariances, RasterInput};
 use crate::kernels::fastmath::multiversion;
@@ -245,19 +247,41 @@ fn batch_body<T: Real>(
         }
     }
 
+    let core = |l: usize| ProjectCore {
+        depth: depth[l],
+        ndc: [ndc[0][l], ndc[1][l]],
+        cov2d: [cov2d[0][l], cov2d[1][l], cov2d[2][l]],
+        det: det[l],
+        conic: [conic[0][l], conic[1][l], conic[2][l]],
+        radius3: radius3[l],
+        clamped_x: clamped[0][l],
+        clamped_y: clamped[1][l],
+    };
+    let mut visible = [false; BATCH];
+    let mut radius = [0i32; BATCH];
+    let mut xy = [z; 2];
+    let mut rect = [[[0u32; BATCH]; 2]; 2];
+    for l in 0..BATCH {
+        let f = footprint(k, &core(l));
+        visible[l] = f.visible;
+        radius[l] = f.radius;
+        for c in 0..2 {
+            xy[c][l] = f.xy[c];
+            rect[0][c][l] = f.rect_min[c];
+            rect[1][c][l] = f.rect_max[c];
+        }
+    }
+
     for l in 0..len {
         let i = first + l;
-        let p = project_finish(
-            k,
-            &ProjectCore {
-                depth: depth[l],
-                ndc: [ndc[0][l], ndc[1][l]],
-                cov2d: [cov2d[0][l], cov2d[1][l], cov2d[2][l]],
-                det: det[l],
-                conic: [conic[0][l], conic[1][l], conic[2][l]],
-                radius3: radius3[l],
-                clamped_x: clamped[0][l],
-                clamped_y: clamped[1][l],
+        let p = assemble(
+            &core(l),
+            &Footprint {
+                visible: visible[l],
+                radius: radius[l],
+                xy: [xy[0][l], xy[1][l]],
+                rect_min: [rect[0][0][l], rect[0][1][l]],
+                rect_max: [rect[1][0][l], rect[1][1][l]],
             },
         );
         let (c, s) = if p.radius > 0 {
