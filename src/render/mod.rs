@@ -38,8 +38,12 @@
 //! bits on every path (see the private modules `lanes` and `rasterize`). In f32
 //! the rasterizer's `exp` is [`crate::kernels::fastmath::exp_f32`] (≤ 1 ulp);
 //! f64 uses the pinned libm.
-//! Forward: parallel over Gaussians (independent) and over image rows (each
-//! row owns its pixels). Backward: each tile accumulates into a buffer
+//! Forward: the per-Gaussian stage (covariance, projection, SH colour) runs
+//! in parallel over batches of 16 Gaussians, each batch as vectors compiled
+//! for the same instruction sets and tested against the one-Gaussian
+//! functions (see the private module `preprocess`); then the binned list
+//! gathers one record per entry, and the blend runs in parallel over image
+//! rows (each row owns its pixels). Backward: each tile accumulates into a buffer
 //! indexed by list position, per entry the fixed pairwise sum of a row's 16
 //! pixels, rows in ascending order; each Gaussian then sums its entries in
 //! ascending list position; the chain rule runs per Gaussian. No result

@@ -10,6 +10,12 @@
 //! 6. pixel centre `ndc2Pix`, evaluated in f64 and rounded to `T`;
 //! 7. tile rectangle, cull if empty.
 //!
+//! The rasterizer runs it on batches of Gaussians as vectors (the private
+//! module `preprocess`), in three parts with the same operations:
+//! [`project_core`] (steps 1 to 5 without the culls), [`footprint`] (the
+//! radius, centre, rectangle and culls, without branches or library calls)
+//! and [`assemble`]; [`project`] composes them for one Gaussian.
+//!
 //! The backward is the exact derivative of the forward as computed (see
 //! [`super::GradientMode::Exact`]), or upstream's formulas
 //! ([`super::GradientMode::Inria`]).
