@@ -23,7 +23,9 @@
 //! Gaussian's entries in ascending list position; serial, run beside the
 //! first step) and [`gaussian_gradients`] (per Gaussian, the sum of its
 //! entries and the chain rule through the projection, the colour and the 3D
-//! covariance).
+//! covariance; in chunks of [`CHUNK`] Gaussians, each task forming its
+//! chunk's sums first and then writing every output of its chunk once, into
+//! result buffers that are never zeroed beforehand).
 //!
 //! Determinism: the contributions of a row's 16 pixels to an entry are summed
 //! by a fixed pairwise tree (lane `l` with `l + 8`, then `+ 4`, `+ 2`, `+ 1`),
@@ -493,10 +495,53 @@ fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> (Vec<usize>, Vec<u32>
     (start, index)
 }
 
+/// Gaussians per task of step 3: each task writes one contiguous piece of
+/// every output.
+const CHUNK: usize = 128;
+
+/// One task's pieces of the outputs of step 3, not yet written.
+struct OutChunk<'a, T> {
+    /// The first Gaussian.
+    start: usize,
+    means3d: &'a mut [MaybeUninit<T>],
+    means2d: &'a mut [MaybeUninit<T>],
+    colors: &'a mut [MaybeUninit<T>],
+    opacities: &'a mut [MaybeUninit<T>],
+    scales_or_cov: &'a mut [MaybeUninit<T>],
+    /// Empty for precomputed covariances.
+    rotations: &'a mut [MaybeUninit<T>],
+}
+
+/// `s` with every element set to zero, as an initialised slice.
+fn zeroed<T: Real>(s: &mut [MaybeUninit<T>]) -> &mut [T] {
+    for x in s.iter_mut() {
+        x.write(T::ZERO);
+    }
+    // SAFETY: every element was written just above, and `MaybeUninit<T>`
+    // has the layout of `T`.
+    unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut T, s.len()) }
+}
+
+/// The first `len` spare slots of `v` (whose capacity is at least `len`).
+fn spare<T>(v: &mut Vec<T>, len: usize) -> &mut [MaybeUninit<T>] {
+    &mut v.spare_capacity_mut()[..len]
+}
+
+/// Split off the first `len` elements of `*rest`.
+fn take<'a, T>(rest: &mut &'a mut [T], len: usize) -> &'a mut [T] {
+    let (head, tail) = std::mem::take(rest).split_at_mut(len);
+    *rest = tail;
+    head
+}
+
 /// Step 3, per Gaussian in parallel: the sum of its entries in ascending
 /// list position, then the chain rule through the projection, the colour
 /// (SH or precomputed) and the 3D covariance (scale and rotation or
-/// precomputed).
+/// precomputed). The Gaussians go in chunks of [`CHUNK`]; a task first
+/// forms the sums of its chunk (so the scattered reads of the entries of
+/// several Gaussians are in flight at once) and then applies the chain rule,
+/// writing each output once (zeros for culled Gaussians) into its own
+/// contiguous pieces of the never-zeroed result buffers.
 fn gaussian_gradients<T: Real>(
     input: &RasterInput<T>,
     saved: &RasterizeSaved<T>,
@@ -514,43 +559,70 @@ fn gaussian_gradients<T: Real>(
         } => (3 * stride, Some((coeffs, degree))),
         Colors::Precomputed(_) => (3, None),
     };
-    let (cov_w, scale_rot) = match input.covariances {
+    let (cov_w, rot_w, scale_rot) = match input.covariances {
         Covariances::ScaleRotation {
             scales,
             rotations,
             scale_modifier,
-        } => (3, Some((scales, rotations, scale_modifier))),
-        Covariances::Precomputed(_) => (6, None),
+        } => (3, 4, Some((scales, rotations, scale_modifier))),
+        Covariances::Precomputed(_) => (6, 0, None),
     };
     let mut grads = RasterGrads {
-        means3d: vec![T::ZERO; 3 * n],
-        means2d: vec![T::ZERO; 3 * n],
-        colors: vec![T::ZERO; cstride * n],
-        opacities: vec![T::ZERO; n],
-        scales_or_cov: vec![T::ZERO; cov_w * n],
-        // Scratch of the right length for precomputed covariances, emptied below.
-        rotations: vec![T::ZERO; 4 * n],
+        means3d: Vec::with_capacity(3 * n),
+        means2d: Vec::with_capacity(3 * n),
+        colors: Vec::with_capacity(cstride * n),
+        opacities: Vec::with_capacity(n),
+        scales_or_cov: Vec::with_capacity(cov_w * n),
+        rotations: Vec::with_capacity(rot_w * n),
     };
-    (
-        grads.means3d.par_chunks_mut(3),
-        grads.means2d.par_chunks_mut(3),
-        grads.colors.par_chunks_mut(cstride),
-        grads.opacities.par_iter_mut(),
-        grads.scales_or_cov.par_chunks_mut(cov_w),
-        grads.rotations.par_chunks_mut(4),
-    )
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(i, (gm3, gm2, gcol, gop, gcov_out, grot))| {
+    let mut chunks = Vec::with_capacity(n.div_ceil(CHUNK));
+    {
+        let mut m3 = spare(&mut grads.means3d, 3 * n);
+        let mut m2 = spare(&mut grads.means2d, 3 * n);
+        let mut col = spare(&mut grads.colors, cstride * n);
+        let mut op = spare(&mut grads.opacities, n);
+        let mut cov = spare(&mut grads.scales_or_cov, cov_w * n);
+        let mut rot = spare(&mut grads.rotations, rot_w * n);
+        for s in (0..n).step_by(CHUNK) {
+            let len = CHUNK.min(n - s);
+            chunks.push(OutChunk {
+                start: s,
+                means3d: take(&mut m3, 3 * len),
+                means2d: take(&mut m2, 3 * len),
+                colors: take(&mut col, cstride * len),
+                opacities: take(&mut op, len),
+                scales_or_cov: take(&mut cov, cov_w * len),
+                rotations: take(&mut rot, rot_w * len),
+            });
+        }
+    }
+    chunks.into_par_iter().for_each_init(Vec::new, |acc, out| {
+        let s = out.start;
+        let len = out.opacities.len();
+        // The sums first: the reads of different Gaussians are independent.
+        acc.clear();
+        acc.extend((s..s + len).map(|i| {
+            let mut a = EntryGrad::ZERO;
+            if saved.proj[i].radius > 0 {
+                for &pos in &index[start[i]..start[i + 1]] {
+                    a.add(&entry[pos as usize]);
+                }
+            }
+            a
+        }));
+        let gm3 = zeroed(out.means3d);
+        let gm2 = zeroed(out.means2d);
+        let gcol = zeroed(out.colors);
+        let gop = zeroed(out.opacities);
+        let gcov_out = zeroed(out.scales_or_cov);
+        let grot = zeroed(out.rotations);
+        for (j, acc) in acc.iter().enumerate() {
+            let i = s + j;
             let p = &saved.proj[i];
             if p.radius <= 0 {
-                return;
+                continue;
             }
-            let mut acc = EntryGrad::ZERO;
-            for &pos in &index[start[i]..start[i + 1]] {
-                acc.add(&entry[pos as usize]);
-            }
-            *gop = acc.opacity;
+            gop[j] = acc.opacity;
             let mean = input.mean(i);
             let (mut gmean, gcov, gndc) = project::project_vjp(
                 &saved.intr,
@@ -560,8 +632,9 @@ fn gaussian_gradients<T: Real>(
                 &acc.projected(),
                 mode,
             );
-            gm2[0] = gndc[0];
-            gm2[1] = gndc[1];
+            gm2[3 * j] = gndc[0];
+            gm2[3 * j + 1] = gndc[1];
+            let gcol = &mut gcol[j * cstride..(j + 1) * cstride];
             match sh {
                 Some((coeffs, degree)) => {
                     let c = &coeffs[i * cstride..(i + 1) * cstride];
@@ -580,7 +653,8 @@ fn gaussian_gradients<T: Real>(
                 }
                 None => gcol.copy_from_slice(&acc.color),
             }
-            gm3.copy_from_slice(&gmean);
+            gm3[3 * j..3 * j + 3].copy_from_slice(&gmean);
+            let gcov_out = &mut gcov_out[j * cov_w..(j + 1) * cov_w];
             match scale_rot {
                 Some((scales, rotations, modifier)) => {
                     let vjp = match mode {
@@ -594,13 +668,23 @@ fn gaussian_gradients<T: Real>(
                         gcov,
                     );
                     gcov_out.copy_from_slice(&gs);
-                    grot.copy_from_slice(&gq);
+                    grot[4 * j..4 * j + 4].copy_from_slice(&gq);
                 }
                 None => gcov_out.copy_from_slice(&gcov),
             }
-        });
-    if scale_rot.is_none() {
-        grads.rotations = Vec::new();
+        }
+    });
+    // SAFETY: the chunks are consecutive pieces of each buffer's first
+    // `w·n` spare slots (`w` its width) that together cover all of them, and
+    // every task wrote every slot of its pieces (`zeroed`); a panic in a
+    // task propagates before these lines, leaving the buffers empty.
+    unsafe {
+        grads.means3d.set_len(3 * n);
+        grads.means2d.set_len(3 * n);
+        grads.colors.set_len(cstride * n);
+        grads.opacities.set_len(n);
+        grads.scales_or_cov.set_len(cov_w * n);
+        grads.rotations.set_len(rot_w * n);
     }
     grads
 }
