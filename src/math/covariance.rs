@@ -14,18 +14,19 @@
 //! Deviation from upstream, deliberate: the scale gradient is `d/ds` and
 //! includes the factor `modifier` (upstream returns `d/d(modifier·s)`).
 
+use crate::math::pack::Arith;
 use crate::math::quat::{quat_to_rotmat, quat_to_rotmat_vjp};
 use crate::math::Real;
 
 /// `M = S Rᵀ` (math): `M_ij = s'_i R_ji`.
-#[inline]
-fn m_matrix<T: Real>(scale: [T; 3], modifier: T, rot: &[[T; 3]; 3]) -> ([T; 3], [[T; 3]; 3]) {
+#[inline(always)]
+fn m_matrix<N: Arith>(scale: [N; 3], modifier: N, rot: &[[N; 3]; 3]) -> ([N; 3], [[N; 3]; 3]) {
     let s = [
         modifier * scale[0],
         modifier * scale[1],
         modifier * scale[2],
     ];
-    let mut m = [[T::ZERO; 3]; 3];
+    let mut m = [[N::ZERO; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
             m[i][j] = s[i] * rot[j][i];
@@ -104,51 +105,54 @@ pub fn sym3_eigen(a: [[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
 }
 
 /// The full symmetric 3×3 from the 6 stored values.
-#[inline]
-pub fn sym3<T: Real>(c: &[T; 6]) -> [[T; 3]; 3] {
+#[inline(always)]
+pub fn sym3<T: Copy>(c: &[T; 6]) -> [[T; 3]; 3] {
     [[c[0], c[1], c[2]], [c[1], c[3], c[4]], [c[2], c[4], c[5]]]
 }
 
 /// Backward of [`cov3d`]: `(dL/dscale, dL/dq)` given the gradient of the 6
 /// stored slots (off-diagonal slots: derivative w.r.t. the shared scalar).
-pub fn cov3d_vjp<T: Real>(
-    scale: [T; 3],
-    modifier: T,
-    q: [T; 4],
-    grad_cov: [T; 6],
-) -> ([T; 3], [T; 4]) {
+/// On a [`crate::math::pack::Pack`], each lane is that Gaussian's result.
+#[inline(always)]
+pub fn cov3d_vjp<N: Arith>(
+    scale: [N; 3],
+    modifier: N,
+    q: [N; 4],
+    grad_cov: [N; 6],
+) -> ([N; 3], [N; 4]) {
     let (gs, gq) = cov3d_vjp_scaled(scale, modifier, q, grad_cov);
     (gs.map(|g| modifier * g), gq)
 }
 
 /// Backward of [`cov3d`] as upstream returns it: `(dL/d(modifier·scale),
 /// dL/dq)`, i.e. the scale gradient without the factor `modifier`.
-pub fn cov3d_vjp_scaled<T: Real>(
-    scale: [T; 3],
-    modifier: T,
-    q: [T; 4],
-    grad_cov: [T; 6],
-) -> ([T; 3], [T; 4]) {
+#[inline(always)]
+pub fn cov3d_vjp_scaled<N: Arith>(
+    scale: [N; 3],
+    modifier: N,
+    q: [N; 4],
+    grad_cov: [N; 6],
+) -> ([N; 3], [N; 4]) {
     let rot = quat_to_rotmat(q);
     let (s, m) = m_matrix(scale, modifier, &rot);
     // dΣ as a symmetric matrix whose entries are the per-position derivatives.
-    let half = T::from_f64(0.5);
+    let half = N::from_f64(0.5);
     let g = [
         [grad_cov[0], half * grad_cov[1], half * grad_cov[2]],
         [half * grad_cov[1], grad_cov[3], half * grad_cov[4]],
         [half * grad_cov[2], half * grad_cov[4], grad_cov[5]],
     ];
     // Σ = MᵀM  =>  dL/dM = M (G + Gᵀ) = 2 M G for symmetric G.
-    let two = T::from_f64(2.0);
-    let mut gm = [[T::ZERO; 3]; 3];
+    let two = N::from_f64(2.0);
+    let mut gm = [[N::ZERO; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
             gm[i][j] = two * (m[i][0] * g[0][j] + m[i][1] * g[1][j] + m[i][2] * g[2][j]);
         }
     }
     // M_ij = s'_i R_ji
-    let mut gs = [T::ZERO; 3];
-    let mut gr = [[T::ZERO; 3]; 3];
+    let mut gs = [N::ZERO; 3];
+    let mut gr = [[N::ZERO; 3]; 3];
     for i in 0..3 {
         gs[i] = gm[i][0] * rot[0][i] + gm[i][1] * rot[1][i] + gm[i][2] * rot[2][i];
         for j in 0..3 {

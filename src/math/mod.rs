@@ -6,11 +6,14 @@
 //!   `Real`, glam's f64 types for camera geometry), quaternions and their
 //!   rotation matrices.
 //! - [`sh`], [`covariance`]: spherical-harmonics colour and 3D covariance, each with its vjp.
+//! - [`pack`]: the arithmetic the per-Gaussian vjps are written in, on one
+//!   number or on several lanes with the same bits.
 //! - [`gradcheck`]: central finite differences in f64 for every hand-written backward.
 
 pub mod covariance;
 pub mod fast;
 pub mod gradcheck;
+pub mod pack;
 pub mod quat;
 pub mod real;
 pub mod rng;

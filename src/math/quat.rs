@@ -6,14 +6,14 @@
 //! Inria `computeCov3D` does not). Matrices are row-major, acting on column
 //! vectors (`v' = R·v`).
 
-use crate::math::Real;
+use crate::math::pack::Arith;
 
 /// `R(q)` (math, row-major) for `q = (r, x, y, z)`, not normalised.
-#[inline]
-pub fn quat_to_rotmat<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {
+#[inline(always)]
+pub fn quat_to_rotmat<N: Arith>(q: [N; 4]) -> [[N; 3]; 3] {
     let [r, x, y, z] = q;
-    let one = T::ONE;
-    let two = T::from_f64(2.0);
+    let one = N::ONE;
+    let two = N::from_f64(2.0);
     [
         [
             one - two * (y * y + z * z),
@@ -34,11 +34,11 @@ pub fn quat_to_rotmat<T: Real>(q: [T; 4]) -> [[T; 3]; 3] {
 }
 
 /// Backward of [`quat_to_rotmat`]: `dL/dq` given `dL/dR` (math layout).
-#[inline]
-pub fn quat_to_rotmat_vjp<T: Real>(q: [T; 4], gr: [[T; 3]; 3]) -> [T; 4] {
+#[inline(always)]
+pub fn quat_to_rotmat_vjp<N: Arith>(q: [N; 4], gr: [[N; 3]; 3]) -> [N; 4] {
     let [r, x, y, z] = q;
-    let two = T::from_f64(2.0);
-    let four = T::from_f64(4.0);
+    let two = N::from_f64(2.0);
+    let four = N::from_f64(4.0);
     let dr = two * z * (gr[1][0] - gr[0][1])
         + two * y * (gr[0][2] - gr[2][0])
         + two * x * (gr[2][1] - gr[1][2]);

@@ -12,6 +12,7 @@
 //! where `M ≥ (degree + 1)²` is the per-Gaussian stride; coefficients above the
 //! active degree are ignored and receive zero gradient.
 
+use crate::math::pack::Arith;
 use crate::math::Real;
 
 /// Degree-0 constant.
@@ -56,7 +57,7 @@ pub struct ShColorSaved<T> {
 
 /// Unit view direction `v / sqrt(v·v)` as the forward computes it.
 #[inline(always)]
-fn direction<T: Real>(mean: [T; 3], campos: [T; 3]) -> ([T; 3], [T; 3]) {
+fn direction<N: Arith>(mean: [N; 3], campos: [N; 3]) -> ([N; 3], [N; 3]) {
     let v = [
         mean[0] - campos[0],
         mean[1] - campos[1],
@@ -69,10 +70,10 @@ fn direction<T: Real>(mean: [T; 3], campos: [T; 3]) -> ([T; 3], [T; 3]) {
 /// The 16 scalar basis factors `Y_k(dir)` exactly as the forward multiplies
 /// them into the coefficients (`Y_k · sh_k`); entries above `degree` are 0.
 #[inline(always)]
-pub fn sh_basis<T: Real>(degree: usize, dir: [T; 3]) -> [T; 16] {
-    let c = |v: f64| T::from_f64(v);
+pub fn sh_basis<N: Arith>(degree: usize, dir: [N; 3]) -> [N; 16] {
+    let c = |v: f64| N::from_f64(v);
     let [x, y, z] = dir;
-    let mut b = [T::ZERO; 16];
+    let mut b = [N::ZERO; 16];
     b[0] = c(SH_C0);
     if degree > 0 {
         // result - (C1 y) sh1 equals result + (-(C1 y)) sh1 bit for bit.
@@ -104,11 +105,11 @@ pub fn sh_basis<T: Real>(degree: usize, dir: [T; 3]) -> [T; 16] {
 /// Partial derivatives of the basis factors with respect to the direction
 /// components, `[d/dx, d/dy, d/dz]` per coefficient, treating x, y, z as
 /// independent (the normalisation is chained separately).
-#[inline]
-fn sh_basis_jacobian<T: Real>(degree: usize, dir: [T; 3]) -> [[T; 3]; 16] {
-    let c = |v: f64| T::from_f64(v);
+#[inline(always)]
+fn sh_basis_jacobian<N: Arith>(degree: usize, dir: [N; 3]) -> [[N; 3]; 16] {
+    let c = |v: f64| N::from_f64(v);
     let [x, y, z] = dir;
-    let z0 = T::ZERO;
+    let z0 = N::ZERO;
     let mut d = [[z0; 3]; 16];
     if degree > 0 {
         d[1] = [z0, -c(SH_C1), z0];
@@ -216,30 +217,55 @@ pub fn sh_to_color_vjp<T: Real>(
     grad_color: [T; 3],
     grad_coeffs: &mut [T],
 ) -> [T; 3] {
+    for x in grad_coeffs.iter_mut() {
+        *x = T::ZERO;
+    }
+    color_vjp(
+        degree,
+        |j| coeffs[j],
+        mean,
+        campos,
+        fwd.clamped,
+        grad_color,
+        |j, g| grad_coeffs[j] = g,
+    )
+}
+
+/// [`sh_to_color_vjp`] on any [`Arith`] (on a
+/// [`Pack`](crate::math::pack::Pack), one Gaussian per lane): `coeff(j)` is
+/// coefficient slot `j` (`3·k + channel`), `clamped` the forward's
+/// per-channel clamp. Calls `put(j, dL/dcoeff_j)` for the `3·(degree + 1)²`
+/// used slots in ascending order and returns `dL/dmean`.
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // indices as in the formula
+pub fn color_vjp<N: Arith>(
+    degree: usize,
+    coeff: impl Fn(usize) -> N,
+    mean: [N; 3],
+    campos: [N; 3],
+    clamped: [N::Mask; 3],
+    grad_color: [N; 3],
+    mut put: impl FnMut(usize, N),
+) -> [N; 3] {
     let (v, dir) = direction(mean, campos);
     let basis = sh_basis(degree, dir);
     let n = coeffs_for_degree(degree);
     let mut g = grad_color;
-    for (gc, &clamped) in g.iter_mut().zip(&fwd.clamped) {
-        if clamped {
-            *gc = T::ZERO;
-        }
-    }
-    for x in grad_coeffs.iter_mut() {
-        *x = T::ZERO;
+    for (gc, &clamped) in g.iter_mut().zip(&clamped) {
+        *gc = N::select(clamped, N::ZERO, *gc);
     }
     for k in 0..n {
         for ch in 0..3 {
-            grad_coeffs[3 * k + ch] = basis[k] * g[ch];
+            put(3 * k + ch, basis[k] * g[ch]);
         }
     }
     if degree == 0 {
-        return [T::ZERO; 3];
+        return [N::ZERO; 3];
     }
     let jac = sh_basis_jacobian(degree, dir);
-    let mut gdir = [T::ZERO; 3];
+    let mut gdir = [N::ZERO; 3];
     for k in 1..n {
-        let s = coeffs[3 * k] * g[0] + coeffs[3 * k + 1] * g[1] + coeffs[3 * k + 2] * g[2];
+        let s = coeff(3 * k) * g[0] + coeff(3 * k + 1) * g[1] + coeff(3 * k + 2) * g[2];
         for a in 0..3 {
             gdir[a] += jac[k][a] * s;
         }
@@ -248,10 +274,10 @@ pub fn sh_to_color_vjp<T: Real>(
 }
 
 /// Backward of `dir = v / sqrt(v·v)`: `dL/dv = (s2·g − v (v·g)) / s2^{3/2}`.
-#[inline]
-fn direction_vjp<T: Real>(v: [T; 3], g: [T; 3]) -> [T; 3] {
+#[inline(always)]
+fn direction_vjp<N: Arith>(v: [N; 3], g: [N; 3]) -> [N; 3] {
     let s2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-    let inv = T::ONE / (s2 * s2.sqrt());
+    let inv = N::ONE / (s2 * s2.sqrt());
     let vg = v[0] * g[0] + v[1] * g[1] + v[2] * g[2];
     [
         (s2 * g[0] - v[0] * vg) * inv,

@@ -22,6 +22,7 @@
 
 use super::{GradientMode, BLOCK};
 use crate::math::covariance::sym3;
+use crate::math::pack::Arith;
 use crate::math::Real;
 
 /// Camera quantities shared by every Gaussian.
@@ -127,9 +128,6 @@ fn trunc_i64<T: Real>(v: T) -> i64 {
 /// Rows 0 and 1 of `J·Wr` for the view-space point `t` (clamped as upstream).
 struct Ewa<T> {
     a: [[T; 3]; 2],
-    /// Clamped `t.x`, `t.y`.
-    tx: T,
-    ty: T,
     clamped_x: bool,
     clamped_y: bool,
 }
@@ -154,8 +152,6 @@ fn ewa<T: Real>(k: &Intrinsics<T>, t: [T; 3]) -> Ewa<T> {
     }
     Ewa {
         a,
-        tx,
-        ty,
         clamped_x: txtz < -k.limx || txtz > k.limx,
         clamped_y: tytz < -k.limy || tytz > k.limy,
     }
@@ -393,40 +389,64 @@ pub(crate) struct ProjectedGrad<T> {
     pub depth: T,
 }
 
-/// Backward of [`project`] for a visible Gaussian: returns
-/// `(dL/dmean (projection, EWA and depth paths), dL/dcov3d slots, dL/dndc)`.
-/// In [`GradientMode::Inria`], `g.xy` is already in NDC units, `g.conic[1]`
-/// is half of dL/dB, `g.depth` is ignored, and the conic and tangent-clamp
-/// formulas are upstream's (see the mode's documentation).
-pub(crate) fn project_vjp<T: Real>(
-    k: &Intrinsics<T>,
-    mean: [T; 3],
-    cov3d: &[T; 6],
-    fwd: &Projected<T>,
-    g: &ProjectedGrad<T>,
+/// [`transform`] on any [`Arith`]: `m·[p; 1]`, component `i`.
+#[inline(always)]
+fn transform_n<N: Arith>(m: &[N::Elem; 16], p: [N; 3], i: usize) -> N {
+    N::splat(m[i]) * p[0]
+        + N::splat(m[4 + i]) * p[1]
+        + N::splat(m[8 + i]) * p[2]
+        + N::splat(m[12 + i])
+}
+
+/// Backward of [`project`] for visible Gaussians, on any [`Arith`] (one
+/// Gaussian, or one per lane of a [`Pack`](crate::math::pack::Pack)): from
+/// the forward's dilated 2D covariance `cov2d` ([`Projected::cov2d`]) and
+/// tangent clamps `clamped` (x, y), returns `(dL/dmean (projection, EWA and
+/// depth paths), dL/dcov3d slots, dL/dndc)`. In [`GradientMode::Inria`],
+/// `g.xy` is already in NDC units, `g.conic[1]` is half of dL/dB, `g.depth`
+/// is ignored, and the conic and tangent-clamp formulas are upstream's (see
+/// the mode's documentation).
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // indices as in the formula
+pub(crate) fn project_vjp<N: Arith>(
+    k: &Intrinsics<N::Elem>,
+    mean: [N; 3],
+    cov3d: [N; 6],
+    cov2d: [N; 3],
+    clamped: [N::Mask; 2],
+    g: ProjectedGrad<N>,
     mode: GradientMode,
-) -> ([T; 3], [T; 6], [T; 2]) {
+) -> ([N; 3], [N; 6], [N; 2]) {
     let inria = mode == GradientMode::Inria;
-    let [a, b, c] = fwd.cov2d;
+    let [a, b, c] = cov2d;
     let [ga, gb, gc] = g.conic;
-    let two = T::from_f64(2.0);
+    let two = N::from_f64(2.0);
     let (da, db, dc) = if inria {
         // Upstream computeCov2DCUDA: `gb` is half of dL/dB; 1/(det² + 1e-7).
         let denom = a * c - b * b;
-        let denom2inv = T::ONE / (denom * denom + T::from_f64(1e-7));
-        if denom2inv == T::ZERO {
-            (T::ZERO, T::ZERO, T::ZERO)
-        } else {
-            (
+        let denom2inv = N::ONE / (denom * denom + N::from_f64(1e-7));
+        let zero = denom2inv.eq_mask(N::ZERO);
+        (
+            N::select(
+                zero,
+                N::ZERO,
                 denom2inv * (-c * c * ga + two * b * c * gb + (denom - a * c) * gc),
+            ),
+            N::select(
+                zero,
+                N::ZERO,
                 denom2inv * two * (b * c * ga - (denom + two * b * b) * gb + a * b * gc),
+            ),
+            N::select(
+                zero,
+                N::ZERO,
                 denom2inv * (-a * a * gc + two * a * b * gb + (denom - a * c) * ga),
-            )
-        }
+            ),
+        )
     } else {
         // Conic (A, B, C) = (c, −b, a)/det, det = ac − b².
         let det = a * c - b * b;
-        let inv2 = T::ONE / (det * det);
+        let inv2 = N::ONE / (det * det);
         (
             (-(c * c) * ga + b * c * gb - b * b * gc) * inv2,
             (two * b * c * ga - (det + two * b * b) * gb + two * a * b * gc) * inv2,
@@ -435,16 +455,27 @@ pub(crate) fn project_vjp<T: Real>(
     };
 
     let t = [
-        transform(&k.view, mean, 0),
-        transform(&k.view, mean, 1),
-        transform(&k.view, mean, 2),
+        transform_n(&k.view, mean, 0),
+        transform_n(&k.view, mean, 1),
+        transform_n(&k.view, mean, 2),
     ];
-    let e = ewa(k, t);
-    let v = sym3(cov3d);
-    let a0 = e.a[0];
-    let a1 = e.a[1];
+    // Rows 0 and 1 of J·Wr and the clamped tx, ty, the operations of [`ewa`].
+    let wr = |i: usize, j: usize| N::splat(k.wr(i, j));
+    let (fx, fy) = (N::splat(k.fx), N::splat(k.fy));
+    let txtz = t[0] / t[2];
+    let tytz = t[1] / t[2];
+    let e_tx = txtz.clamp(N::splat(-k.limx), N::splat(k.limx)) * t[2];
+    let e_ty = tytz.clamp(N::splat(-k.limy), N::splat(k.limy)) * t[2];
+    let tz2 = t[2] * t[2];
+    let j00 = fx / t[2];
+    let j02 = -(fx * e_tx) / tz2;
+    let j11 = fy / t[2];
+    let j12 = -(fy * e_ty) / tz2;
+    let a0: [N; 3] = std::array::from_fn(|r| wr(0, r) * j00 + wr(2, r) * j02);
+    let a1: [N; 3] = std::array::from_fn(|r| wr(1, r) * j11 + wr(2, r) * j12);
+    let v = sym3(&cov3d);
     // a = A0ᵀVA0, b = A1ᵀVA0, c = A1ᵀVA1.
-    let mut gcov = [T::ZERO; 6];
+    let mut gcov = [N::ZERO; 6];
     let slots = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
     for (s, &(i, j)) in slots.iter().enumerate() {
         let full =
@@ -455,46 +486,45 @@ pub(crate) fn project_vjp<T: Real>(
             full(i, j) + full(j, i)
         };
     }
-    let va0: [T; 3] = std::array::from_fn(|i| v[i][0] * a0[0] + v[i][1] * a0[1] + v[i][2] * a0[2]);
-    let va1: [T; 3] = std::array::from_fn(|i| v[i][0] * a1[0] + v[i][1] * a1[1] + v[i][2] * a1[2]);
-    let ga0: [T; 3] = std::array::from_fn(|i| two * va0[i] * da + va1[i] * db);
-    let ga1: [T; 3] = std::array::from_fn(|i| two * va1[i] * dc + va0[i] * db);
+    let va0: [N; 3] = std::array::from_fn(|i| v[i][0] * a0[0] + v[i][1] * a0[1] + v[i][2] * a0[2]);
+    let va1: [N; 3] = std::array::from_fn(|i| v[i][0] * a1[0] + v[i][1] * a1[1] + v[i][2] * a1[2]);
+    let ga0: [N; 3] = std::array::from_fn(|i| two * va0[i] * da + va1[i] * db);
+    let ga1: [N; 3] = std::array::from_fn(|i| two * va1[i] * dc + va0[i] * db);
     // A(0, r) = Wr(0, r)·J00 + Wr(2, r)·J02; A(1, r) = Wr(1, r)·J11 + Wr(2, r)·J12.
-    let mut dj00 = T::ZERO;
-    let mut dj02 = T::ZERO;
-    let mut dj11 = T::ZERO;
-    let mut dj12 = T::ZERO;
+    let mut dj00 = N::ZERO;
+    let mut dj02 = N::ZERO;
+    let mut dj11 = N::ZERO;
+    let mut dj12 = N::ZERO;
     for r in 0..3 {
-        dj00 += k.wr(0, r) * ga0[r];
-        dj02 += k.wr(2, r) * ga0[r];
-        dj11 += k.wr(1, r) * ga1[r];
-        dj12 += k.wr(2, r) * ga1[r];
+        dj00 += wr(0, r) * ga0[r];
+        dj02 += wr(2, r) * ga0[r];
+        dj11 += wr(1, r) * ga1[r];
+        dj12 += wr(2, r) * ga1[r];
     }
-    let tz = T::ONE / t[2];
+    let tz = N::ONE / t[2];
     let tz2 = tz * tz;
     let tz3 = tz2 * tz;
     // J02 = −fx·tx'/tz² with tx' = tx (unclamped) or ±lim·tz (clamped):
     // ∂J02/∂tz is 2·fx·tx'/tz³ unclamped and fx·tx'/tz³ clamped. Upstream
     // (inria mode) uses the unclamped factor 2 in both cases.
-    let (mx, kx) = if fwd.clamped_x {
-        (T::ZERO, if inria { two } else { T::ONE })
-    } else {
-        (T::ONE, two)
-    };
-    let (my, ky) = if fwd.clamped_y {
-        (T::ZERO, if inria { two } else { T::ONE })
-    } else {
-        (T::ONE, two)
-    };
-    let dtx = mx * (-k.fx) * tz2 * dj02;
-    let dty = my * (-k.fy) * tz2 * dj12;
-    let dtz = -k.fx * tz2 * dj00 - k.fy * tz2 * dj11
-        + kx * k.fx * e.tx * tz3 * dj02
-        + ky * k.fy * e.ty * tz3 * dj12
-        + if inria { T::ZERO } else { g.depth };
+    let kc = if inria { two } else { N::ONE };
+    let (mx, kx) = (
+        N::select(clamped[0], N::ZERO, N::ONE),
+        N::select(clamped[0], kc, two),
+    );
+    let (my, ky) = (
+        N::select(clamped[1], N::ZERO, N::ONE),
+        N::select(clamped[1], kc, two),
+    );
+    let dtx = mx * N::splat(-k.fx) * tz2 * dj02;
+    let dty = my * N::splat(-k.fy) * tz2 * dj12;
+    let dtz = N::splat(-k.fx) * tz2 * dj00 - fy * tz2 * dj11
+        + kx * fx * e_tx * tz3 * dj02
+        + ky * fy * e_ty * tz3 * dj12
+        + if inria { N::ZERO } else { g.depth };
     let dt = [dtx, dty, dtz];
-    let mut gmean: [T; 3] =
-        std::array::from_fn(|j| k.wr(0, j) * dt[0] + k.wr(1, j) * dt[1] + k.wr(2, j) * dt[2]);
+    let mut gmean: [N; 3] =
+        std::array::from_fn(|j| wr(0, j) * dt[0] + wr(1, j) * dt[1] + wr(2, j) * dt[2]);
 
     // Pixel = ((ndc + 1)·S − 1)/2, so d pixel / d ndc = S/2. Inria mode
     // accumulates the centre gradient in NDC units already.
@@ -502,21 +532,22 @@ pub(crate) fn project_vjp<T: Real>(
         g.xy
     } else {
         [
-            g.xy[0] * T::from_f64(0.5 * k.width as f64),
-            g.xy[1] * T::from_f64(0.5 * k.height as f64),
+            g.xy[0] * N::from_f64(0.5 * k.width as f64),
+            g.xy[1] * N::from_f64(0.5 * k.height as f64),
         ]
     };
     // ndc = p_hom.xy · m_w, m_w = 1/(p_hom.w + 1e-7).
     let m = &k.proj;
-    let hx = transform(m, mean, 0);
-    let hy = transform(m, mean, 1);
-    let hw = transform(m, mean, 3);
-    let mw = T::ONE / (hw + T::from_f64(1e-7));
+    let hx = transform_n(m, mean, 0);
+    let hy = transform_n(m, mean, 1);
+    let hw = transform_n(m, mean, 3);
+    let mw = N::ONE / (hw + N::from_f64(1e-7));
     let mul1 = hx * mw * mw;
     let mul2 = hy * mw * mw;
+    let mc = |i: usize| N::splat(m[i]);
     for j in 0..3 {
-        gmean[j] += (m[4 * j] * mw - m[4 * j + 3] * mul1) * gndc[0]
-            + (m[4 * j + 1] * mw - m[4 * j + 3] * mul2) * gndc[1];
+        gmean[j] += (mc(4 * j) * mw - mc(4 * j + 3) * mul1) * gndc[0]
+            + (mc(4 * j + 1) * mw - mc(4 * j + 3) * mul2) * gndc[1];
     }
     (gmean, gcov, gndc)
 }

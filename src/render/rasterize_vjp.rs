@@ -23,7 +23,13 @@
 //! Gaussian's entries in ascending list position; serial, run beside the
 //! first step) and [`gaussian_gradients`] (per Gaussian, the sum of its
 //! entries and the chain rule through the projection, the colour and the 3D
-//! covariance).
+//! covariance; in chunks of [`CHUNK`] Gaussians, each task forming its
+//! chunk's sums first and then writing every output of its chunk once, into
+//! result buffers that are never zeroed beforehand). The chain rule runs
+//! several Gaussians per vector ([`crate::math::pack::Pack`]: 16 with
+//! AVX-512, 8 with AVX2, 4 otherwise), each lane computing exactly the
+//! scalar operations of its Gaussian, so the bits do not depend on the
+//! width.
 //!
 //! Determinism: the contributions of a row's 16 pixels to an entry are summed
 //! by a fixed pairwise tree (lane `l` with `l + 8`, then `+ 4`, `+ 2`, `+ 1`),
@@ -40,7 +46,8 @@ use super::rasterize::{
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
 use crate::error::{Error, Result};
 use crate::math::covariance::{cov3d_vjp, cov3d_vjp_scaled};
-use crate::math::sh::sh_to_color_vjp;
+use crate::math::pack::Pack;
+use crate::math::sh::{coeffs_for_degree, color_vjp};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -85,15 +92,6 @@ impl<T: Real> EntryGrad<T> {
         }
         self.opacity += o.opacity;
         self.depth += o.depth;
-    }
-
-    /// The part the projection's backward takes.
-    fn projected(&self) -> ProjectedGrad<T> {
-        ProjectedGrad {
-            xy: self.xy,
-            conic: self.conic,
-            depth: self.depth,
-        }
     }
 }
 
@@ -493,10 +491,53 @@ fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> (Vec<usize>, Vec<u32>
     (start, index)
 }
 
+/// Gaussians per task of step 3: each task writes one contiguous piece of
+/// every output.
+const CHUNK: usize = 128;
+
+/// One task's pieces of the outputs of step 3, not yet written.
+struct OutChunk<'a, T> {
+    /// The first Gaussian.
+    start: usize,
+    means3d: &'a mut [MaybeUninit<T>],
+    means2d: &'a mut [MaybeUninit<T>],
+    colors: &'a mut [MaybeUninit<T>],
+    opacities: &'a mut [MaybeUninit<T>],
+    scales_or_cov: &'a mut [MaybeUninit<T>],
+    /// Empty for precomputed covariances.
+    rotations: &'a mut [MaybeUninit<T>],
+}
+
+/// `s` with every element set to zero, as an initialised slice.
+fn zeroed<T: Real>(s: &mut [MaybeUninit<T>]) -> &mut [T] {
+    for x in s.iter_mut() {
+        x.write(T::ZERO);
+    }
+    // SAFETY: every element was written just above, and `MaybeUninit<T>`
+    // has the layout of `T`.
+    unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut T, s.len()) }
+}
+
+/// The first `len` spare slots of `v` (whose capacity is at least `len`).
+fn spare<T>(v: &mut Vec<T>, len: usize) -> &mut [MaybeUninit<T>] {
+    &mut v.spare_capacity_mut()[..len]
+}
+
+/// Split off the first `len` elements of `*rest`.
+fn take<'a, T>(rest: &mut &'a mut [T], len: usize) -> &'a mut [T] {
+    let (head, tail) = std::mem::take(rest).split_at_mut(len);
+    *rest = tail;
+    head
+}
+
 /// Step 3, per Gaussian in parallel: the sum of its entries in ascending
 /// list position, then the chain rule through the projection, the colour
 /// (SH or precomputed) and the 3D covariance (scale and rotation or
-/// precomputed).
+/// precomputed). The Gaussians go in chunks of [`CHUNK`]; a task first
+/// forms the sums of its chunk (so the scattered reads of the entries of
+/// several Gaussians are in flight at once) and then applies the chain rule,
+/// writing each output once (zeros for culled Gaussians) into its own
+/// contiguous pieces of the never-zeroed result buffers.
 fn gaussian_gradients<T: Real>(
     input: &RasterInput<T>,
     saved: &RasterizeSaved<T>,
@@ -514,93 +555,310 @@ fn gaussian_gradients<T: Real>(
         } => (3 * stride, Some((coeffs, degree))),
         Colors::Precomputed(_) => (3, None),
     };
-    let (cov_w, scale_rot) = match input.covariances {
+    let (cov_w, rot_w, scale_rot) = match input.covariances {
         Covariances::ScaleRotation {
             scales,
             rotations,
             scale_modifier,
-        } => (3, Some((scales, rotations, scale_modifier))),
-        Covariances::Precomputed(_) => (6, None),
+        } => (3, 4, Some((scales, rotations, scale_modifier))),
+        Covariances::Precomputed(_) => (6, 0, None),
     };
     let mut grads = RasterGrads {
-        means3d: vec![T::ZERO; 3 * n],
-        means2d: vec![T::ZERO; 3 * n],
-        colors: vec![T::ZERO; cstride * n],
-        opacities: vec![T::ZERO; n],
-        scales_or_cov: vec![T::ZERO; cov_w * n],
-        // Scratch of the right length for precomputed covariances, emptied below.
-        rotations: vec![T::ZERO; 4 * n],
+        means3d: Vec::with_capacity(3 * n),
+        means2d: Vec::with_capacity(3 * n),
+        colors: Vec::with_capacity(cstride * n),
+        opacities: Vec::with_capacity(n),
+        scales_or_cov: Vec::with_capacity(cov_w * n),
+        rotations: Vec::with_capacity(rot_w * n),
     };
-    (
-        grads.means3d.par_chunks_mut(3),
-        grads.means2d.par_chunks_mut(3),
-        grads.colors.par_chunks_mut(cstride),
-        grads.opacities.par_iter_mut(),
-        grads.scales_or_cov.par_chunks_mut(cov_w),
-        grads.rotations.par_chunks_mut(4),
-    )
-        .into_par_iter()
-        .enumerate()
-        .for_each(|(i, (gm3, gm2, gcol, gop, gcov_out, grot))| {
-            let p = &saved.proj[i];
-            if p.radius <= 0 {
-                return;
-            }
-            let mut acc = EntryGrad::ZERO;
-            for &pos in &index[start[i]..start[i + 1]] {
-                acc.add(&entry[pos as usize]);
-            }
-            *gop = acc.opacity;
-            let mean = input.mean(i);
-            let (mut gmean, gcov, gndc) = project::project_vjp(
-                &saved.intr,
-                mean,
-                &saved.cov3d[i],
-                p,
-                &acc.projected(),
-                mode,
-            );
-            gm2[0] = gndc[0];
-            gm2[1] = gndc[1];
-            match sh {
-                Some((coeffs, degree)) => {
-                    let c = &coeffs[i * cstride..(i + 1) * cstride];
-                    let gd = sh_to_color_vjp(
-                        degree,
-                        c,
-                        mean,
-                        input.camera.campos,
-                        &saved.colors[i],
-                        acc.color,
-                        gcol,
-                    );
-                    for a in 0..3 {
-                        gmean[a] += gd[a];
-                    }
+    let mut chunks = Vec::with_capacity(n.div_ceil(CHUNK));
+    {
+        let mut m3 = spare(&mut grads.means3d, 3 * n);
+        let mut m2 = spare(&mut grads.means2d, 3 * n);
+        let mut col = spare(&mut grads.colors, cstride * n);
+        let mut op = spare(&mut grads.opacities, n);
+        let mut cov = spare(&mut grads.scales_or_cov, cov_w * n);
+        let mut rot = spare(&mut grads.rotations, rot_w * n);
+        for s in (0..n).step_by(CHUNK) {
+            let len = CHUNK.min(n - s);
+            chunks.push(OutChunk {
+                start: s,
+                means3d: take(&mut m3, 3 * len),
+                means2d: take(&mut m2, 3 * len),
+                colors: take(&mut col, cstride * len),
+                opacities: take(&mut op, len),
+                scales_or_cov: take(&mut cov, cov_w * len),
+                rotations: take(&mut rot, rot_w * len),
+            });
+        }
+    }
+    let ctx = Ctx {
+        input,
+        saved,
+        mode,
+        cstride,
+        cov_w,
+        sh,
+        scale_rot,
+    };
+    chunks.into_par_iter().for_each_init(Vec::new, |acc, out| {
+        let s = out.start;
+        let len = out.opacities.len();
+        // The sums first: the reads of different Gaussians are independent.
+        acc.clear();
+        acc.extend((s..s + len).map(|i| {
+            let mut a = EntryGrad::ZERO;
+            if saved.proj[i].radius > 0 {
+                for &pos in &index[start[i]..start[i + 1]] {
+                    a.add(&entry[pos as usize]);
                 }
-                None => gcol.copy_from_slice(&acc.color),
             }
-            gm3.copy_from_slice(&gmean);
-            match scale_rot {
-                Some((scales, rotations, modifier)) => {
-                    let vjp = match mode {
-                        GradientMode::Exact => cov3d_vjp,
-                        GradientMode::Inria => cov3d_vjp_scaled,
-                    };
-                    let (gs, gq) = vjp(
-                        [scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]],
-                        modifier,
-                        std::array::from_fn(|q| rotations[4 * i + q]),
-                        gcov,
-                    );
-                    gcov_out.copy_from_slice(&gs);
-                    grot.copy_from_slice(&gq);
-                }
-                None => gcov_out.copy_from_slice(&gcov),
-            }
-        });
-    if scale_rot.is_none() {
-        grads.rotations = Vec::new();
+            a
+        }));
+        let mut o = Outputs {
+            means3d: zeroed(out.means3d),
+            means2d: zeroed(out.means2d),
+            colors: zeroed(out.colors),
+            opacities: zeroed(out.opacities),
+            scales_or_cov: zeroed(out.scales_or_cov),
+            rotations: zeroed(out.rotations),
+        };
+        chain_rule(&ctx, s, acc, &mut o);
+    });
+    // SAFETY: the chunks are consecutive pieces of each buffer's first
+    // `w·n` spare slots (`w` its width) that together cover all of them, and
+    // every task wrote every slot of its pieces (`zeroed`); a panic in a
+    // task propagates before these lines, leaving the buffers empty.
+    unsafe {
+        grads.means3d.set_len(3 * n);
+        grads.means2d.set_len(3 * n);
+        grads.colors.set_len(cstride * n);
+        grads.opacities.set_len(n);
+        grads.scales_or_cov.set_len(cov_w * n);
+        grads.rotations.set_len(rot_w * n);
     }
     grads
+}
+
+/// What the chain rule of step 3 reads besides the entry sums.
+struct Ctx<'a, T> {
+    input: &'a RasterInput<'a, T>,
+    saved: &'a RasterizeSaved<T>,
+    mode: GradientMode,
+    /// Colour values per Gaussian (`3·stride` for SH, 3 precomputed).
+    cstride: usize,
+    /// Covariance gradient values per Gaussian (3 scales or 6 slots).
+    cov_w: usize,
+    /// SH coefficients and degree, `None` for precomputed colours.
+    sh: Option<(&'a [T], usize)>,
+    /// Scales, rotations and scale modifier, `None` for precomputed
+    /// covariances.
+    scale_rot: Option<(&'a [T], &'a [T], T)>,
+}
+
+/// One task's pieces of the outputs of step 3, zeroed.
+struct Outputs<'a, T> {
+    means3d: &'a mut [T],
+    means2d: &'a mut [T],
+    colors: &'a mut [T],
+    opacities: &'a mut [T],
+    scales_or_cov: &'a mut [T],
+    rotations: &'a mut [T],
+}
+
+/// The chain rule of step 3 for the chunk of Gaussians starting at `s`
+/// (`acc` their entry sums), several Gaussians per vector: the widest
+/// [`Pack`] the instruction set runs well (16 lanes with AVX-512, 8 with
+/// AVX2, 4 otherwise). Every lane computes exactly what the scalar
+/// [`project::project_vjp`], [`crate::math::sh::sh_to_color_vjp`] and
+/// [`cov3d_vjp`] compute on that Gaussian alone (see [`crate::math::pack`]),
+/// so the bits do not depend on the width.
+fn chain_rule<T: Real>(ctx: &Ctx<'_, T>, s: usize, acc: &[EntryGrad<T>], o: &mut Outputs<'_, T>) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use super::rasterize::{path, Path};
+        #[target_feature(enable = "avx512f")]
+        unsafe fn avx512<T: Real>(
+            ctx: &Ctx<'_, T>,
+            s: usize,
+            acc: &[EntryGrad<T>],
+            o: &mut Outputs<'_, T>,
+        ) {
+            chain_rule_lanes::<T, 16>(ctx, s, acc, o)
+        }
+        #[target_feature(enable = "avx2")]
+        unsafe fn avx2<T: Real>(
+            ctx: &Ctx<'_, T>,
+            s: usize,
+            acc: &[EntryGrad<T>],
+            o: &mut Outputs<'_, T>,
+        ) {
+            chain_rule_lanes::<T, 8>(ctx, s, acc, o)
+        }
+        match path::<T>() {
+            // SAFETY: `path` chooses AVX-512 only on a CPU that has it.
+            Path::Avx512 => return unsafe { avx512(ctx, s, acc, o) },
+            // SAFETY: `path` chooses AVX2 only on a CPU that has it.
+            Path::Avx2 => return unsafe { avx2(ctx, s, acc, o) },
+            Path::Portable => {}
+        }
+    }
+    chain_rule_lanes::<T, 4>(ctx, s, acc, o)
+}
+
+/// [`chain_rule`] with `L` Gaussians per [`Pack`]. Lanes past the chunk's
+/// end repeat its last Gaussian; lanes of culled Gaussians are computed and
+/// not written (their outputs stay zero). Each lane's inputs are first
+/// copied into fixed-size rows, and a block's results are kept value by
+/// value and then written Gaussian by Gaussian.
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // lanes and slots as indices
+fn chain_rule_lanes<T: Real, const L: usize>(
+    ctx: &Ctx<'_, T>,
+    s: usize,
+    acc: &[EntryGrad<T>],
+    o: &mut Outputs<'_, T>,
+) {
+    let (input, saved) = (ctx.input, ctx.saved);
+    let (cstride, cov_w) = (ctx.cstride, ctx.cov_w);
+    let len = acc.len();
+    let proj = &saved.proj[s..s + len];
+    let cov3d = &saved.cov3d[s..s + len];
+    let means = &input.means3d[3 * s..3 * (s + len)];
+    // Colour values used per Gaussian (the rest of its `cstride` stay zero).
+    let ncol = match ctx.sh {
+        Some((_, degree)) => 3 * coeffs_for_degree(degree),
+        None => 3,
+    };
+    let zero = [T::ZERO; L];
+    let mut j0 = 0;
+    while j0 < len {
+        let cnt = L.min(len - j0);
+        // Per lane, the position in the chunk and whether it is written.
+        let jl: [usize; L] = std::array::from_fn(|l| j0 + l.min(cnt - 1));
+        let live: [bool; L] = std::array::from_fn(|l| l < cnt && proj[jl[l]].radius > 0);
+        let b = j0;
+        j0 += cnt;
+        if !live.contains(&true) {
+            continue;
+        }
+        // Lane-major copies of the inputs.
+        let mut r_mean = [[T::ZERO; 3]; L];
+        let mut r_acc = [EntryGrad::ZERO; L];
+        let mut r_cov3d = [[T::ZERO; 6]; L];
+        let mut r_cov2d = [[T::ZERO; 3]; L];
+        for l in 0..L {
+            let j = jl[l];
+            r_mean[l].copy_from_slice(&means[3 * j..3 * j + 3]);
+            r_acc[l] = acc[j];
+            r_cov3d[l] = cov3d[j];
+            r_cov2d[l] = proj[j].cov2d;
+        }
+        let mean: [Pack<T, L>; 3] = transpose(&r_mean);
+        let g = ProjectedGrad {
+            xy: transpose(&r_acc.map(|e| e.xy)),
+            conic: transpose(&r_acc.map(|e| e.conic)),
+            depth: Pack(r_acc.map(|e| e.depth)),
+        };
+        let (mut gmean, gcov, gndc) = project::project_vjp(
+            &saved.intr,
+            mean,
+            transpose(&r_cov3d),
+            transpose(&r_cov2d),
+            [jl.map(|j| proj[j].clamped_x), jl.map(|j| proj[j].clamped_y)],
+            g,
+            ctx.mode,
+        );
+        let mut col = [zero; 48];
+        match ctx.sh {
+            Some((coeffs, degree)) => {
+                let mut r_coef = [[T::ZERO; 48]; L];
+                for l in 0..L {
+                    let c = &coeffs[(s + jl[l]) * cstride..];
+                    r_coef[l][..ncol].copy_from_slice(&c[..ncol]);
+                }
+                let colors = &saved.colors[s..s + len];
+                let gd = color_vjp(
+                    degree,
+                    |q| Pack(std::array::from_fn(|l| r_coef[l][q])),
+                    mean,
+                    input.camera.campos.map(Pack::splat),
+                    std::array::from_fn(|ch| jl.map(|j| colors[j].clamped[ch])),
+                    transpose(&r_acc.map(|e| e.color)),
+                    |q, v| col[q] = v.0,
+                );
+                for a in 0..3 {
+                    gmean[a] += gd[a];
+                }
+            }
+            None => {
+                for ch in 0..3 {
+                    col[ch] = r_acc.map(|e| e.color[ch]);
+                }
+            }
+        }
+        let mut cov = [zero; 6];
+        let mut rot = [zero; 4];
+        match ctx.scale_rot {
+            Some((scales, rotations, modifier)) => {
+                let mut r_scale = [[T::ZERO; 3]; L];
+                let mut r_rot = [[T::ZERO; 4]; L];
+                for l in 0..L {
+                    let i = s + jl[l];
+                    r_scale[l].copy_from_slice(&scales[3 * i..3 * i + 3]);
+                    r_rot[l].copy_from_slice(&rotations[4 * i..4 * i + 4]);
+                }
+                let scale = transpose(&r_scale);
+                let q = transpose(&r_rot);
+                let modifier = Pack::splat(modifier);
+                let (gs, gq) = match ctx.mode {
+                    GradientMode::Exact => cov3d_vjp(scale, modifier, q, gcov),
+                    GradientMode::Inria => cov3d_vjp_scaled(scale, modifier, q, gcov),
+                };
+                for a in 0..3 {
+                    cov[a] = gs[a].0;
+                }
+                for q in 0..4 {
+                    rot[q] = gq[q].0;
+                }
+            }
+            None => {
+                for q in 0..6 {
+                    cov[q] = gcov[q].0;
+                }
+            }
+        }
+        for l in (0..cnt).filter(|&l| live[l]) {
+            let j = b + l;
+            o.opacities[j] = r_acc[l].opacity;
+            o.means2d[3 * j] = gndc[0].0[l];
+            o.means2d[3 * j + 1] = gndc[1].0[l];
+            for (a, v) in o.means3d[3 * j..3 * j + 3].iter_mut().enumerate() {
+                *v = gmean[a].0[l];
+            }
+            for (v, c) in o.scales_or_cov[cov_w * j..cov_w * (j + 1)]
+                .iter_mut()
+                .zip(&cov)
+            {
+                *v = c[l];
+            }
+            if ctx.scale_rot.is_some() {
+                for (v, r) in o.rotations[4 * j..4 * j + 4].iter_mut().zip(&rot) {
+                    *v = r[l];
+                }
+            }
+            for (v, c) in o.colors[cstride * j..cstride * j + ncol]
+                .iter_mut()
+                .zip(&col)
+            {
+                *v = c[l];
+            }
+        }
+    }
+}
+
+/// `W` packs from `L` lane-major rows: pack `a`, lane `l` is `rows[l][a]`.
+#[inline(always)]
+fn transpose<T: Real, const L: usize, const W: usize>(rows: &[[T; W]; L]) -> [Pack<T, L>; W] {
+    std::array::from_fn(|a| Pack(std::array::from_fn(|l| rows[l][a])))
 }
