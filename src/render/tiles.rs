@@ -6,13 +6,27 @@
 //! Gaussian index: the order is `(tile, depth bits, gaussian index)`. Here a
 //! counting sort by tile (in ascending Gaussian index) is followed by a sort
 //! of each tile's entries by `(depth bits, gaussian index)`; because that pair
-//! is unique within a tile, an unstable sort gives one result, and tiles are
-//! sorted in parallel with the same result on any thread count. Depth is
-//! positive (> 0.2), so its IEEE bit pattern orders like its value.
+//! is unique within a tile, any sort gives one result. Depth is positive
+//! (> 0.2), so its IEEE bit pattern orders like its value.
+//!
+//! The counting sort runs in parallel with the same result as a serial one:
+//! the Gaussians are split into contiguous chunks whose number depends only
+//! on their count ([`chunk_len`]). One parallel pass counts each chunk's
+//! entries per tile (reading only the tile rectangle and depth of each
+//! [`Projected`], and keeping a compact copy of them); an exclusive prefix
+//! sum over tiles, then over chunks in order, gives every (chunk, tile) pair
+//! its first slot; a second parallel pass fills each chunk's entries in
+//! ascending Gaussian index. Chunk `c`'s entries of a tile therefore follow
+//! those of chunks `0..c`, which is the serial fill's order, on any thread
+//! count. Each entry is written as its packed sort key (depth bits above the
+//! index: `u64` for `f32`, `u128` for `f64`), so the per-tile sort reads no
+//! depth at random; tiles are then sorted in parallel, short ones by
+//! insertion sort, and the keys' low 32 bits are the list.
 
 use super::project::Projected;
 use crate::math::Real;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// The sorted list and per-tile ranges.
 #[derive(Clone, Debug, Default)]
@@ -23,72 +37,204 @@ pub(crate) struct Binning {
     pub ranges: Vec<[u32; 2]>,
 }
 
+/// Gaussians per chunk of the counting sort for `n` Gaussians: chunks of
+/// about 1024, at most 64 of them (so the per-(chunk, tile) counts stay
+/// small), all but the last of equal length. Depends on `n` only; the
+/// result of [`bin`] does not depend on it at all.
+fn chunk_len(n: usize) -> usize {
+    const TARGET: usize = 1024;
+    const MAX_CHUNKS: usize = 64;
+    let chunks = n.div_ceil(TARGET).clamp(1, MAX_CHUNKS);
+    n.div_ceil(chunks).max(1)
+}
+
+/// What the binning reads of one Gaussian: its tile rectangle
+/// `[x0, y0, x1, y1)` (empty when culled) and its depth's IEEE bits.
+#[derive(Clone, Copy, Default)]
+struct Footprint {
+    rect: [u32; 4],
+    depth: u64,
+}
+
+/// A per-tile sort key: depth bits in the high part, Gaussian index in the
+/// low 32 bits, so integer order is `(depth bits, index)` order.
+trait Key: Copy + Ord + Send + Sync {
+    fn new(depth_bits: u64, index: u32) -> Self;
+    fn index(self) -> u32;
+}
+
+impl Key for u64 {
+    #[inline(always)]
+    fn new(depth_bits: u64, index: u32) -> Self {
+        depth_bits << 32 | index as u64
+    }
+    #[inline(always)]
+    fn index(self) -> u32 {
+        self as u32
+    }
+}
+
+impl Key for u128 {
+    #[inline(always)]
+    fn new(depth_bits: u64, index: u32) -> Self {
+        (depth_bits as u128) << 32 | index as u128
+    }
+    #[inline(always)]
+    fn index(self) -> u32 {
+        self as u32
+    }
+}
+
+/// Bin `proj` on a `grid` of `[tiles x, tiles y]` (see the module docs).
 pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
+    if std::mem::size_of::<T>() <= 4 {
+        bin_keyed::<T, u64>(proj, grid)
+    } else {
+        bin_keyed::<T, u128>(proj, grid)
+    }
+}
+
+/// A pointer to the keys' storage that the fill tasks share; each writes
+/// only its own slots.
+struct Slots<K>(*mut MaybeUninit<K>);
+// SAFETY: the pointer is only used to write disjoint slots from different
+// threads (see the fill in `bin_keyed`), and `K` is `Send`.
+unsafe impl<K: Send> Sync for Slots<K> {}
+
+fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
+    let n = proj.len();
     let n_tiles = grid[0] as usize * grid[1] as usize;
-    // Entries per tile, then each tile's start by an exclusive prefix sum.
-    let mut ranges = vec![[0u32; 2]; n_tiles];
-    for p in proj {
-        if p.radius > 0 {
-            for y in p.rect_min[1]..p.rect_max[1] {
-                let row = (y * grid[0]) as usize;
-                for x in p.rect_min[0]..p.rect_max[0] {
-                    ranges[row + x as usize][1] += 1;
+    let chunk = chunk_len(n);
+    let n_chunks = n.div_ceil(chunk);
+
+    // 1. Per chunk in parallel: the compact footprints and the entries per
+    //    tile.
+    let mut foot = vec![Footprint::default(); n];
+    let mut counts = vec![0u32; n_chunks * n_tiles];
+    if n_tiles > 0 {
+        foot.par_chunks_mut(chunk)
+            .zip(proj.par_chunks(chunk))
+            .zip(counts.par_chunks_mut(n_tiles))
+            .for_each(|((foot, proj), counts)| {
+                for (f, p) in foot.iter_mut().zip(proj) {
+                    if p.radius > 0 {
+                        let rect = [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]];
+                        *f = Footprint {
+                            rect,
+                            depth: p.depth.bits(),
+                        };
+                        for y in rect[1]..rect[3] {
+                            let row = (y * grid[0]) as usize;
+                            for c in &mut counts[row + rect[0] as usize..row + rect[2] as usize] {
+                                *c += 1;
+                            }
+                        }
+                    }
                 }
-            }
+            });
+    }
+
+    // 2. Each tile's range (an exclusive prefix sum over tiles of the
+    //    chunks' totals), then each (chunk, tile) pair's first slot: the
+    //    tile's start plus the entries of the earlier chunks.
+    let mut ranges = vec![[0u32; 2]; n_tiles];
+    for c in counts.chunks(n_tiles.max(1)) {
+        for (r, &k) in ranges.iter_mut().zip(c) {
+            r[1] += k;
         }
     }
     let mut total = 0u32;
     for r in ranges.iter_mut() {
-        let n = r[1];
-        *r = [total, total];
-        total += n;
+        let k = r[1];
+        *r = [total, total + k];
+        total += k;
     }
-    // Fill in ascending Gaussian index; `ranges[t][1]` is the fill cursor and
-    // ends at the tile's end.
-    let mut list = vec![0u32; total as usize];
-    for (i, p) in proj.iter().enumerate() {
-        if p.radius > 0 {
-            for y in p.rect_min[1]..p.rect_max[1] {
-                let row = (y * grid[0]) as usize;
-                for x in p.rect_min[0]..p.rect_max[0] {
-                    let r = &mut ranges[row + x as usize];
-                    list[r[1] as usize] = i as u32;
-                    r[1] += 1;
+    let mut cursor: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
+    for c in counts.chunks_mut(n_tiles.max(1)) {
+        for (cur, k) in cursor.iter_mut().zip(c) {
+            let start = *cur;
+            *cur += *k;
+            *k = start;
+        }
+    }
+    let total = total as usize;
+
+    // 3. Per chunk in parallel: each entry's key at its slot, in ascending
+    //    Gaussian index within the chunk.
+    let mut keys: Vec<K> = Vec::with_capacity(total);
+    let slots = Slots(keys.spare_capacity_mut().as_mut_ptr());
+    if n_tiles > 0 {
+        foot.par_chunks(chunk)
+            .zip(counts.par_chunks_mut(n_tiles))
+            .enumerate()
+            .for_each(|(c, (foot, next))| {
+                let slots = &slots;
+                for (i, f) in foot.iter().enumerate() {
+                    let key = K::new(f.depth, (c * chunk + i) as u32);
+                    for y in f.rect[1]..f.rect[3] {
+                        let row = (y * grid[0]) as usize;
+                        for s in &mut next[row + f.rect[0] as usize..row + f.rect[2] as usize] {
+                            // SAFETY: `*s` runs from this (chunk, tile)
+                            // pair's first slot over exactly as many slots
+                            // as step 1 counted for it, so it stays below
+                            // `total` (the capacity) and no two writes,
+                            // in this task or another, hit the same slot.
+                            unsafe { (*slots.0.add(*s as usize)).write(key) };
+                            *s += 1;
+                        }
+                    }
                 }
-            }
-        }
+            });
     }
-    // Per tile: by depth bits, then index, as one packed integer key.
-    let mut chunks = Vec::with_capacity(n_tiles);
-    let mut rest: &mut [u32] = &mut list;
+    // SAFETY: the fill wrote every one of the first `total` slots (the
+    // counts sum to `total` and every counted entry was written, see above);
+    // a panic in a task propagates before this line, leaving `keys` empty.
+    unsafe { keys.set_len(total) };
+
+    // 4. Per tile in parallel: sort the keys, keep their indices.
+    let mut list: Vec<u32> = Vec::with_capacity(total);
+    let mut tiles = Vec::with_capacity(n_tiles);
+    let mut key_rest: &mut [K] = &mut keys;
+    let mut list_rest: &mut [MaybeUninit<u32>] = &mut list.spare_capacity_mut()[..total];
     for r in &ranges {
-        let (head, tail) = rest.split_at_mut((r[1] - r[0]) as usize);
-        if head.len() > 1 {
-            chunks.push(head);
+        let len = (r[1] - r[0]) as usize;
+        let (k, key_tail) = key_rest.split_at_mut(len);
+        let (l, list_tail) = list_rest.split_at_mut(len);
+        if len > 0 {
+            tiles.push((k, l));
         }
-        rest = tail;
+        key_rest = key_tail;
+        list_rest = list_tail;
     }
-    let depth_bits = |g: u32| proj[g as usize].depth.bits();
-    if std::mem::size_of::<T>() <= 4 {
-        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
-            keys.clear();
-            keys.extend(c.iter().map(|&g| depth_bits(g) << 32 | g as u64));
-            keys.sort_unstable();
-            for (o, k) in c.iter_mut().zip(keys.iter()) {
-                *o = *k as u32;
-            }
-        });
-    } else {
-        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
-            keys.clear();
-            keys.extend(c.iter().map(|&g| (depth_bits(g) as u128) << 32 | g as u128));
-            keys.sort_unstable();
-            for (o, k) in c.iter_mut().zip(keys.iter()) {
-                *o = *k as u32;
-            }
-        });
-    }
+    tiles.into_par_iter().for_each(|(k, l)| {
+        sort_keys(k);
+        for (o, k) in l.iter_mut().zip(k.iter()) {
+            o.write(k.index());
+        }
+    });
+    // SAFETY: the tiles' pieces of `list` cover its first `total` slots
+    // (the ranges are contiguous from 0 to `total`) and every task wrote each
+    // slot of its piece; a panic propagates before this line.
+    unsafe { list.set_len(total) };
     Binning { list, ranges }
+}
+
+/// Sort unique keys ascending: insertion sort for short slices, the
+/// standard unstable sort otherwise (unique keys have one sorted order).
+fn sort_keys<K: Key>(k: &mut [K]) {
+    if k.len() <= 24 {
+        for i in 1..k.len() {
+            let v = k[i];
+            let mut j = i;
+            while j > 0 && k[j - 1] > v {
+                k[j] = k[j - 1];
+                j -= 1;
+            }
+            k[j] = v;
+        }
+    } else {
+        k.sort_unstable();
+    }
 }
 
 #[cfg(test)]
