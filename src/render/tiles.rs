@@ -310,4 +310,100 @@ mod tests {
             assert_eq!(b.ranges, ranges, "grid {grid:?}");
         }
     }
+
+    /// The definition of the binning, tile by tile: every visible Gaussian
+    /// whose rectangle holds the tile, sorted by `(depth bits, index)`.
+    fn reference<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
+        let mut b = Binning::default();
+        for ty in 0..grid[1] {
+            for tx in 0..grid[0] {
+                let mut keys: Vec<(u64, u32)> = proj
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, p)| {
+                        p.radius > 0
+                            && (p.rect_min[0]..p.rect_max[0]).contains(&tx)
+                            && (p.rect_min[1]..p.rect_max[1]).contains(&ty)
+                    })
+                    .map(|(i, p)| (p.depth.bits(), i as u32))
+                    .collect();
+                keys.sort();
+                let start = b.list.len() as u32;
+                b.list.extend(keys.iter().map(|k| k.1));
+                b.ranges.push([start, b.list.len() as u32]);
+            }
+        }
+        b
+    }
+
+    /// `n` Gaussians on `grid`, badly balanced: about half on one tile,
+    /// some covering the whole grid, culled ones (some with a rectangle),
+    /// visible ones with an empty rectangle, and depths drawn from a few
+    /// values (ties) or a continuous range.
+    fn imbalanced<T: Real>(n: usize, grid: [u32; 2], seed: u64) -> Vec<Projected<T>> {
+        let mut rng = crate::math::rng::Rng::new(seed);
+        (0..n)
+            .map(|_| {
+                let mut p = Projected::culled();
+                p.radius = 1 + rng.below(20) as i32;
+                p.depth = if rng.below(2) == 0 {
+                    T::from_f64(0.5 * (1 + rng.below(4)) as f64)
+                } else {
+                    T::from_f64(rng.uniform_range(0.3, 40.0))
+                };
+                let (x0, y0) = (
+                    rng.below(grid[0] as u64) as u32,
+                    rng.below(grid[1] as u64) as u32,
+                );
+                let (rmin, rmax) = match rng.below(20) {
+                    0..=9 => ([2, 3], [3, 4]),
+                    10 => ([0, 0], grid),
+                    11 => {
+                        p.radius = 0;
+                        ([0, 0], grid)
+                    }
+                    12 => ([x0, y0], [x0, y0]),
+                    _ => {
+                        let x1 = (x0 + 1 + rng.below(3) as u32).min(grid[0]);
+                        let y1 = (y0 + 1 + rng.below(grid[1] as u64) as u32).min(grid[1]);
+                        ([x0, y0], [x1, y1])
+                    }
+                };
+                p.rect_min = rmin;
+                p.rect_max = rmax;
+                p
+            })
+            .collect()
+    }
+
+    fn parallel_matches_reference<T: Real>() {
+        let grid = [5u32, 11];
+        // 3077 splits into chunks of 770 with a shorter last one; 70,001
+        // into the largest number of chunks, of more than 1024 each.
+        assert!(chunk_len(3077) == 770 && chunk_len(70_001) > 1024);
+        for (seed, n) in [0usize, 1, 2, 1023, 1025, 3077, 70_001]
+            .into_iter()
+            .enumerate()
+        {
+            let proj = imbalanced::<T>(n, grid, 100 + seed as u64);
+            let want = reference(&proj, grid);
+            for threads in [1, 2, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let got = pool.install(|| bin(&proj, grid));
+                assert_eq!(got.ranges, want.ranges, "n {n}, {threads} threads");
+                assert!(got.list == want.list, "n {n}, {threads} threads");
+            }
+        }
+    }
+
+    /// The parallel binning against its serial definition on imbalanced
+    /// inputs, for 1, 2 and 3 threads and both key widths.
+    #[test]
+    fn parallel_binning_matches_the_serial_definition() {
+        parallel_matches_reference::<f32>();
+        parallel_matches_reference::<f64>();
+    }
 }
