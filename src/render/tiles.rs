@@ -3,25 +3,23 @@
 //!
 //! Upstream emits one `(tile << 32 | depth bits, gaussian)` pair per touched
 //! tile and radix-sorts the pairs stably, so equal keys keep ascending
-//! Gaussian index: the order is `(tile, depth bits, gaussian index)`. Here a
-//! counting sort by tile (in ascending Gaussian index) is followed by a sort
-//! of each tile's entries by `(depth bits, gaussian index)`; because that pair
-//! is unique within a tile, any sort gives one result. Depth is positive
-//! (> 0.2), so its IEEE bit pattern orders like its value.
+//! Gaussian index: the order is `(tile, depth bits, gaussian index)`. Depth
+//! is positive (> 0.2), so its IEEE bit pattern orders like its value.
 //!
-//! The counting sort runs in parallel with the same result as a serial one:
-//! the Gaussians are split into contiguous chunks whose number depends only
-//! on their count ([`chunk_len`]). One parallel pass counts each chunk's
-//! entries per tile (reading only the tile rectangle and depth of each
-//! [`Projected`], and keeping a compact copy of them); an exclusive prefix
-//! sum over tiles, then over chunks in order, gives every (chunk, tile) pair
-//! its first slot; a second parallel pass fills each chunk's entries in
-//! ascending Gaussian index. Chunk `c`'s entries of a tile therefore follow
-//! those of chunks `0..c`, which is the serial fill's order, on any thread
-//! count. Each entry is written as its packed sort key (depth bits above the
-//! index: `u64` for `f32`, `u128` for `f64`), so the per-tile sort reads no
-//! depth at random; tiles are then sorted in parallel, short ones by
-//! insertion sort, and the keys' low 32 bits are the list.
+//! Here the Gaussians that touch a tile are sorted once by
+//! `(depth bits, index)`: their packed keys (depth bits above the index;
+//! `u64` for `f32`, `u128` for `f64`) are collected in ascending index and
+//! sorted stably by depth bits with a least-significant-digit radix sort.
+//! A counting sort by tile in that order then gives every tile its entries
+//! already in `(depth bits, index)` order, with no per-tile sort. The
+//! counting sort runs in parallel with the result of a serial one: the
+//! sorted Gaussians are split into contiguous chunks whose number depends
+//! only on how many there are ([`chunk_len`]); one parallel pass counts each
+//! chunk's entries per tile, an exclusive prefix sum over tiles, then over
+//! chunks in order, gives every (chunk, tile) pair its first slot, and a
+//! second parallel pass writes each chunk's entries in its sorted order.
+//! Chunk `c`'s entries of a tile therefore follow those of chunks `0..c`,
+//! which is the serial order, on any thread count.
 
 use super::project::Projected;
 use crate::math::Real;
@@ -38,32 +36,32 @@ pub(crate) struct Binning {
 }
 
 /// Gaussians per chunk of the counting sort for `n` Gaussians: chunks of
-/// about 1024, at most 64 of them (so the per-(chunk, tile) counts stay
+/// about 4096, at most 32 of them (so the per-(chunk, tile) counts stay
 /// small), all but the last of equal length. Depends on `n` only; the
 /// result of [`bin`] does not depend on it at all.
 fn chunk_len(n: usize) -> usize {
-    const TARGET: usize = 1024;
-    const MAX_CHUNKS: usize = 64;
+    const TARGET: usize = 4096;
+    const MAX_CHUNKS: usize = 32;
     let chunks = n.div_ceil(TARGET).clamp(1, MAX_CHUNKS);
     n.div_ceil(chunks).max(1)
 }
 
-/// What the binning reads of one Gaussian: its tile rectangle
-/// `[x0, y0, x1, y1)` (empty when culled) and its depth's IEEE bits.
-#[derive(Clone, Copy, Default)]
-struct Footprint {
-    rect: [u32; 4],
-    depth: u64,
-}
-
-/// A per-tile sort key: depth bits in the high part, Gaussian index in the
+/// A sort key: depth bits in the high part, Gaussian index in the
 /// low 32 bits, so integer order is `(depth bits, index)` order.
 trait Key: Copy + Ord + Send + Sync {
+    /// Significant bits of the depth's IEEE pattern.
+    const DEPTH_BITS: u32;
     fn new(depth_bits: u64, index: u32) -> Self;
+    fn depth(self) -> u64;
     fn index(self) -> u32;
 }
 
 impl Key for u64 {
+    const DEPTH_BITS: u32 = 32;
+    #[inline(always)]
+    fn depth(self) -> u64 {
+        self >> 32
+    }
     #[inline(always)]
     fn new(depth_bits: u64, index: u32) -> Self {
         depth_bits << 32 | index as u64
@@ -75,6 +73,11 @@ impl Key for u64 {
 }
 
 impl Key for u128 {
+    const DEPTH_BITS: u32 = 64;
+    #[inline(always)]
+    fn depth(self) -> u64 {
+        (self >> 32) as u64
+    }
     #[inline(always)]
     fn new(depth_bits: u64, index: u32) -> Self {
         (depth_bits as u128) << 32 | index as u128
@@ -94,47 +97,56 @@ pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
     }
 }
 
-/// A pointer to the keys' storage that the fill tasks share; each writes
+/// A pointer to the list's storage that the fill tasks share; each writes
 /// only its own slots.
-struct Slots<K>(*mut MaybeUninit<K>);
+struct Slots(*mut MaybeUninit<u32>);
 // SAFETY: the pointer is only used to write disjoint slots from different
-// threads (see the fill in `bin_keyed`), and `K` is `Send`.
-unsafe impl<K: Send> Sync for Slots<K> {}
+// threads (see the fill in `bin_keyed`).
+unsafe impl Sync for Slots {}
 
 fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
-    let n = proj.len();
     let n_tiles = grid[0] as usize * grid[1] as usize;
-    let chunk = chunk_len(n);
-    let n_chunks = n.div_ceil(chunk);
 
-    // 1. Per chunk in parallel: the compact footprints and the entries per
-    //    tile.
-    let mut foot = vec![Footprint::default(); n];
+    // 1. The Gaussians that touch a tile, sorted by `(depth bits, index)`,
+    //    and their tile rectangles in that order.
+    let mut keys: Vec<K> = proj
+        .par_iter()
+        .enumerate()
+        .filter(|(_, p)| {
+            p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1]
+        })
+        .map(|(i, p)| K::new(p.depth.bits(), i as u32))
+        .collect();
+    radix_sort_by_depth(&mut keys);
+    let rects: Vec<[u32; 4]> = keys
+        .par_iter()
+        .map(|k| {
+            let p = &proj[k.index() as usize];
+            [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
+        })
+        .collect();
+    let chunk = chunk_len(keys.len());
+    let n_chunks = keys.len().div_ceil(chunk);
+
+    // 2. Per chunk of that order in parallel: the entries per tile.
     let mut counts = vec![0u32; n_chunks * n_tiles];
     if n_tiles > 0 {
-        foot.par_chunks_mut(chunk)
-            .zip(proj.par_chunks(chunk))
+        rects
+            .par_chunks(chunk)
             .zip(counts.par_chunks_mut(n_tiles))
-            .for_each(|((foot, proj), counts)| {
-                for (f, p) in foot.iter_mut().zip(proj) {
-                    if p.radius > 0 {
-                        let rect = [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]];
-                        *f = Footprint {
-                            rect,
-                            depth: p.depth.bits(),
-                        };
-                        for y in rect[1]..rect[3] {
-                            let row = (y * grid[0]) as usize;
-                            for c in &mut counts[row + rect[0] as usize..row + rect[2] as usize] {
-                                *c += 1;
-                            }
+            .for_each(|(rects, counts)| {
+                for r in rects {
+                    for y in r[1]..r[3] {
+                        let row = (y * grid[0]) as usize;
+                        for c in &mut counts[row + r[0] as usize..row + r[2] as usize] {
+                            *c += 1;
                         }
                     }
                 }
             });
     }
 
-    // 2. Each tile's range (an exclusive prefix sum over tiles of the
+    // 3. Each tile's range (an exclusive prefix sum over tiles of the
     //    chunks' totals), then each (chunk, tile) pair's first slot: the
     //    tile's start plus the entries of the earlier chunks.
     let mut ranges = vec![[0u32; 2]; n_tiles];
@@ -159,27 +171,27 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
     }
     let total = total as usize;
 
-    // 3. Per chunk in parallel: each entry's key at its slot, in ascending
-    //    Gaussian index within the chunk.
-    let mut keys: Vec<K> = Vec::with_capacity(total);
-    let slots = Slots(keys.spare_capacity_mut().as_mut_ptr());
+    // 4. Per chunk in parallel: each Gaussian's index at its slot in every
+    //    tile it touches, in the sorted order within the chunk.
+    let mut list: Vec<u32> = Vec::with_capacity(total);
+    let slots = Slots(list.spare_capacity_mut().as_mut_ptr());
     if n_tiles > 0 {
-        foot.par_chunks(chunk)
+        keys.par_chunks(chunk)
+            .zip(rects.par_chunks(chunk))
             .zip(counts.par_chunks_mut(n_tiles))
-            .enumerate()
-            .for_each(|(c, (foot, next))| {
+            .for_each(|((keys, rects), next)| {
                 let slots = &slots;
-                for (i, f) in foot.iter().enumerate() {
-                    let key = K::new(f.depth, (c * chunk + i) as u32);
-                    for y in f.rect[1]..f.rect[3] {
+                for (k, r) in keys.iter().zip(rects) {
+                    let g = k.index();
+                    for y in r[1]..r[3] {
                         let row = (y * grid[0]) as usize;
-                        for s in &mut next[row + f.rect[0] as usize..row + f.rect[2] as usize] {
+                        for s in &mut next[row + r[0] as usize..row + r[2] as usize] {
                             // SAFETY: `*s` runs from this (chunk, tile)
                             // pair's first slot over exactly as many slots
-                            // as step 1 counted for it, so it stays below
+                            // as step 2 counted for it, so it stays below
                             // `total` (the capacity) and no two writes,
                             // in this task or another, hit the same slot.
-                            unsafe { (*slots.0.add(*s as usize)).write(key) };
+                            unsafe { (*slots.0.add(*s as usize)).write(g) };
                             *s += 1;
                         }
                     }
@@ -188,53 +200,48 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
     }
     // SAFETY: the fill wrote every one of the first `total` slots (the
     // counts sum to `total` and every counted entry was written, see above);
-    // a panic in a task propagates before this line, leaving `keys` empty.
-    unsafe { keys.set_len(total) };
-
-    // 4. Per tile in parallel: sort the keys, keep their indices.
-    let mut list: Vec<u32> = Vec::with_capacity(total);
-    let mut tiles = Vec::with_capacity(n_tiles);
-    let mut key_rest: &mut [K] = &mut keys;
-    let mut list_rest: &mut [MaybeUninit<u32>] = &mut list.spare_capacity_mut()[..total];
-    for r in &ranges {
-        let len = (r[1] - r[0]) as usize;
-        let (k, key_tail) = key_rest.split_at_mut(len);
-        let (l, list_tail) = list_rest.split_at_mut(len);
-        if len > 0 {
-            tiles.push((k, l));
-        }
-        key_rest = key_tail;
-        list_rest = list_tail;
-    }
-    tiles.into_par_iter().for_each(|(k, l)| {
-        sort_keys(k);
-        for (o, k) in l.iter_mut().zip(k.iter()) {
-            o.write(k.index());
-        }
-    });
-    // SAFETY: the tiles' pieces of `list` cover its first `total` slots
-    // (the ranges are contiguous from 0 to `total`) and every task wrote each
-    // slot of its piece; a panic propagates before this line.
+    // a panic in a task propagates before this line, leaving `list` empty.
     unsafe { list.set_len(total) };
     Binning { list, ranges }
 }
 
-/// Sort unique keys ascending: insertion sort for short slices, the
-/// standard unstable sort otherwise (unique keys have one sorted order).
-fn sort_keys<K: Key>(k: &mut [K]) {
-    if k.len() <= 24 {
-        for i in 1..k.len() {
-            let v = k[i];
-            let mut j = i;
-            while j > 0 && k[j - 1] > v {
-                k[j] = k[j - 1];
-                j -= 1;
-            }
-            k[j] = v;
+/// Sort keys that are in ascending index order by depth bits, stably (so
+/// into `(depth bits, index)` order): a least-significant-digit radix sort,
+/// 11 bits a pass, all histograms from one read, passes whose digit is the
+/// same for every key skipped.
+fn radix_sort_by_depth<K: Key>(keys: &mut Vec<K>) {
+    const BITS: u32 = 11;
+    const BUCKETS: usize = 1 << BITS;
+    let passes = K::DEPTH_BITS.div_ceil(BITS) as usize;
+    let n = keys.len();
+    let mut hist = vec![0u32; passes * BUCKETS];
+    for k in keys.iter() {
+        let d = k.depth();
+        for (p, h) in hist.chunks_exact_mut(BUCKETS).enumerate() {
+            h[(d >> (p as u32 * BITS)) as usize & (BUCKETS - 1)] += 1;
         }
-    } else {
-        k.sort_unstable();
     }
+    let mut from = std::mem::take(keys);
+    let mut to = from.clone();
+    for (p, h) in hist.chunks_exact_mut(BUCKETS).enumerate() {
+        if h.iter().any(|&c| c as usize == n) {
+            continue;
+        }
+        let mut sum = 0u32;
+        for c in h.iter_mut() {
+            let k = *c;
+            *c = sum;
+            sum += k;
+        }
+        let shift = p as u32 * BITS;
+        for &k in from.iter() {
+            let b = &mut h[(k.depth() >> shift) as usize & (BUCKETS - 1)];
+            to[*b as usize] = k;
+            *b += 1;
+        }
+        std::mem::swap(&mut from, &mut to);
+    }
+    *keys = from;
 }
 
 #[cfg(test)]
@@ -378,14 +385,22 @@ mod tests {
 
     fn parallel_matches_reference<T: Real>() {
         let grid = [5u32, 11];
-        // 3077 splits into chunks of 770 with a shorter last one; 70,001
-        // into the largest number of chunks, of more than 1024 each.
-        assert!(chunk_len(3077) == 770 && chunk_len(70_001) > 1024);
-        for (seed, n) in [0usize, 1, 2, 1023, 1025, 3077, 70_001]
+        let (mut short_last, mut most_chunks) = (false, false);
+        for (seed, n) in [0usize, 1, 2, 4095, 4097, 14_000, 160_001]
             .into_iter()
             .enumerate()
         {
             let proj = imbalanced::<T>(n, grid, 100 + seed as u64);
+            // The chunks are taken from the visible Gaussians.
+            let v = proj
+                .iter()
+                .filter(|p| {
+                    p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1]
+                })
+                .count();
+            let c = chunk_len(v);
+            short_last |= v > c && v % c != 0;
+            most_chunks |= v.div_ceil(c) == 32 && c > 4096;
             let want = reference(&proj, grid);
             for threads in [1, 2, 3] {
                 let pool = rayon::ThreadPoolBuilder::new()
@@ -397,6 +412,8 @@ mod tests {
                 assert!(got.list == want.list, "n {n}, {threads} threads");
             }
         }
+        // Several chunks with a shorter last one, and the most chunks.
+        assert!(short_last && most_chunks);
     }
 
     /// The parallel binning against its serial definition on imbalanced
