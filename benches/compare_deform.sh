@@ -13,17 +13,8 @@ rounds=${2:-3}
 reps=${3:-7}
 threads=${4:-2}
 n=${5:-20000}
-root=$(git rev-parse --show-toplevel)
-tmp=$(mktemp -d)
-trap 'rm -rf "$tmp"' EXIT
-mkdir -p "$tmp/src"
-git -C "$root" archive "$old" | tar -x -C "$tmp/src"
-cargo build --release --quiet --manifest-path "$tmp/src/Cargo.toml" --target-dir "$tmp/target"
-cargo build --release --quiet --manifest-path "$root/Cargo.toml"
-old_bin="$tmp/target/release/liquid-splat"
-new_bin="$root/target/release/liquid-splat"
+. "$(dirname "$0")/build_both.sh"
 summary() { awk 'NF == 0 { done = 1 } !done'; }
-echo "machine: $(grep -m1 'model name' /proc/cpuinfo 2>/dev/null | cut -d: -f2 | sed 's/^ //'), $(nproc) CPUs"
 for r in $(seq 1 "$rounds"); do
     echo "== round $r, load average: $(cut -d' ' -f1-3 /proc/loadavg)"
     echo "-- $old"

@@ -35,6 +35,7 @@ fn m_matrix<T: Real>(scale: [T; 3], modifier: T, rot: &[[T; 3]; 3]) -> ([T; 3], 
 }
 
 /// The 6 stored values of `Σ` for one Gaussian.
+#[inline]
 pub fn cov3d<T: Real>(scale: [T; 3], modifier: T, q: [T; 4]) -> [T; 6] {
     let rot = quat_to_rotmat(q);
     let (_, m) = m_matrix(scale, modifier, &rot);

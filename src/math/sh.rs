@@ -55,7 +55,7 @@ pub struct ShColorSaved<T> {
 }
 
 /// Unit view direction `v / sqrt(v·v)` as the forward computes it.
-#[inline]
+#[inline(always)]
 fn direction<T: Real>(mean: [T; 3], campos: [T; 3]) -> ([T; 3], [T; 3]) {
     let v = [
         mean[0] - campos[0],
@@ -68,7 +68,7 @@ fn direction<T: Real>(mean: [T; 3], campos: [T; 3]) -> ([T; 3], [T; 3]) {
 
 /// The 16 scalar basis factors `Y_k(dir)` exactly as the forward multiplies
 /// them into the coefficients (`Y_k · sh_k`); entries above `degree` are 0.
-#[inline]
+#[inline(always)]
 pub fn sh_basis<T: Real>(degree: usize, dir: [T; 3]) -> [T; 16] {
     let c = |v: f64| T::from_f64(v);
     let [x, y, z] = dir;
@@ -173,15 +173,30 @@ pub fn sh_to_color<T: Real>(
     mean: [T; 3],
     campos: [T; 3],
 ) -> ShColorSaved<T> {
+    sh_to_color_with(degree, |j| coeffs[j], mean, campos)
+}
+
+/// [`sh_to_color`] reading coefficient `j` of the `[M, 3]` layout (`3·k +
+/// channel`) through `coeff`: the same operations in the same order. With
+/// a constant `degree` it has no branches, so a loop over a batch of
+/// Gaussians, each reading its coefficients from a transposed block, runs
+/// it lane by lane in vector registers (the rasterizer's preprocessing does).
+#[inline(always)]
+pub fn sh_to_color_with<T: Real>(
+    degree: usize,
+    coeff: impl Fn(usize) -> T,
+    mean: [T; 3],
+    campos: [T; 3],
+) -> ShColorSaved<T> {
     let (_, dir) = direction(mean, campos);
     let basis = sh_basis(degree, dir);
     let n = coeffs_for_degree(degree);
     let mut color = [T::ZERO; 3];
     let mut clamped = [false; 3];
     for ch in 0..3 {
-        let mut r = basis[0] * coeffs[ch];
-        for k in 1..n {
-            r += basis[k] * coeffs[3 * k + ch];
+        let mut r = basis[0] * coeff(ch);
+        for (k, &b) in basis.iter().enumerate().take(n).skip(1) {
+            r += b * coeff(3 * k + ch);
         }
         r += T::from_f64(0.5);
         clamped[ch] = r < T::ZERO;

@@ -38,8 +38,12 @@
 //! bits on every path (see the private modules `lanes` and `rasterize`). In f32
 //! the rasterizer's `exp` is [`crate::kernels::fastmath::exp_f32`] (≤ 1 ulp);
 //! f64 uses the pinned libm.
-//! Forward: parallel over Gaussians (independent) and over image rows (each
-//! row owns its pixels). Backward: each tile accumulates into a buffer
+//! Forward: the per-Gaussian stage (covariance, projection, SH colour) runs
+//! in parallel over batches of 16 Gaussians, each batch as vectors compiled
+//! for the same instruction sets and tested against the one-Gaussian
+//! functions (see the private module `preprocess`); then the binned list
+//! gathers one record per entry, and the blend runs in parallel over image
+//! rows (each row owns its pixels). Backward: each tile accumulates into a buffer
 //! indexed by list position, per entry the fixed pairwise sum of a row's 16
 //! pixels, rows in ascending order; each Gaussian then sums its entries in
 //! ascending list position; the chain rule runs per Gaussian. No result
@@ -47,6 +51,7 @@
 
 pub mod check;
 pub(crate) mod lanes;
+pub(crate) mod preprocess;
 pub(crate) mod project;
 pub(crate) mod rasterize;
 pub(crate) mod rasterize_vjp;
@@ -188,7 +193,10 @@ impl<T: Real> RasterizeSaved<T> {
     }
     /// (pixel, Gaussian) pairs the forward evaluated: Σ over pixels of the
     /// entries of its tile's list up to and including the one that stopped
-    /// it (all of them if none did). The backward's forward walk evaluates
+    /// it (all of them if none did). Entries a row passes over because they
+    /// cannot reach it (`rasterize::candidate_rows`) count too, as pairs
+    /// decided without arithmetic; the count does not depend on that
+    /// shortcut. The backward's forward walk evaluates
     /// the same pairs, then walks back over the blended ones.
     pub fn pairs_evaluated(&self) -> u64 {
         self.evaluated
@@ -405,6 +413,9 @@ impl<T: Real> RasterInput<'_, T> {
         ]
     }
 
+    /// The 3D covariance of Gaussian `i` (the one-Gaussian form the
+    /// preprocessing batches are tested against).
+    #[cfg_attr(not(test), allow(dead_code))]
     fn cov3d(&self, i: usize) -> [T; 6] {
         match self.covariances {
             Covariances::ScaleRotation {
@@ -474,48 +485,16 @@ fn forward<T: Real>(
     let (w, h) = (intr.width, intr.height);
 
     // 1. Per-Gaussian preprocessing.
-    let (proj, (colors, covs)): (Vec<Projected<T>>, (Vec<_>, Vec<_>)) = (0..n)
-        .into_par_iter()
-        .map(|i| {
-            let cov = input.cov3d(i);
-            let off = ndc_offset.map_or([T::ZERO; 2], |o| [o[2 * i], o[2 * i + 1]]);
-            let p = project::project(&intr, input.mean(i), &cov, off);
-            let c = if p.radius > 0 {
-                input.color(i)
-            } else {
-                ShColorSaved {
-                    color: [T::ZERO; 3],
-                    clamped: [false; 3],
-                }
-            };
-            (p, (c, cov))
-        })
-        .unzip();
+    let pre = preprocess::preprocess(&intr, input, n, ndc_offset);
     stages::mark("project");
 
     // 2. Binning, and the splat data of every entry in list order.
-    let binning = tiles::bin(&proj, intr.grid);
+    let binning = tiles::bin(&pre.proj, intr.grid);
     stages::mark("bin");
-    let power_mins: Vec<T> = input
-        .opacities
-        .par_iter()
-        .map(|&o| rasterize::power_min(o))
-        .collect();
     let splats: Vec<Splat<T>> = binning
         .list
         .par_iter()
-        .map(|&g| {
-            let g = g as usize;
-            let p = &proj[g];
-            Splat {
-                xy: p.xy,
-                conic: p.conic,
-                opacity: input.opacities[g],
-                color: colors[g].color,
-                depth: p.depth,
-                power_min: power_mins[g],
-            }
-        })
+        .map(|&g| pre.splats[g as usize])
         .collect();
     stages::mark("gather");
 
@@ -525,15 +504,11 @@ fn forward<T: Real>(
     let mut out = RasterOutput {
         color: vec![T::ZERO; 3 * hw],
         depth: vec![T::ZERO; hw],
-        radii: proj.par_iter().map(|p| p.radius).collect(),
+        radii: pre.radii,
         final_t: vec![T::ZERO; hw],
         n_contrib: vec![0; hw],
-        means2d: vec![T::ZERO; 2 * n],
+        means2d: pre.means2d,
     };
-    out.means2d
-        .par_chunks_mut(2)
-        .zip(&proj)
-        .for_each(|(m, p)| m.copy_from_slice(&p.xy));
     let frame = rasterize::Frame {
         splats: &splats,
         ranges: &binning.ranges,
@@ -577,9 +552,9 @@ fn forward<T: Real>(
     stages::mark("blend");
     let state = RasterizeSaved {
         intr,
-        proj,
-        colors,
-        cov3d: covs,
+        proj: pre.proj,
+        colors: pre.colors,
+        cov3d: pre.cov3d,
         binning,
         splats,
         evaluated,

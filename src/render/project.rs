@@ -10,6 +10,12 @@
 //! 6. pixel centre `ndc2Pix`, evaluated in f64 and rounded to `T`;
 //! 7. tile rectangle, cull if empty.
 //!
+//! The rasterizer runs it on batches of Gaussians as vectors (the private
+//! module `preprocess`), in three parts with the same operations:
+//! [`project_core`] (steps 1 to 5 without the culls), [`footprint`] (the
+//! radius, centre, rectangle and culls, without branches or library calls)
+//! and [`assemble`]; [`project`] composes them for one Gaussian.
+//!
 //! The backward is the exact derivative of the forward as computed (see
 //! [`super::GradientMode::Exact`]), or upstream's formulas
 //! ([`super::GradientMode::Inria`]).
@@ -113,6 +119,7 @@ fn ndc2pix<T: Real>(v: T, size: usize) -> T {
 
 /// C float→int conversion (truncation), saturating; NaN gives 0.
 #[inline]
+#[cfg(test)]
 fn trunc_i64<T: Real>(v: T) -> i64 {
     v.to_f64() as i64
 }
@@ -127,6 +134,7 @@ struct Ewa<T> {
     clamped_y: bool,
 }
 
+#[inline(always)]
 fn ewa<T: Real>(k: &Intrinsics<T>, t: [T; 3]) -> Ewa<T> {
     let txtz = t[0] / t[2];
     let tytz = t[1] / t[2];
@@ -153,22 +161,43 @@ fn ewa<T: Real>(k: &Intrinsics<T>, t: [T; 3]) -> Ewa<T> {
     }
 }
 
-/// Forward for one Gaussian. `ndc_offset` is added to the projected NDC
-/// centre (zero for ordinary rendering; see `rasterize_with_ndc_offset`).
-pub(crate) fn project<T: Real>(
+/// The branch-free part of [`project`] for one Gaussian: the same operations
+/// for every Gaussian, culled or not, so that a loop over a batch of
+/// Gaussians runs it lane by lane in vector registers (see
+/// `super::preprocess`). Values of a Gaussian that [`project_finish`] culls
+/// are meaningless (possibly NaN or infinite).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct ProjectCore<T> {
+    /// View-space depth `t.z`.
+    pub depth: T,
+    /// Projected NDC centre, offset added.
+    pub ndc: [T; 2],
+    /// Dilated 2D covariance `(a, b, c)`.
+    pub cov2d: [T; 3],
+    /// `a·c − b²`.
+    pub det: T,
+    /// Conic `(c, −b, a)/det`.
+    pub conic: [T; 3],
+    /// `3·sqrt(λmax)`, the radius before rounding up.
+    pub radius3: T,
+    /// Whether `t.x/t.z` (resp. `t.y/t.z`) was clamped.
+    pub clamped_x: bool,
+    pub clamped_y: bool,
+}
+
+/// Steps 1 to 5 of [`project`] without the culls (see [`ProjectCore`]).
+#[inline(always)]
+pub(crate) fn project_core<T: Real>(
     k: &Intrinsics<T>,
     mean: [T; 3],
     cov3d: &[T; 6],
     ndc_offset: [T; 2],
-) -> Projected<T> {
+) -> ProjectCore<T> {
     let t = [
         transform(&k.view, mean, 0),
         transform(&k.view, mean, 1),
         transform(&k.view, mean, 2),
     ];
-    if t[2] <= T::from_f64(0.2) || t[2].is_nan() {
-        return Projected::culled();
-    }
     let hx = transform(&k.proj, mean, 0);
     let hy = transform(&k.proj, mean, 1);
     let hw = transform(&k.proj, mean, 3);
@@ -192,18 +221,123 @@ pub(crate) fn project<T: Real>(
     let c = dot(1, 1) + dil;
 
     let det = a * c - b * b;
-    if det == T::ZERO {
-        return Projected::culled();
-    }
     let det_inv = T::ONE / det;
     let conic = [c * det_inv, -b * det_inv, a * det_inv];
     let mid = T::from_f64(0.5) * (a + c);
     let disc = T::from_f64(0.1).max(mid * mid - det).sqrt();
     let l1 = mid + disc;
     let l2 = mid - disc;
-    let radius_f = (T::from_f64(3.0) * l1.max(l2).sqrt()).ceil();
+    ProjectCore {
+        depth: t[2],
+        ndc,
+        cov2d: [a, b, c],
+        det,
+        conic,
+        radius3: T::from_f64(3.0) * l1.max(l2).sqrt(),
+        clamped_x: e.clamped_x,
+        clamped_y: e.clamped_y,
+    }
+}
+
+/// Where a projected Gaussian lands on the screen: steps 5 to 7 of
+/// [`project`] and its culls, written without branches or library calls so
+/// that a loop over a batch runs it in vector registers.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Footprint<T> {
+    /// Whether the Gaussian survives every cull.
+    pub visible: bool,
+    /// Integer radius in pixels (`ceil(3·sqrt(λmax))`, 0 for NaN).
+    pub radius: i32,
+    /// Pixel-space centre.
+    pub xy: [T; 2],
+    /// Tile rectangle `[min, max)`.
+    pub rect_min: [u32; 2],
+    pub rect_max: [u32; 2],
+}
+
+/// The [`Footprint`] of the result of [`project_core`]. Equal to upstream's
+/// order of operations: `ceil` then the conversion to `i32` (saturating,
+/// NaN to 0) is computed on the radius clamped to `[0, 2³¹]` by rounding
+/// with `2^(mantissa bits)` (exact below it; larger values are integers);
+/// each tile bound `clamp(trunc(v), 0, grid)` is `trunc(clamp(v, 0, grid))`
+/// (NaN to 0). The tests compare it with the direct form.
+#[inline(always)]
+pub(crate) fn footprint<T: Real>(k: &Intrinsics<T>, p: &ProjectCore<T>) -> Footprint<T> {
+    let magic = T::from_f64(if T::PRECISION == crate::math::Precision::F32 {
+        8_388_608.0 // 2^23
+    } else {
+        4_503_599_627_370_496.0 // 2^52
+    });
+    let x = T::ZERO.max(p.radius3).min(T::from_f64(2_147_483_648.0));
+    let r = (x + magic) - magic;
+    let up = if r < x { r + T::ONE } else { r };
+    let ceil = if x < magic { up } else { x };
+    let radius = ceil.to_f64() as i32;
+    let xy = [ndc2pix(p.ndc[0], k.width), ndc2pix(p.ndc[1], k.height)];
+
+    let rf = T::from_f64(radius as f64);
+    let blk = T::from_usize(BLOCK);
+    let blk1 = T::from_usize(BLOCK - 1);
+    let bound = |v: T, hi: u32| T::ZERO.max(v).min(T::from_f64(hi as f64)).to_f64() as u32;
+    let rect_min = [
+        bound((xy[0] - rf) / blk, k.grid[0]),
+        bound((xy[1] - rf) / blk, k.grid[1]),
+    ];
+    let rect_max = [
+        bound((xy[0] + rf + blk1) / blk, k.grid[0]),
+        bound((xy[1] + rf + blk1) / blk, k.grid[1]),
+    ];
+    let visible = p.depth > T::from_f64(0.2)
+        && p.det != T::ZERO
+        && radius != 0
+        && rect_max[0] != rect_min[0]
+        && rect_max[1] != rect_min[1];
+    Footprint {
+        visible,
+        radius,
+        xy,
+        rect_min,
+        rect_max,
+    }
+}
+
+/// The [`Projected`] record of a Gaussian from its two parts.
+#[inline(always)]
+pub(crate) fn assemble<T: Real>(p: &ProjectCore<T>, f: &Footprint<T>) -> Projected<T> {
+    if !f.visible {
+        return Projected::culled();
+    }
+    Projected {
+        radius: f.radius,
+        depth: p.depth,
+        xy: f.xy,
+        conic: p.conic,
+        cov2d: p.cov2d,
+        rect_min: f.rect_min,
+        rect_max: f.rect_max,
+        clamped_x: p.clamped_x,
+        clamped_y: p.clamped_y,
+    }
+}
+
+/// Steps 5 to 7 of [`project`] and its culls, on the result of
+/// [`project_core`].
+#[inline(always)]
+pub(crate) fn project_finish<T: Real>(k: &Intrinsics<T>, p: &ProjectCore<T>) -> Projected<T> {
+    assemble(p, &footprint(k, p))
+}
+
+/// Steps 5 to 7 of [`project`] and its culls in upstream's direct form
+/// (`ceil`, saturating conversions, then clamps): the reference
+/// [`footprint`] is tested against.
+#[cfg(test)]
+fn project_finish_direct<T: Real>(k: &Intrinsics<T>, p: &ProjectCore<T>) -> Projected<T> {
+    if p.depth <= T::from_f64(0.2) || p.depth.is_nan() || p.det == T::ZERO {
+        return Projected::culled();
+    }
+    let radius_f = p.radius3.ceil();
     let radius = radius_f.to_f64().clamp(0.0, i32::MAX as f64) as i32;
-    let xy = [ndc2pix(ndc[0], k.width), ndc2pix(ndc[1], k.height)];
+    let xy = [ndc2pix(p.ndc[0], k.width), ndc2pix(p.ndc[1], k.height)];
 
     let rf = T::from_f64(radius as f64);
     let blk = T::from_usize(BLOCK);
@@ -222,15 +356,30 @@ pub(crate) fn project<T: Real>(
     }
     Projected {
         radius,
-        depth: t[2],
+        depth: p.depth,
         xy,
-        conic,
-        cov2d: [a, b, c],
+        conic: p.conic,
+        cov2d: p.cov2d,
         rect_min,
         rect_max,
-        clamped_x: e.clamped_x,
-        clamped_y: e.clamped_y,
+        clamped_x: p.clamped_x,
+        clamped_y: p.clamped_y,
     }
+}
+
+/// Forward for one Gaussian. `ndc_offset` is added to the projected NDC
+/// centre (zero for ordinary rendering; see `rasterize_with_ndc_offset`).
+/// The rasterizer runs it in batches (`super::preprocess`), as
+/// [`project_core`] then [`project_finish`]; this is the one-Gaussian form
+/// the batches are tested against.
+#[cfg_attr(not(test), allow(dead_code))]
+pub(crate) fn project<T: Real>(
+    k: &Intrinsics<T>,
+    mean: [T; 3],
+    cov3d: &[T; 6],
+    ndc_offset: [T; 2],
+) -> Projected<T> {
+    project_finish(k, &project_core(k, mean, cov3d, ndc_offset))
 }
 
 /// Gradients arriving at one Gaussian's projected quantities.
@@ -370,4 +519,108 @@ pub(crate) fn project_vjp<T: Real>(
             + (m[4 * j + 1] * mw - m[4 * j + 3] * mul2) * gndc[1];
     }
     (gmean, gcov, gndc)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::rng::Rng;
+
+    fn intrinsics<T: Real>(w: usize, h: usize) -> Intrinsics<T> {
+        let mut view = [T::ZERO; 16];
+        for i in 0..4 {
+            view[5 * i] = T::ONE;
+        }
+        Intrinsics::new(&crate::camera::RasterCamera {
+            viewmatrix: view,
+            projmatrix: view,
+            campos: [T::ZERO; 3],
+            tanfovx: T::from_f64(0.5),
+            tanfovy: T::from_f64(0.4),
+            width: w,
+            height: h,
+        })
+    }
+
+    fn same<T: Real>(a: &Projected<T>, b: &Projected<T>) -> bool {
+        a.radius == b.radius
+            && a.depth.bits() == b.depth.bits()
+            && (0..2).all(|c| a.xy[c].bits() == b.xy[c].bits())
+            && (0..3).all(|c| a.conic[c].bits() == b.conic[c].bits())
+            && (0..3).all(|c| a.cov2d[c].bits() == b.cov2d[c].bits())
+            && a.rect_min == b.rect_min
+            && a.rect_max == b.rect_max
+            && a.clamped_x == b.clamped_x
+            && a.clamped_y == b.clamped_y
+    }
+
+    /// The branch-free footprint against the direct form, on radii and
+    /// centres that are random, integers, half-integers, near the rounding
+    /// and conversion limits, negative, zero of either sign, infinite or
+    /// NaN, in f32 and f64.
+    fn footprint_is_the_direct_form<T: Real>() {
+        let mut rng = Rng::new(11);
+        let special = [
+            0.0,
+            -0.0,
+            1.0,
+            1.5,
+            2.5,
+            0.499_999_9,
+            3.000_000_1,
+            8_388_607.5,
+            8_388_608.0,
+            8_388_609.0,
+            16_777_217.0,
+            4_503_599_627_370_495.5,
+            2_147_483_520.0,
+            2_147_483_647.5,
+            2_147_483_648.0,
+            3e9,
+            1e30,
+            -1.0,
+            -1e30,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ];
+        for (w, h) in [(61usize, 47usize), (400, 400), (1 << 20, 3)] {
+            let k = intrinsics::<T>(w, h);
+            for trial in 0..20_000 {
+                let mut pick = |scale: f64| {
+                    let r = rng.uniform();
+                    if r < 0.3 {
+                        T::from_f64(special[(rng.next_u64() % special.len() as u64) as usize])
+                    } else if r < 0.5 {
+                        T::from_f64((rng.uniform() * scale).round() * 0.5)
+                    } else {
+                        T::from_f64((rng.uniform() - 0.3) * scale)
+                    }
+                };
+                let p = ProjectCore {
+                    depth: if trial % 7 == 0 { pick(1.0) } else { T::ONE },
+                    ndc: [pick(4.0), pick(4.0)],
+                    cov2d: [T::ONE, T::ZERO, T::ONE],
+                    det: if trial % 11 == 0 { T::ZERO } else { T::ONE },
+                    conic: [T::ONE, T::ZERO, T::ONE],
+                    radius3: pick(if trial % 3 == 0 { 1e3 } else { 40.0 }),
+                    clamped_x: false,
+                    clamped_y: true,
+                };
+                let a = project_finish(&k, &p);
+                let b = project_finish_direct(&k, &p);
+                assert!(same(&a, &b), "{p:?}: {a:?} vs {b:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn footprint_is_the_direct_form_f32() {
+        footprint_is_the_direct_form::<f32>();
+    }
+
+    #[test]
+    fn footprint_is_the_direct_form_f64() {
+        footprint_is_the_direct_form::<f64>();
+    }
 }

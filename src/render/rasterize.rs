@@ -30,6 +30,15 @@
 //! whatever the rounding of `exp` (≤ 1 ulp) and of the product. A row whose
 //! lanes all skip an entry does no further work for it.
 //!
+//! Rows that cannot reach `power_min` are not looked at: each splat carries
+//! the image rows where its computed power can reach `power_min` at some
+//! pixel ([`candidate_rows`], a bound on the row's largest power with every
+//! rounding of [`power_lanes`] accounted for, tested against it). A row walk
+//! first picks, without branches, the entries whose candidate rows hold it
+//! and walks only those; every other entry would have been skipped at
+//! every lane, so the results are the same bits. Small splats in a 16-row
+//! tile reach a few of its rows, and the walk stops paying for the rest.
+//!
 //! Image rows are independent and own their pixels, so the forward runs in
 //! parallel over rows with no reduction across threads.
 
@@ -40,6 +49,10 @@ use crate::math::Real;
 
 /// Pixels per row group (one tile row).
 pub(crate) const LANES: usize = BLOCK;
+
+/// List entries a row walk picks its candidates from at a time (does not
+/// affect results).
+const PICK_CHUNK: usize = 64;
 
 /// The per-Gaussian data a pixel reads, gathered in list order per tile.
 #[derive(Clone, Copy, Debug)]
@@ -52,6 +65,9 @@ pub(crate) struct Splat<T> {
     /// Powers below this are certainly skipped by the alpha rule (see the
     /// module docs); `+∞` for `o ≤ 0`, `−∞` when `o` is not finite.
     pub power_min: T,
+    /// Image rows `[first, end)` outside which every pixel's computed
+    /// `power` is below `power_min` ([`candidate_rows`]).
+    pub rows: [u32; 2],
 }
 
 /// [`Splat::power_min`] for opacity `o` (see the module docs).
@@ -64,6 +80,74 @@ pub(crate) fn power_min<T: Real>(o: T) -> T {
     } else {
         libm::log(Blend::<T>::new().alpha_min.to_f64() / o) - 0.01
     })
+}
+
+/// The image rows `[first, end)` (within `0..height`) at which a splat
+/// centred at row coordinate `xy[1]` with conic `conic` and
+/// [`Splat::power_min`] `power_min` can pass the power test at some pixel:
+/// at every other row, the `power` that [`power_lanes`] computes, rounding
+/// included, is below `power_min` at every pixel, so the row skips the
+/// entry whatever its `x` (the row walk need not look at it).
+///
+/// The bound. With `d = (dx, dy)`, `Q = A dx² + 2B dx dy + C dy²` and
+/// `p = −Q/2`, the largest `p` on a row is `−dy²·det/(2A)` (`det = AC − B²`,
+/// at `dx = −B dy/A`). The computed power rounds five products and sums of
+/// non-negative terms and one difference: it is at most
+/// `p + 2.51·ε·(A dx² + C dy²) ≤ p·(1 − 5.02·ε·κ)`, then the last rounding,
+/// where `ε` is the unit roundoff of `T` and `κ ≥ λmax/λmin ≥ (A dx² + C dy²)/Q`
+/// bounds the conic's condition number (taken as `(A + C)²/det`). With the margin `m = 6εκ + 2ε` the row is
+/// skipped when `dy² > −2·power_min·A/(det·(1 − m))`, `dy` being the rounded
+/// `y − row` the lanes use (`|dy| ≥ |y − row|·(1 − ε)`); a further
+/// relative 1e-5 on `dy²` and on `|dy|` covers that and the f64 evaluation
+/// of the bound. The bound is only
+/// used where it holds comfortably: finite values of moderate size (no
+/// overflow, no NaN power, which would count as a candidate), a positive
+/// definite conic with `κ ≤ 10⁶`, and `power_min < 0`; otherwise every row
+/// is a candidate (or none, for `power_min > 0`: no power is both `≤ 0` and
+/// above it).
+#[inline]
+pub(crate) fn candidate_rows<T: Real>(
+    xy: [T; 2],
+    conic: [T; 3],
+    power_min: T,
+    height: usize,
+) -> [u32; 2] {
+    let all = [0, height.min(u32::MAX as usize) as u32];
+    let [a, b, c] = conic.map(|v| v.to_f64());
+    let (x, y, pm) = (xy[0].to_f64(), xy[1].to_f64(), power_min.to_f64());
+    // Moderate finite values only (a NaN fails every comparison here).
+    let usable = a > 1e-20
+        && a < 1e20
+        && c > 1e-20
+        && c < 1e20
+        && b.abs() < 1e20
+        && x.abs() < 1e7
+        && y.abs() < 1e7;
+    if !usable {
+        return all;
+    }
+    if pm > 0.0 {
+        return [0, 0];
+    }
+    let det = a * c - b * b;
+    // κ ≤ (λmax + λmin)²/(λmax·λmin) = (A + C)²/det.
+    let trace2 = (a + c) * (a + c);
+    if !(pm < 0.0 && pm > f64::NEG_INFINITY && det > 0.0 && trace2 <= 1e6 * det) {
+        return all;
+    }
+    let eps = match T::PRECISION {
+        crate::math::Precision::F32 => f32::EPSILON as f64 / 2.0,
+        crate::math::Precision::F64 => f64::EPSILON / 2.0,
+    };
+    // det·(1 − m) with m = 6εκ + 2ε, κ = (A + C)²/det (at least 0.64·det).
+    let shrunk = det * (1.0 - 2.0 * eps) - 6.0 * eps * trace2;
+    // The f64 evaluation and `|dy| ≥ |y − row|·(1 − ε)`, generously.
+    let slack = 1.0 + 1e-5;
+    let r = (-2.0 * pm * a / shrunk * slack).sqrt() * slack;
+    let h = all[1] as f64;
+    let lo = (y - r).ceil().clamp(0.0, h);
+    let hi = ((y + r).floor() + 1.0).clamp(0.0, h);
+    [lo as u32, hi as u32]
 }
 
 /// Constants of the blending rule in `T`.
@@ -221,9 +305,24 @@ pub(crate) fn walk_row<V: Lanes>(
         V::splat(k.alpha_min),
         V::splat(k.t_min),
     );
-    if active_bits != 0 {
-        for (j, s) in splats.iter().enumerate() {
-            evaluated += active_bits.count_ones() as u64;
+    // The entries whose candidate rows hold this row, a chunk at a time
+    // (positions in the tile's list, ascending; written without branches).
+    let row_u32 = row.py as u32;
+    let mut picked = [0u32; PICK_CHUNK];
+    let mut base = 0;
+    'walk: while active_bits != 0 && base < splats.len() {
+        let end = (base + PICK_CHUNK).min(splats.len());
+        let mut n = 0;
+        for (j, s) in splats[base..end].iter().enumerate() {
+            // `n ≤ j < PICK_CHUNK`; the mask only spares the bounds check.
+            picked[n & (PICK_CHUNK - 1)] = (base + j) as u32;
+            let [first, last] = s.rows;
+            n += (row_u32.wrapping_sub(first) < last.wrapping_sub(first)) as usize;
+        }
+        base = end;
+        for &j in &picked[..n] {
+            let j = j as usize;
+            let s = &splats[j];
             let dx = V::splat(s.xy[0]) - px;
             let p = power_lanes(s, dx, s.xy[1] - pyf, k);
             let cand = V::andnot(V::andnot(active, p.gt(vzero)), p.lt(V::splat(s.power_min)));
@@ -255,14 +354,18 @@ pub(crate) fn walk_row<V: Lanes>(
             }
             let stop_bits = V::bits(stop);
             if stop_bits != 0 {
+                // A lane that stops here evaluated entries 0..=j.
+                evaluated += (j as u64 + 1) * stop_bits.count_ones() as u64;
                 active_bits &= !stop_bits;
                 active = V::from_bits(active_bits);
                 if active_bits == 0 {
-                    break;
+                    break 'walk;
                 }
             }
         }
     }
+    // Lanes that never stopped evaluated the whole list.
+    evaluated += splats.len() as u64 * active_bits.count_ones() as u64;
     let mut st = RowState {
         t: [zero; LANES],
         c: [[zero; LANES]; 3],
@@ -459,4 +562,167 @@ pub(crate) fn tile_bounds(tile: usize, grid_x: usize, w: usize, h: usize) -> [us
         ty * BLOCK,
         (ty * BLOCK + BLOCK).min(h),
     ]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::rng::Rng;
+    use crate::render::lanes::Scalar;
+
+    // A splat with a random rotated 2D covariance (condition numbers from 1
+    // to 10^7, beyond the bound's limit too), centre around rows 0..height,
+    // and opacity from almost nothing to 1; `rows` computed for `height`.
+    fn random_splat<T: Real>(rng: &mut Rng, height: usize) -> Splat<T> {
+        let theta = rng.uniform_range(0.0, std::f64::consts::PI);
+        let s1 = 10f64.powf(rng.uniform_range(-0.5, 1.3));
+        let s2 = s1 / 10f64.powf(rng.uniform_range(0.0, 3.5));
+        let (c, s) = (theta.cos(), theta.sin());
+        let (v1, v2) = (s1 * s1 + 0.3, s2 * s2 + 0.3);
+        let cov = [
+            c * c * v1 + s * s * v2,
+            c * s * (v1 - v2),
+            s * s * v1 + c * c * v2,
+        ];
+        let det = cov[0] * cov[2] - cov[1] * cov[1];
+        let conic = [cov[2] / det, -cov[1] / det, cov[0] / det].map(T::from_f64);
+        let opacity = T::from_f64(match rng.below(4) {
+            0 => 1.0,
+            1 => 1.0 / 255.0,
+            2 => rng.uniform_range(0.002, 0.01),
+            _ => rng.uniform_range(0.01, 1.0),
+        });
+        let h = height as f64;
+        let xy = [
+            T::from_f64(rng.uniform_range(-8.0, 24.0)),
+            T::from_f64(rng.uniform_range(-0.3 * h, 1.3 * h)),
+        ];
+        let pm = power_min(opacity);
+        Splat {
+            xy,
+            conic,
+            opacity,
+            color: [0.2, 0.5, 0.9].map(T::from_f64),
+            depth: T::from_f64(rng.uniform_range(1.0, 5.0)),
+            power_min: pm,
+            rows: candidate_rows(xy, conic, pm, height),
+        }
+    }
+
+    // At every row outside a splat's candidate rows, the power the lanes
+    // compute is below `power_min` at every pixel, the row's maximum
+    // (around dx = −B·dy/A) included; and the bound culls rows.
+    fn rows_outside_are_skipped<T: Real>() {
+        let mut rng = Rng::new(7);
+        let k = Blend::<T>::new();
+        let height = 64;
+        let (mut culled, mut tight) = (0usize, 0usize);
+        for _ in 0..3000 {
+            let s = random_splat::<T>(&mut rng, height);
+            for py in 0..height as u32 {
+                if s.rows[0] <= py && py < s.rows[1] {
+                    continue;
+                }
+                culled += 1;
+                let dy = s.xy[1] - T::from_usize(py as usize);
+                let peak = -(s.conic[1].to_f64() * dy.to_f64()) / s.conic[0].to_f64();
+                let base = s.xy[0].to_f64() - peak;
+                for off in [-6.0, -2.0, 0.0, 2.0, 6.0] {
+                    let px: [T; LANES] = std::array::from_fn(|l| {
+                        T::from_f64(base + off + (l as f64 - 7.5) * 0.0625)
+                    });
+                    let dx = Scalar::<T>(std::array::from_fn(|l| s.xy[0] - px[l]));
+                    let p = power_lanes(&s, dx, dy, &k);
+                    for (l, &v) in p.0.iter().enumerate() {
+                        assert!(
+                            v < s.power_min,
+                            "row {py} outside {:?} but power {v} >= power_min {} at x {} (splat {s:?})",
+                            s.rows,
+                            s.power_min,
+                            px[l]
+                        );
+                    }
+                }
+            }
+            // Where the bound applies, it is close to the exact one: the
+            // range is within a row of {dy² ≤ −2·power_min·A/det}.
+            let [a, b, c] = s.conic.map(|v| v.to_f64());
+            let det = a * c - b * b;
+            let pm = s.power_min.to_f64();
+            if pm < 0.0 && det > 0.0 && (a + c) * (a + c) <= 1e5 * det {
+                let r = (-2.0 * pm * a / det).sqrt();
+                let y = s.xy[1].to_f64();
+                let lo = (y - r - 1.0).ceil().max(0.0) as u32;
+                let hi = ((y + r + 1.0).floor() + 1.0).clamp(0.0, height as f64) as u32;
+                assert!(
+                    s.rows[1] <= s.rows[0] || (lo <= s.rows[0] && s.rows[1] <= hi),
+                    "rows {:?} looser than [{lo}, {hi}) (splat {s:?})",
+                    s.rows
+                );
+                tight += 1;
+            }
+        }
+        assert!(
+            culled > 50_000 && tight > 1000,
+            "culled {culled}, tight {tight}"
+        );
+    }
+
+    #[test]
+    fn rows_outside_are_skipped_f32() {
+        rows_outside_are_skipped::<f32>();
+    }
+
+    #[test]
+    fn rows_outside_are_skipped_f64() {
+        rows_outside_are_skipped::<f64>();
+    }
+
+    // A row walk with the candidate rows gives the bits, blended entries and
+    // pair count of the walk that looks at every entry.
+    fn walk_equals_unfiltered<T: Real>() {
+        let mut rng = Rng::new(11);
+        let k = Blend::<T>::new();
+        for case in 0..200 {
+            let n = 1 + rng.below(150) as usize;
+            let splats: Vec<Splat<T>> = (0..n).map(|_| random_splat(&mut rng, BLOCK)).collect();
+            let unfiltered: Vec<Splat<T>> = splats
+                .iter()
+                .map(|s| Splat {
+                    rows: [0, BLOCK as u32],
+                    ..*s
+                })
+                .collect();
+            let nx = if case % 3 == 0 { 11 } else { BLOCK };
+            for py in 0..BLOCK {
+                let row = Row { x0: 0, nx, py };
+                let (mut b1, mut b2) = (Vec::new(), Vec::new());
+                let s1 = walk_row::<Scalar<T>>(&splats, row, &k, &mut b1);
+                let s2 = walk_row::<Scalar<T>>(&unfiltered, row, &k, &mut b2);
+                let bits = |st: &RowState<T>| {
+                    let mut v: Vec<u64> =
+                        st.t.iter()
+                            .chain(&st.d)
+                            .map(|x| x.to_f64().to_bits())
+                            .collect();
+                    v.extend(st.c.iter().flatten().map(|x| x.to_f64().to_bits()));
+                    v.extend(st.last.iter().map(|&l| l as u64));
+                    v.push(st.evaluated);
+                    v
+                };
+                assert_eq!(bits(&s1), bits(&s2), "case {case} row {py}");
+                assert_eq!(b1, b2, "case {case} row {py}");
+            }
+        }
+    }
+
+    #[test]
+    fn walk_equals_unfiltered_f32() {
+        walk_equals_unfiltered::<f32>();
+    }
+
+    #[test]
+    fn walk_equals_unfiltered_f64() {
+        walk_equals_unfiltered::<f64>();
+    }
 }

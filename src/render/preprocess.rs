@@ -1,0 +1,764 @@
+//! The forward's per-Gaussian stage: 3D covariance, projection ([`project`]),
+//! colour and the data a pixel reads ([`Splat`]), in batches of [`BATCH`]
+//! Gaussians.
+//!
+//! A batch is evaluated as vectors: the inputs are transposed so that lane
+//! `l` holds Gaussian `first + l`, then one loop over the lanes runs the
+//! branch-free part of the stage for every lane ([`cov3d`],
+//! [`project_core`], [`sh_to_color_with`] at a constant degree, then the
+//! radius, pixel centre, tile rectangle and culls, [`footprint`]), which
+//! the compiler turns into vector instructions; the records and the
+//! opacity threshold ([`power_min`], only for visible Gaussians) are then
+//! written per Gaussian. The loop is compiled for AVX-512, AVX2 and the
+//! baseline and picked at run time ([`crate::kernels::fastmath::isa`]).
+//! Every lane does the scalar operations of one Gaussian in the scalar order
+//! (IEEE additions, multiplications, divisions and square roots, comparisons
+//! and selects; Rust never contracts `a·b + c` into an FMA), so every path
+//! gives the bits of the one-Gaussian functions, which the tests check.
+//! Lanes past the end of the last batch repeat its first Gaussian and are
+//! discarded; lanes of culled Gaussians compute values that are not used.
+//! The SH coefficients of a batch (up to 48 values per Gaussian) are
+//! transposed with vector shuffles where `T` is f32 (16×16 blocks with
+//! AVX-512, 8×8 with AVX2; only bits move) and prefetched two batches ahead:
+//! they are read once per frame, and their cache misses dominated the stage.
+//!
+//! The outputs are written once, by index, into buffers that are not
+//! initialised beforehand: the per-Gaussian state the backward reads, the
+//! radii and centres the caller returns, and one [`Splat`] per Gaussian that
+//! the binned list gathers from (one read per list entry).
+//!
+//! [`project`]: super::project::project
+
+use super::project::{
+    assemble, footprint, project_core, Footprint, Intrinsics, ProjectCore, Projected,
+};
+use super::rasterize::{candidate_rows, power_min, Splat};
+use super::{Colors, Covariances, RasterInput};
+use crate::kernels::fastmath::multiversion;
+use crate::math::covariance::cov3d;
+use crate::math::sh::{sh_to_color_with, ShColorSaved};
+use crate::math::Real;
+use rayon::prelude::*;
+use std::mem::MaybeUninit;
+
+/// Gaussians per batch (one AVX-512 register of f32).
+pub(crate) const BATCH: usize = 16;
+
+/// Largest number of SH coefficient values per Gaussian (degree 3: 16 × 3).
+const MAX_SH_VALUES: usize = 48;
+
+/// The per-Gaussian results of the forward's first stage, `[N]` each.
+#[derive(Debug)]
+pub(crate) struct Preprocessed<T> {
+    /// Projection of each Gaussian ([`Projected::culled`] when culled).
+    pub proj: Vec<Projected<T>>,
+    /// Colour of each Gaussian (0, unclamped, when culled).
+    pub colors: Vec<ShColorSaved<T>>,
+    /// 3D covariance of each Gaussian (upper triangle, row-major).
+    pub cov3d: Vec<[T; 6]>,
+    /// What a pixel reads of each visible Gaussian (all 0 when culled).
+    pub splats: Vec<Splat<T>>,
+    /// `[N]` integer radius in pixels, 0 when culled.
+    pub radii: Vec<i32>,
+    /// `[N, 2]` pixel-space centre, 0 when culled.
+    pub means2d: Vec<T>,
+}
+
+/// The outputs of one batch: `proj.len() ≤ BATCH` Gaussians from `first`,
+/// every element written by [`batch`].
+struct BatchOut<'a, T> {
+    proj: &'a mut [MaybeUninit<Projected<T>>],
+    colors: &'a mut [MaybeUninit<ShColorSaved<T>>],
+    cov3d: &'a mut [MaybeUninit<[T; 6]>],
+    splats: &'a mut [MaybeUninit<Splat<T>>],
+    radii: &'a mut [MaybeUninit<i32>],
+    means2d: &'a mut [MaybeUninit<T>],
+}
+
+/// Evaluate the `n` Gaussians of `input` (already validated; `ndc_offset`
+/// `[N, 2]` when given), in parallel over batches.
+pub(crate) fn preprocess<T: Real>(
+    k: &Intrinsics<T>,
+    input: &RasterInput<T>,
+    n: usize,
+    ndc_offset: Option<&[T]>,
+) -> Preprocessed<T> {
+    let mut proj = Vec::with_capacity(n);
+    let mut colors = Vec::with_capacity(n);
+    let mut covs = Vec::with_capacity(n);
+    let mut splats = Vec::with_capacity(n);
+    let mut radii = Vec::with_capacity(n);
+    let mut means2d = Vec::with_capacity(2 * n);
+    (
+        proj.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
+        colors.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
+        covs.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
+        splats.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
+        radii.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
+        means2d.spare_capacity_mut()[..2 * n].par_chunks_mut(2 * BATCH),
+    )
+        .into_par_iter()
+        .with_min_len(4)
+        .enumerate()
+        .for_each(|(b, (proj, colors, cov3d, splats, radii, means2d))| {
+            let mut out = BatchOut {
+                proj,
+                colors,
+                cov3d,
+                splats,
+                radii,
+                means2d,
+            };
+            batch(k, input, ndc_offset, b * BATCH, &mut out);
+        });
+    // SAFETY: the chunks above cover elements 0..n (0..2n for the centres)
+    // of each buffer's capacity, and `batch_body` writes every element of
+    // the chunks it is given (its final loop runs over all of them).
+    unsafe {
+        proj.set_len(n);
+        colors.set_len(n);
+        covs.set_len(n);
+        splats.set_len(n);
+        radii.set_len(n);
+        means2d.set_len(2 * n);
+    }
+    Preprocessed {
+        proj,
+        colors,
+        cov3d: covs,
+        splats,
+        radii,
+        means2d,
+    }
+}
+
+multiversion!(fn batch<T: Real>(k: &Intrinsics<T>, input: &RasterInput<'_, T>, ndc_offset: Option<&[T]>, first: usize, out: &mut BatchOut<'_, T>) => batch_body);
+
+/// One batch (see the module docs); `out` holds `1..=BATCH` Gaussians.
+#[inline(always)]
+#[allow(clippy::needless_range_loop)] // lanes index several arrays at once
+fn batch_body<T: Real>(
+    k: &Intrinsics<T>,
+    input: &RasterInput<'_, T>,
+    ndc_offset: Option<&[T]>,
+    first: usize,
+    out: &mut BatchOut<'_, T>,
+) {
+    let len = out.proj.len();
+    // The Gaussian of lane `l`.
+    let g = |l: usize| first + if l < len { l } else { 0 };
+    let z = [T::ZERO; BATCH];
+    let mut mean = [z; 3];
+    let mut off = [z; 2];
+    for l in 0..BATCH {
+        let i = g(l);
+        for c in 0..3 {
+            mean[c][l] = input.means3d[3 * i + c];
+        }
+        if let Some(o) = ndc_offset {
+            off[0][l] = o[2 * i];
+            off[1][l] = o[2 * i + 1];
+        }
+    }
+    let mut cov = [z; 6];
+    match input.covariances {
+        Covariances::ScaleRotation {
+            scales,
+            rotations,
+            scale_modifier,
+        } => {
+            let mut s = [z; 3];
+            let mut q = [z; 4];
+            for l in 0..BATCH {
+                let i = g(l);
+                for c in 0..3 {
+                    s[c][l] = scales[3 * i + c];
+                }
+                for c in 0..4 {
+                    q[c][l] = rotations[4 * i + c];
+                }
+            }
+            for l in 0..BATCH {
+                let c = cov3d(
+                    [s[0][l], s[1][l], s[2][l]],
+                    scale_modifier,
+                    [q[0][l], q[1][l], q[2][l], q[3][l]],
+                );
+                for j in 0..6 {
+                    cov[j][l] = c[j];
+                }
+            }
+        }
+        Covariances::Precomputed(c) => {
+            for l in 0..BATCH {
+                let i = g(l);
+                for j in 0..6 {
+                    cov[j][l] = c[6 * i + j];
+                }
+            }
+        }
+    }
+
+    let mut depth = z;
+    let mut ndc = [z; 2];
+    let mut cov2d = [z; 3];
+    let mut det = z;
+    let mut conic = [z; 3];
+    let mut radius3 = z;
+    let mut clamped = [[false; BATCH]; 2];
+    for l in 0..BATCH {
+        let p = project_core(
+            k,
+            [mean[0][l], mean[1][l], mean[2][l]],
+            &[
+                cov[0][l], cov[1][l], cov[2][l], cov[3][l], cov[4][l], cov[5][l],
+            ],
+            [off[0][l], off[1][l]],
+        );
+        depth[l] = p.depth;
+        ndc[0][l] = p.ndc[0];
+        ndc[1][l] = p.ndc[1];
+        for c in 0..3 {
+            cov2d[c][l] = p.cov2d[c];
+            conic[c][l] = p.conic[c];
+        }
+        det[l] = p.det;
+        radius3[l] = p.radius3;
+        clamped[0][l] = p.clamped_x;
+        clamped[1][l] = p.clamped_y;
+    }
+
+    let mut color = [z; 3];
+    let mut color_clamped = [[false; BATCH]; 3];
+    if let Colors::Sh {
+        coeffs,
+        stride,
+        degree,
+    } = input.colors
+    {
+        let campos = input.camera.campos;
+        let sh = ShBatch {
+            coeffs,
+            stride,
+            campos,
+            mean: &mean,
+        };
+        match degree {
+            0 => sh.colors::<0>(&g, &mut color, &mut color_clamped),
+            1 => sh.colors::<1>(&g, &mut color, &mut color_clamped),
+            2 => sh.colors::<2>(&g, &mut color, &mut color_clamped),
+            _ => sh.colors::<3>(&g, &mut color, &mut color_clamped),
+        }
+    }
+
+    let core = |l: usize| ProjectCore {
+        depth: depth[l],
+        ndc: [ndc[0][l], ndc[1][l]],
+        cov2d: [cov2d[0][l], cov2d[1][l], cov2d[2][l]],
+        det: det[l],
+        conic: [conic[0][l], conic[1][l], conic[2][l]],
+        radius3: radius3[l],
+        clamped_x: clamped[0][l],
+        clamped_y: clamped[1][l],
+    };
+    let mut visible = [false; BATCH];
+    let mut radius = [0i32; BATCH];
+    let mut xy = [z; 2];
+    let mut rect = [[[0u32; BATCH]; 2]; 2];
+    for l in 0..BATCH {
+        let f = footprint(k, &core(l));
+        visible[l] = f.visible;
+        radius[l] = f.radius;
+        for c in 0..2 {
+            xy[c][l] = f.xy[c];
+            rect[0][c][l] = f.rect_min[c];
+            rect[1][c][l] = f.rect_max[c];
+        }
+    }
+
+    for l in 0..len {
+        let i = first + l;
+        let p = assemble(
+            &core(l),
+            &Footprint {
+                visible: visible[l],
+                radius: radius[l],
+                xy: [xy[0][l], xy[1][l]],
+                rect_min: [rect[0][0][l], rect[0][1][l]],
+                rect_max: [rect[1][0][l], rect[1][1][l]],
+            },
+        );
+        let (c, s) = if p.radius > 0 {
+            let c = match input.colors {
+                Colors::Sh { .. } => ShColorSaved {
+                    color: [color[0][l], color[1][l], color[2][l]],
+                    clamped: [
+                        color_clamped[0][l],
+                        color_clamped[1][l],
+                        color_clamped[2][l],
+                    ],
+                },
+                Colors::Precomputed(_) => input.color(i),
+            };
+            let o = input.opacities[i];
+            let pm = power_min(o);
+            let s = Splat {
+                xy: p.xy,
+                conic: p.conic,
+                opacity: o,
+                color: c.color,
+                depth: p.depth,
+                power_min: pm,
+                rows: candidate_rows(p.xy, p.conic, pm, k.height),
+            };
+            (c, s)
+        } else {
+            let c = ShColorSaved {
+                color: [T::ZERO; 3],
+                clamped: [false; 3],
+            };
+            let s = Splat {
+                xy: [T::ZERO; 2],
+                conic: [T::ZERO; 3],
+                opacity: T::ZERO,
+                color: [T::ZERO; 3],
+                depth: T::ZERO,
+                power_min: T::ZERO,
+                rows: [0, 0],
+            };
+            (c, s)
+        };
+        out.radii[l].write(p.radius);
+        out.means2d[2 * l].write(p.xy[0]);
+        out.means2d[2 * l + 1].write(p.xy[1]);
+        out.proj[l].write(p);
+        out.colors[l].write(c);
+        out.splats[l].write(s);
+        out.cov3d[l].write([
+            cov[0][l], cov[1][l], cov[2][l], cov[3][l], cov[4][l], cov[5][l],
+        ]);
+    }
+}
+
+/// What the SH colours of a batch read.
+struct ShBatch<'a, T> {
+    coeffs: &'a [T],
+    stride: usize,
+    campos: [T; 3],
+    mean: &'a [[T; BATCH]; 3],
+}
+
+impl<T: Real> ShBatch<'_, T> {
+    /// Colours at degree `D` of the lanes' Gaussians (`g(l)`): the
+    /// coefficients transposed to one row per value, then
+    /// [`sh_to_color_with`] per lane.
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // lanes index several arrays at once
+    fn colors<const D: usize>(
+        &self,
+        g: &impl Fn(usize) -> usize,
+        color: &mut [[T; BATCH]; 3],
+        clamped: &mut [[bool; BATCH]; 3],
+    ) {
+        let n = 3 * (D + 1) * (D + 1);
+        prefetch(
+            self.coeffs,
+            (g(0) + 2 * BATCH) * self.stride * 3,
+            BATCH * self.stride * 3,
+        );
+        let mut c = [[T::ZERO; BATCH]; MAX_SH_VALUES];
+        let src: [&[T]; BATCH] = std::array::from_fn(|l| {
+            let base = g(l) * self.stride * 3;
+            &self.coeffs[base..base + n]
+        });
+        let done = transpose_f32(&src, n, &mut c);
+        for l in 0..BATCH {
+            for j in done..n {
+                c[j][l] = src[l][j];
+            }
+        }
+        for l in 0..BATCH {
+            let m = [self.mean[0][l], self.mean[1][l], self.mean[2][l]];
+            let r = sh_to_color_with(D, |j| c[j][l], m, self.campos);
+            for ch in 0..3 {
+                color[ch][l] = r.color[ch];
+                clamped[ch][l] = r.clamped[ch];
+            }
+        }
+    }
+}
+
+/// Ask the CPU to bring `len` values of `v` from `start` into its caches
+/// (the batch after next reads them); only a hint, clipped to `v`.
+#[inline(always)]
+fn prefetch<T>(v: &[T], start: usize, len: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let end = (start + len).min(v.len());
+        let line = 64 / std::mem::size_of::<T>().max(1);
+        let mut i = start;
+        while i < end {
+            // SAFETY: `i < v.len()`, so the address is inside `v`; a
+            // prefetch never faults and changes no value.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(v.as_ptr().add(i) as *const i8) };
+            i += line;
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (v, start, len);
+}
+
+/// `c[j][l] = src[l][j]` for `j` below the returned count, with vector
+/// shuffles where `T` is f32 and the CPU has AVX-512 (blocks of 16 values)
+/// or AVX2 (blocks of 8); returns 0 (nothing done) otherwise. Only moves
+/// bits. Every `src[l]` holds `n` values.
+#[inline(always)]
+fn transpose_f32<T: Real>(
+    src: &[&[T]; BATCH],
+    n: usize,
+    c: &mut [[T; BATCH]; MAX_SH_VALUES],
+) -> usize {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use super::rasterize::{path, Path};
+        let p = path::<T>();
+        if p == Path::Portable {
+            return 0;
+        }
+        let out = c.as_mut_ptr() as *mut f32;
+        let width = if p == Path::Avx512 { 16 } else { 8 };
+        let blocks = n / width;
+        for b in 0..blocks {
+            let at: [*const f32; BATCH] =
+                std::array::from_fn(|l| src[l][b * width..(b + 1) * width].as_ptr() as *const f32);
+            // SAFETY: a vector path is chosen only for T = f32 on a CPU with
+            // its feature (`path`); each `at[l]` starts `width` values of a
+            // row (sliced above) and `c` has rows `b·width .. (b + 1)·width`
+            // of BATCH values (`(b + 1)·width ≤ n ≤ MAX_SH_VALUES`).
+            unsafe {
+                let o = out.add(b * width * BATCH);
+                if p == Path::Avx512 {
+                    x86::transpose16(&at, o);
+                } else {
+                    let lo: [*const f32; 8] = std::array::from_fn(|l| at[l]);
+                    let hi: [*const f32; 8] = std::array::from_fn(|l| at[8 + l]);
+                    x86::transpose8(&lo, o);
+                    x86::transpose8(&hi, o.add(8));
+                }
+            }
+        }
+        blocks * width
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = (src, n, c);
+        0
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use super::BATCH;
+    use std::arch::x86_64::*;
+
+    /// `out[BATCH·j + l] = rows[l][j]` for `l, j < 16`.
+    ///
+    /// # Safety
+    /// AVX-512F is present; `rows[l]` can be read for 16 values and `out`
+    /// written for `16·BATCH`.
+    #[target_feature(enable = "avx512f")]
+    pub(super) unsafe fn transpose16(rows: &[*const f32; 16], out: *mut f32) {
+        // SAFETY: the caller guarantees the feature and the extents.
+        unsafe {
+            let mut r: [__m512; 16] = std::array::from_fn(|l| _mm512_loadu_ps(rows[l]));
+            let mut t = [_mm512_setzero_ps(); 16];
+            // 32-bit interleave of row pairs, then 64-bit of pair pairs:
+            // each 128-bit lane q of r[4a + b] then holds column 4q + b of
+            // rows 4a .. 4a + 3.
+            for k in 0..8 {
+                t[2 * k] = _mm512_unpacklo_ps(r[2 * k], r[2 * k + 1]);
+                t[2 * k + 1] = _mm512_unpackhi_ps(r[2 * k], r[2 * k + 1]);
+            }
+            let pd = |x: __m512| _mm512_castps_pd(x);
+            let ps = |x: __m512d| _mm512_castpd_ps(x);
+            for k in 0..4 {
+                let b = 4 * k;
+                r[b] = ps(_mm512_unpacklo_pd(pd(t[b]), pd(t[b + 2])));
+                r[b + 1] = ps(_mm512_unpackhi_pd(pd(t[b]), pd(t[b + 2])));
+                r[b + 2] = ps(_mm512_unpacklo_pd(pd(t[b + 1]), pd(t[b + 3])));
+                r[b + 3] = ps(_mm512_unpackhi_pd(pd(t[b + 1]), pd(t[b + 3])));
+            }
+            // Gather the 128-bit lanes in two steps.
+            for k in 0..4 {
+                t[k] = _mm512_shuffle_f32x4::<0x88>(r[k], r[k + 4]);
+                t[k + 4] = _mm512_shuffle_f32x4::<0xdd>(r[k], r[k + 4]);
+                t[k + 8] = _mm512_shuffle_f32x4::<0x88>(r[k + 8], r[k + 12]);
+                t[k + 12] = _mm512_shuffle_f32x4::<0xdd>(r[k + 8], r[k + 12]);
+            }
+            for k in 0..8 {
+                r[k] = _mm512_shuffle_f32x4::<0x88>(t[k], t[k + 8]);
+                r[k + 8] = _mm512_shuffle_f32x4::<0xdd>(t[k], t[k + 8]);
+            }
+            for (j, v) in r.iter().enumerate() {
+                _mm512_storeu_ps(out.add(BATCH * j), *v);
+            }
+        }
+    }
+
+    /// `out[BATCH·j + l] = rows[l][j]` for `l, j < 8`.
+    ///
+    /// # Safety
+    /// AVX2 is present; `rows[l]` can be read for 8 values and `out`
+    /// written at `BATCH·j + l` for `l, j < 8`.
+    #[target_feature(enable = "avx2")]
+    pub(super) unsafe fn transpose8(rows: &[*const f32; 8], out: *mut f32) {
+        // SAFETY: the caller guarantees the feature and the extents.
+        unsafe {
+            let r: [__m256; 8] = std::array::from_fn(|l| _mm256_loadu_ps(rows[l]));
+            let mut t = [_mm256_setzero_ps(); 8];
+            for k in 0..4 {
+                t[2 * k] = _mm256_unpacklo_ps(r[2 * k], r[2 * k + 1]);
+                t[2 * k + 1] = _mm256_unpackhi_ps(r[2 * k], r[2 * k + 1]);
+            }
+            let mut u = [_mm256_setzero_ps(); 8];
+            for k in 0..2 {
+                let b = 4 * k;
+                u[b] = _mm256_shuffle_ps::<0x44>(t[b], t[b + 2]);
+                u[b + 1] = _mm256_shuffle_ps::<0xEE>(t[b], t[b + 2]);
+                u[b + 2] = _mm256_shuffle_ps::<0x44>(t[b + 1], t[b + 3]);
+                u[b + 3] = _mm256_shuffle_ps::<0xEE>(t[b + 1], t[b + 3]);
+            }
+            for k in 0..4 {
+                let lo = _mm256_permute2f128_ps::<0x20>(u[k], u[k + 4]);
+                let hi = _mm256_permute2f128_ps::<0x31>(u[k], u[k + 4]);
+                _mm256_storeu_ps(out.add(BATCH * k), lo);
+                _mm256_storeu_ps(out.add(BATCH * (k + 4)), hi);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::RasterCamera;
+    use crate::kernels::fastmath::{force_isa, Isa};
+    use crate::math::rng::Rng;
+
+    /// A camera at the origin looking down +z (row-vector matrices).
+    fn camera<T: Real>(w: usize, h: usize) -> RasterCamera<T> {
+        let f = |v: f64| T::from_f64(v);
+        let (tx, ty) = (0.6, 0.45);
+        let (near, far) = (0.01, 100.0);
+        let mut view = [T::ZERO; 16];
+        for i in 0..4 {
+            view[5 * i] = T::ONE;
+        }
+        // Perspective projection, transposed (row vectors).
+        let mut proj = [T::ZERO; 16];
+        proj[0] = f(1.0 / tx);
+        proj[5] = f(1.0 / ty);
+        proj[10] = f(far / (far - near));
+        proj[11] = T::ONE;
+        proj[14] = f(-(far * near) / (far - near));
+        RasterCamera {
+            viewmatrix: view,
+            projmatrix: proj,
+            campos: [f(0.1), f(-0.2), f(-0.3)],
+            tanfovx: f(tx),
+            tanfovy: f(ty),
+            width: w,
+            height: h,
+        }
+    }
+
+    fn same<T: Real>(a: T, b: T) -> bool {
+        a.bits() == b.bits()
+    }
+
+    /// Compare [`preprocess`] with the one-Gaussian functions, bit for bit.
+    fn check_against_scalar<T: Real>(
+        input: &RasterInput<T>,
+        n: usize,
+        off: Option<&[T]>,
+        what: &str,
+    ) -> usize {
+        let k = Intrinsics::new(input.camera);
+        let got = preprocess(&k, input, n, off);
+        let mut visible = 0;
+        for i in 0..n {
+            let cov = input.cov3d(i);
+            let o = off.map_or([T::ZERO; 2], |o| [o[2 * i], o[2 * i + 1]]);
+            let p = super::super::project::project(&k, input.mean(i), &cov, o);
+            let q = &got.proj[i];
+            let ok = p.radius == q.radius
+                && same(p.depth, q.depth)
+                && (0..2).all(|c| same(p.xy[c], q.xy[c]))
+                && (0..3).all(|c| same(p.conic[c], q.conic[c]) && same(p.cov2d[c], q.cov2d[c]))
+                && p.rect_min == q.rect_min
+                && p.rect_max == q.rect_max
+                && p.clamped_x == q.clamped_x
+                && p.clamped_y == q.clamped_y;
+            assert!(ok, "{what}: projection of Gaussian {i}: {p:?} vs {q:?}");
+            assert!(
+                (0..6).all(|j| same(cov[j], got.cov3d[i][j])),
+                "{what}: cov3d of {i}"
+            );
+            assert_eq!(got.radii[i], p.radius, "{what}: radius of {i}");
+            assert!(same(got.means2d[2 * i], p.xy[0]) && same(got.means2d[2 * i + 1], p.xy[1]));
+            let want = if p.radius > 0 {
+                visible += 1;
+                input.color(i)
+            } else {
+                ShColorSaved {
+                    color: [T::ZERO; 3],
+                    clamped: [false; 3],
+                }
+            };
+            assert!(
+                (0..3).all(|ch| same(want.color[ch], got.colors[i].color[ch]))
+                    && want.clamped == got.colors[i].clamped,
+                "{what}: colour of {i}: {want:?} vs {:?}",
+                got.colors[i]
+            );
+            if p.radius > 0 {
+                let s = &got.splats[i];
+                let o = input.opacities[i];
+                assert!(
+                    same(s.opacity, o)
+                        && same(s.power_min, power_min(o))
+                        && s.rows
+                            == candidate_rows(p.xy, p.conic, power_min(o), input.camera.height)
+                        && same(s.depth, p.depth)
+                        && (0..2).all(|c| same(s.xy[c], p.xy[c]))
+                        && (0..3).all(|c| same(s.conic[c], p.conic[c]))
+                        && (0..3).all(|c| same(s.color[c], want.color[c])),
+                    "{what}: splat of {i}"
+                );
+            }
+        }
+        visible
+    }
+
+    /// Random Gaussians around the view, some behind the camera, off
+    /// screen, degenerate (zero scale) or with non-finite values.
+    /// Means, scales, rotations, opacities, SH (16 per Gaussian), then 3D
+    /// covariances followed by NDC offsets.
+    type Scene<T> = [Vec<T>; 6];
+
+    fn scene<T: Real>(n: usize, seed: u64) -> Scene<T> {
+        let mut rng = Rng::new(seed);
+        let mut u = |lo: f64, hi: f64| T::from_f64(lo + (hi - lo) * rng.uniform());
+        let mut means = Vec::new();
+        let mut scales = Vec::new();
+        let mut rots = Vec::new();
+        let mut opac = Vec::new();
+        let mut sh = Vec::new();
+        let mut cov = Vec::new();
+        for i in 0..n {
+            let z = match i % 11 {
+                0 => u(-2.0, 0.25),
+                _ => u(0.3, 12.0),
+            };
+            means.extend([
+                u(-4.0, 4.0) * z / T::from_f64(3.0),
+                u(-3.0, 3.0) * z / T::from_f64(3.0),
+                z,
+            ]);
+            if i % 13 == 5 {
+                scales.extend([T::ZERO; 3]);
+            } else if i % 29 == 7 {
+                scales.extend([T::from_f64(f64::NAN), u(0.0, 1.0), u(0.0, 1.0)]);
+            } else {
+                scales.extend([u(0.001, 0.5), u(0.001, 0.5), u(0.001, 0.5)]);
+            }
+            rots.extend([u(-1.0, 1.0), u(-1.0, 1.0), u(-1.0, 1.0), u(-1.0, 1.0)]);
+            opac.push(match i % 17 {
+                0 => T::ZERO,
+                1 => T::from_f64(f64::INFINITY),
+                _ => u(0.0, 1.0),
+            });
+            for _ in 0..48 {
+                sh.push(u(-1.0, 1.0));
+            }
+            for _ in 0..6 {
+                cov.push(u(-0.1, 0.3));
+            }
+        }
+        let mut rng = Rng::new(seed + 1);
+        let off: Vec<T> = (0..2 * n)
+            .map(|_| T::from_f64(rng.uniform() - 0.5))
+            .collect();
+        [
+            means,
+            scales,
+            rots,
+            opac,
+            sh,
+            cov.into_iter().chain(off).collect(),
+        ]
+    }
+
+    fn check_all_paths<T: Real>() {
+        // Sizes with a partial last batch, one Gaussian, and none.
+        for (n, seed) in [(203usize, 3u64), (16, 4), (1, 5), (0, 6)] {
+            let [means, scales, rots, opac, sh, rest] = scene::<T>(n, seed);
+            let (cov, off) = rest.split_at(6 * n);
+            let cam = camera::<T>(61, 47);
+            for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
+                if !force_isa(Some(isa)) {
+                    continue;
+                }
+                for degree in 0..=3 {
+                    let input = RasterInput {
+                        means3d: &means,
+                        colors: Colors::Sh {
+                            coeffs: &sh,
+                            stride: 16,
+                            degree,
+                        },
+                        opacities: &opac,
+                        covariances: Covariances::ScaleRotation {
+                            scales: &scales,
+                            rotations: &rots,
+                            scale_modifier: T::from_f64(1.3),
+                        },
+                        camera: &cam,
+                        background: [T::ZERO; 3],
+                    };
+                    let what = format!("{isa:?}, n {n}, degree {degree}");
+                    let v = check_against_scalar(&input, n, None, &what);
+                    // The scene has both visible and culled Gaussians.
+                    assert!(
+                        n < 100 || (v > n / 10 && v < n * 9 / 10),
+                        "{what}: {v} visible"
+                    );
+                    check_against_scalar(&input, n, Some(off), &what);
+                }
+                let input = RasterInput {
+                    means3d: &means,
+                    colors: Colors::Precomputed(&sh[..3 * n]),
+                    opacities: &opac,
+                    covariances: Covariances::Precomputed(cov),
+                    camera: &cam,
+                    background: [T::ZERO; 3],
+                };
+                check_against_scalar(&input, n, None, &format!("{isa:?}, precomputed"));
+            }
+            force_isa(None);
+        }
+    }
+
+    /// Every instruction-set path gives the one-Gaussian functions' bits.
+    #[test]
+    fn batches_match_one_gaussian_functions_on_every_path_f32() {
+        check_all_paths::<f32>();
+    }
+
+    /// The same in f64.
+    #[test]
+    fn batches_match_one_gaussian_functions_on_every_path_f64() {
+        check_all_paths::<f64>();
+    }
+}
