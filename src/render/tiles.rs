@@ -3,16 +3,28 @@
 //!
 //! Upstream emits one `(tile << 32 | depth bits, gaussian)` pair per touched
 //! tile and radix-sorts the pairs stably, so equal keys keep ascending
-//! Gaussian index: the order is `(tile, depth bits, gaussian index)`. Here a
-//! counting sort by tile (in ascending Gaussian index) is followed by a sort
-//! of each tile's entries by `(depth bits, gaussian index)`; because that pair
-//! is unique within a tile, an unstable sort gives one result, and tiles are
-//! sorted in parallel with the same result on any thread count. Depth is
-//! positive (> 0.2), so its IEEE bit pattern orders like its value.
+//! Gaussian index: the order is `(tile, depth bits, gaussian index)`. Depth
+//! is positive (> 0.2), so its IEEE bit pattern orders like its value.
+//!
+//! Here the Gaussians that touch a tile are sorted once by
+//! `(depth bits, index)`: their packed keys (depth bits above the index;
+//! `u64` for `f32`, `u128` for `f64`) are collected in ascending index and
+//! sorted stably by depth bits with a least-significant-digit radix sort.
+//! A counting sort by tile in that order then gives every tile its entries
+//! already in `(depth bits, index)` order, with no per-tile sort. The
+//! counting sort runs in parallel with the result of a serial one: the
+//! sorted Gaussians are split into contiguous chunks whose number depends
+//! only on how many there are ([`chunk_len`]); one parallel pass counts each
+//! chunk's entries per tile, an exclusive prefix sum over tiles, then over
+//! chunks in order, gives every (chunk, tile) pair its first slot, and a
+//! second parallel pass writes each chunk's entries in its sorted order.
+//! Chunk `c`'s entries of a tile therefore follow those of chunks `0..c`,
+//! which is the serial order, on any thread count.
 
 use super::project::Projected;
 use crate::math::Real;
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// The sorted list and per-tile ranges.
 #[derive(Clone, Debug, Default)]
@@ -23,72 +35,213 @@ pub(crate) struct Binning {
     pub ranges: Vec<[u32; 2]>,
 }
 
+/// Gaussians per chunk of the counting sort for `n` Gaussians: chunks of
+/// about 4096, at most 32 of them (so the per-(chunk, tile) counts stay
+/// small), all but the last of equal length. Depends on `n` only; the
+/// result of [`bin`] does not depend on it at all.
+fn chunk_len(n: usize) -> usize {
+    const TARGET: usize = 4096;
+    const MAX_CHUNKS: usize = 32;
+    let chunks = n.div_ceil(TARGET).clamp(1, MAX_CHUNKS);
+    n.div_ceil(chunks).max(1)
+}
+
+/// A sort key: depth bits in the high part, Gaussian index in the
+/// low 32 bits, so integer order is `(depth bits, index)` order.
+trait Key: Copy + Ord + Send + Sync {
+    /// Significant bits of the depth's IEEE pattern.
+    const DEPTH_BITS: u32;
+    fn new(depth_bits: u64, index: u32) -> Self;
+    fn depth(self) -> u64;
+    fn index(self) -> u32;
+}
+
+impl Key for u64 {
+    const DEPTH_BITS: u32 = 32;
+    #[inline(always)]
+    fn depth(self) -> u64 {
+        self >> 32
+    }
+    #[inline(always)]
+    fn new(depth_bits: u64, index: u32) -> Self {
+        depth_bits << 32 | index as u64
+    }
+    #[inline(always)]
+    fn index(self) -> u32 {
+        self as u32
+    }
+}
+
+impl Key for u128 {
+    const DEPTH_BITS: u32 = 64;
+    #[inline(always)]
+    fn depth(self) -> u64 {
+        (self >> 32) as u64
+    }
+    #[inline(always)]
+    fn new(depth_bits: u64, index: u32) -> Self {
+        (depth_bits as u128) << 32 | index as u128
+    }
+    #[inline(always)]
+    fn index(self) -> u32 {
+        self as u32
+    }
+}
+
+/// Bin `proj` on a `grid` of `[tiles x, tiles y]` (see the module docs).
 pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
+    if std::mem::size_of::<T>() <= 4 {
+        bin_keyed::<T, u64>(proj, grid)
+    } else {
+        bin_keyed::<T, u128>(proj, grid)
+    }
+}
+
+/// A pointer to the list's storage that the fill tasks share; each writes
+/// only its own slots.
+struct Slots(*mut MaybeUninit<u32>);
+// SAFETY: the pointer is only used to write disjoint slots from different
+// threads (see the fill in `bin_keyed`).
+unsafe impl Sync for Slots {}
+
+fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
     let n_tiles = grid[0] as usize * grid[1] as usize;
-    // Entries per tile, then each tile's start by an exclusive prefix sum.
-    let mut ranges = vec![[0u32; 2]; n_tiles];
-    for p in proj {
-        if p.radius > 0 {
-            for y in p.rect_min[1]..p.rect_max[1] {
-                let row = (y * grid[0]) as usize;
-                for x in p.rect_min[0]..p.rect_max[0] {
-                    ranges[row + x as usize][1] += 1;
+
+    // 1. The Gaussians that touch a tile, sorted by `(depth bits, index)`,
+    //    and their tile rectangles in that order.
+    let mut keys: Vec<K> = proj
+        .par_iter()
+        .enumerate()
+        .filter(|(_, p)| {
+            p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1]
+        })
+        .map(|(i, p)| K::new(p.depth.bits(), i as u32))
+        .collect();
+    radix_sort_by_depth(&mut keys);
+    let rects: Vec<[u32; 4]> = keys
+        .par_iter()
+        .map(|k| {
+            let p = &proj[k.index() as usize];
+            [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
+        })
+        .collect();
+    let chunk = chunk_len(keys.len());
+    let n_chunks = keys.len().div_ceil(chunk);
+
+    // 2. Per chunk of that order in parallel: the entries per tile.
+    let mut counts = vec![0u32; n_chunks * n_tiles];
+    if n_tiles > 0 {
+        rects
+            .par_chunks(chunk)
+            .zip(counts.par_chunks_mut(n_tiles))
+            .for_each(|(rects, counts)| {
+                for r in rects {
+                    for y in r[1]..r[3] {
+                        let row = (y * grid[0]) as usize;
+                        for c in &mut counts[row + r[0] as usize..row + r[2] as usize] {
+                            *c += 1;
+                        }
+                    }
                 }
-            }
+            });
+    }
+
+    // 3. Each tile's range (an exclusive prefix sum over tiles of the
+    //    chunks' totals), then each (chunk, tile) pair's first slot: the
+    //    tile's start plus the entries of the earlier chunks.
+    let mut ranges = vec![[0u32; 2]; n_tiles];
+    for c in counts.chunks(n_tiles.max(1)) {
+        for (r, &k) in ranges.iter_mut().zip(c) {
+            r[1] += k;
         }
     }
     let mut total = 0u32;
     for r in ranges.iter_mut() {
-        let n = r[1];
-        *r = [total, total];
-        total += n;
+        let k = r[1];
+        *r = [total, total + k];
+        total += k;
     }
-    // Fill in ascending Gaussian index; `ranges[t][1]` is the fill cursor and
-    // ends at the tile's end.
-    let mut list = vec![0u32; total as usize];
-    for (i, p) in proj.iter().enumerate() {
-        if p.radius > 0 {
-            for y in p.rect_min[1]..p.rect_max[1] {
-                let row = (y * grid[0]) as usize;
-                for x in p.rect_min[0]..p.rect_max[0] {
-                    let r = &mut ranges[row + x as usize];
-                    list[r[1] as usize] = i as u32;
-                    r[1] += 1;
+    let mut cursor: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
+    for c in counts.chunks_mut(n_tiles.max(1)) {
+        for (cur, k) in cursor.iter_mut().zip(c) {
+            let start = *cur;
+            *cur += *k;
+            *k = start;
+        }
+    }
+    let total = total as usize;
+
+    // 4. Per chunk in parallel: each Gaussian's index at its slot in every
+    //    tile it touches, in the sorted order within the chunk.
+    let mut list: Vec<u32> = Vec::with_capacity(total);
+    let slots = Slots(list.spare_capacity_mut().as_mut_ptr());
+    if n_tiles > 0 {
+        keys.par_chunks(chunk)
+            .zip(rects.par_chunks(chunk))
+            .zip(counts.par_chunks_mut(n_tiles))
+            .for_each(|((keys, rects), next)| {
+                let slots = &slots;
+                for (k, r) in keys.iter().zip(rects) {
+                    let g = k.index();
+                    for y in r[1]..r[3] {
+                        let row = (y * grid[0]) as usize;
+                        for s in &mut next[row + r[0] as usize..row + r[2] as usize] {
+                            // SAFETY: `*s` runs from this (chunk, tile)
+                            // pair's first slot over exactly as many slots
+                            // as step 2 counted for it, so it stays below
+                            // `total` (the capacity) and no two writes,
+                            // in this task or another, hit the same slot.
+                            unsafe { (*slots.0.add(*s as usize)).write(g) };
+                            *s += 1;
+                        }
+                    }
                 }
-            }
-        }
+            });
     }
-    // Per tile: by depth bits, then index, as one packed integer key.
-    let mut chunks = Vec::with_capacity(n_tiles);
-    let mut rest: &mut [u32] = &mut list;
-    for r in &ranges {
-        let (head, tail) = rest.split_at_mut((r[1] - r[0]) as usize);
-        if head.len() > 1 {
-            chunks.push(head);
-        }
-        rest = tail;
-    }
-    let depth_bits = |g: u32| proj[g as usize].depth.bits();
-    if std::mem::size_of::<T>() <= 4 {
-        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
-            keys.clear();
-            keys.extend(c.iter().map(|&g| depth_bits(g) << 32 | g as u64));
-            keys.sort_unstable();
-            for (o, k) in c.iter_mut().zip(keys.iter()) {
-                *o = *k as u32;
-            }
-        });
-    } else {
-        chunks.into_par_iter().for_each_init(Vec::new, |keys, c| {
-            keys.clear();
-            keys.extend(c.iter().map(|&g| (depth_bits(g) as u128) << 32 | g as u128));
-            keys.sort_unstable();
-            for (o, k) in c.iter_mut().zip(keys.iter()) {
-                *o = *k as u32;
-            }
-        });
-    }
+    // SAFETY: the fill wrote every one of the first `total` slots (the
+    // counts sum to `total` and every counted entry was written, see above);
+    // a panic in a task propagates before this line, leaving `list` empty.
+    unsafe { list.set_len(total) };
     Binning { list, ranges }
+}
+
+/// Sort keys that are in ascending index order by depth bits, stably (so
+/// into `(depth bits, index)` order): a least-significant-digit radix sort,
+/// 11 bits a pass, all histograms from one read, passes whose digit is the
+/// same for every key skipped.
+fn radix_sort_by_depth<K: Key>(keys: &mut Vec<K>) {
+    const BITS: u32 = 11;
+    const BUCKETS: usize = 1 << BITS;
+    let passes = K::DEPTH_BITS.div_ceil(BITS) as usize;
+    let n = keys.len();
+    let mut hist = vec![0u32; passes * BUCKETS];
+    for k in keys.iter() {
+        let d = k.depth();
+        for (p, h) in hist.chunks_exact_mut(BUCKETS).enumerate() {
+            h[(d >> (p as u32 * BITS)) as usize & (BUCKETS - 1)] += 1;
+        }
+    }
+    let mut from = std::mem::take(keys);
+    let mut to = from.clone();
+    for (p, h) in hist.chunks_exact_mut(BUCKETS).enumerate() {
+        if h.iter().any(|&c| c as usize == n) {
+            continue;
+        }
+        let mut sum = 0u32;
+        for c in h.iter_mut() {
+            let k = *c;
+            *c = sum;
+            sum += k;
+        }
+        let shift = p as u32 * BITS;
+        for &k in from.iter() {
+            let b = &mut h[(k.depth() >> shift) as usize & (BUCKETS - 1)];
+            to[*b as usize] = k;
+            *b += 1;
+        }
+        std::mem::swap(&mut from, &mut to);
+    }
+    *keys = from;
 }
 
 #[cfg(test)]
@@ -163,5 +316,111 @@ mod tests {
                 .collect();
             assert_eq!(b.ranges, ranges, "grid {grid:?}");
         }
+    }
+
+    /// The definition of the binning, tile by tile: every visible Gaussian
+    /// whose rectangle holds the tile, sorted by `(depth bits, index)`.
+    fn reference<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
+        let mut b = Binning::default();
+        for ty in 0..grid[1] {
+            for tx in 0..grid[0] {
+                let mut keys: Vec<(u64, u32)> = proj
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, p)| {
+                        p.radius > 0
+                            && (p.rect_min[0]..p.rect_max[0]).contains(&tx)
+                            && (p.rect_min[1]..p.rect_max[1]).contains(&ty)
+                    })
+                    .map(|(i, p)| (p.depth.bits(), i as u32))
+                    .collect();
+                keys.sort();
+                let start = b.list.len() as u32;
+                b.list.extend(keys.iter().map(|k| k.1));
+                b.ranges.push([start, b.list.len() as u32]);
+            }
+        }
+        b
+    }
+
+    /// `n` Gaussians on `grid`, badly balanced: about half on one tile,
+    /// some covering the whole grid, culled ones (some with a rectangle),
+    /// visible ones with an empty rectangle, and depths drawn from a few
+    /// values (ties) or a continuous range.
+    fn imbalanced<T: Real>(n: usize, grid: [u32; 2], seed: u64) -> Vec<Projected<T>> {
+        let mut rng = crate::math::rng::Rng::new(seed);
+        (0..n)
+            .map(|_| {
+                let mut p = Projected::culled();
+                p.radius = 1 + rng.below(20) as i32;
+                p.depth = if rng.below(2) == 0 {
+                    T::from_f64(0.5 * (1 + rng.below(4)) as f64)
+                } else {
+                    T::from_f64(rng.uniform_range(0.3, 40.0))
+                };
+                let (x0, y0) = (
+                    rng.below(grid[0] as u64) as u32,
+                    rng.below(grid[1] as u64) as u32,
+                );
+                let (rmin, rmax) = match rng.below(20) {
+                    0..=9 => ([2, 3], [3, 4]),
+                    10 => ([0, 0], grid),
+                    11 => {
+                        p.radius = 0;
+                        ([0, 0], grid)
+                    }
+                    12 => ([x0, y0], [x0, y0]),
+                    _ => {
+                        let x1 = (x0 + 1 + rng.below(3) as u32).min(grid[0]);
+                        let y1 = (y0 + 1 + rng.below(grid[1] as u64) as u32).min(grid[1]);
+                        ([x0, y0], [x1, y1])
+                    }
+                };
+                p.rect_min = rmin;
+                p.rect_max = rmax;
+                p
+            })
+            .collect()
+    }
+
+    fn parallel_matches_reference<T: Real>() {
+        let grid = [5u32, 11];
+        let (mut short_last, mut most_chunks) = (false, false);
+        for (seed, n) in [0usize, 1, 2, 4095, 4097, 14_000, 160_001]
+            .into_iter()
+            .enumerate()
+        {
+            let proj = imbalanced::<T>(n, grid, 100 + seed as u64);
+            // The chunks are taken from the visible Gaussians.
+            let v = proj
+                .iter()
+                .filter(|p| {
+                    p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1]
+                })
+                .count();
+            let c = chunk_len(v);
+            short_last |= v > c && v % c != 0;
+            most_chunks |= v.div_ceil(c) == 32 && c > 4096;
+            let want = reference(&proj, grid);
+            for threads in [1, 2, 3] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let got = pool.install(|| bin(&proj, grid));
+                assert_eq!(got.ranges, want.ranges, "n {n}, {threads} threads");
+                assert!(got.list == want.list, "n {n}, {threads} threads");
+            }
+        }
+        // Several chunks with a shorter last one, and the most chunks.
+        assert!(short_last && most_chunks);
+    }
+
+    /// The parallel binning against its serial definition on imbalanced
+    /// inputs, for 1, 2 and 3 threads and both key widths.
+    #[test]
+    fn parallel_binning_matches_the_serial_definition() {
+        parallel_matches_reference::<f32>();
+        parallel_matches_reference::<f64>();
     }
 }
