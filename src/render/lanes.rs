@@ -12,6 +12,7 @@
 
 use super::rasterize::LANES;
 use crate::kernels::fastmath;
+use crate::math::pack::Pack;
 use crate::math::Real;
 use std::ops::{Add, Div, Mul, Neg, Sub};
 
@@ -65,43 +66,20 @@ pub(crate) trait Lanes:
     }
 }
 
-/// The portable implementation: sixteen scalars.
-#[derive(Clone, Copy, Debug)]
-pub(crate) struct Scalar<T>(pub [T; LANES]);
-
-macro_rules! scalar_op {
-    ($tr:ident, $f:ident, $op:tt) => {
-        impl<T: Real> $tr for Scalar<T> {
-            type Output = Self;
-            #[inline(always)]
-            fn $f(self, o: Self) -> Self {
-                Scalar(std::array::from_fn(|l| self.0[l] $op o.0[l]))
-            }
-        }
-    };
-}
-scalar_op!(Add, add, +);
-scalar_op!(Sub, sub, -);
-scalar_op!(Mul, mul, *);
-scalar_op!(Div, div, /);
-impl<T: Real> Neg for Scalar<T> {
-    type Output = Self;
-    #[inline(always)]
-    fn neg(self) -> Self {
-        Scalar(std::array::from_fn(|l| -self.0[l]))
-    }
-}
+/// The portable implementation: sixteen scalars, each lane the scalar
+/// operations of [`Pack`].
+pub(crate) type Scalar<T> = Pack<T, LANES>;
 
 impl<T: Real> Lanes for Scalar<T> {
     type T = T;
     type M = u16;
     #[inline(always)]
     fn splat(v: T) -> Self {
-        Scalar([v; LANES])
+        Pack([v; LANES])
     }
     #[inline(always)]
     fn load(a: &[T; LANES]) -> Self {
-        Scalar(*a)
+        Pack(*a)
     }
     #[inline(always)]
     fn store(self, a: &mut [T; LANES]) {
@@ -125,7 +103,7 @@ impl<T: Real> Lanes for Scalar<T> {
     }
     #[inline(always)]
     fn select(m: u16, a: Self, b: Self) -> Self {
-        Scalar(std::array::from_fn(|l| {
+        Pack(std::array::from_fn(|l| {
             if m >> l & 1 != 0 {
                 a.0[l]
             } else {
@@ -151,7 +129,7 @@ impl<T: Real> Lanes for Scalar<T> {
     }
     #[inline(always)]
     fn exp(self) -> Self {
-        Scalar(std::array::from_fn(|l| fastmath::exp(self.0[l])))
+        Pack(std::array::from_fn(|l| fastmath::exp(self.0[l])))
     }
 }
 

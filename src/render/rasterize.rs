@@ -631,7 +631,9 @@ mod tests {
                     let px: [T; LANES] = std::array::from_fn(|l| {
                         T::from_f64(base + off + (l as f64 - 7.5) * 0.0625)
                     });
-                    let dx = Scalar::<T>(std::array::from_fn(|l| s.xy[0] - px[l]));
+                    let dx = crate::math::pack::Pack::<T, LANES>(std::array::from_fn(|l| {
+                        s.xy[0] - px[l]
+                    }));
                     let p = power_lanes(&s, dx, dy, &k);
                     for (l, &v) in p.0.iter().enumerate() {
                         assert!(
