@@ -53,6 +53,8 @@ pub(crate) const LANES: usize = BLOCK;
 /// List entries a row walk picks its candidates from at a time (does not
 /// affect results).
 const PICK_CHUNK: usize = 64;
+// The picking loop masks its slot index with `PICK_CHUNK − 1`.
+const _: () = assert!(PICK_CHUNK.is_power_of_two());
 
 /// The per-Gaussian data a pixel reads, gathered in list order per tile.
 #[derive(Clone, Copy, Debug)]
