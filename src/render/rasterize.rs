@@ -456,7 +456,14 @@ fn forward_row_body<V: Lanes>(
 ) {
     let k = Blend::<V::T>::new();
     let ty = py / BLOCK;
+    // One allocation per row, of the most entries the row can blend (every
+    // entry of the tiles it crosses), shrunk in place when the row is done:
+    // growing the vector step by step cost reallocations whose allocator
+    // locks the threads contended for.
     out.blended.clear();
+    let row_ranges = &f.ranges[ty * f.grid_x..(ty + 1) * f.grid_x];
+    out.blended
+        .reserve(row_ranges.iter().map(|[s, e]| (e - s) as usize).sum());
     for tx in 0..f.grid_x {
         let x0 = tx * BLOCK;
         let nx = BLOCK.min(f.width - x0);
@@ -479,6 +486,7 @@ fn forward_row_body<V: Lanes>(
         out.blended_end[tx] = out.blended.len() as u32;
         *evaluated += st.evaluated;
     }
+    out.blended.shrink_to_fit();
 }
 
 /// Which [`Lanes`] implementation the row functions run on for `T`: a vector
