@@ -6,6 +6,7 @@
 //! `mean` uses its own cascade order, so the f32 value may differ from it in
 //! the last bits; it is deterministic here.)
 
+use crate::kernels::fastmath::multiversion;
 use crate::math::Real;
 use rayon::prelude::*;
 
@@ -41,18 +42,53 @@ pub fn l1<T: Real>(x: &[T], y: &[T], w: usize) -> T {
 pub fn l1_vjp<T: Real>(x: &[T], y: &[T], grad_out: T, grad_x: &mut [T]) {
     let g = grad_out / T::from_usize(x.len());
     grad_x
-        .par_iter_mut()
-        .zip(x.par_iter().zip(y.par_iter()))
-        .for_each(|(gx, (&a, &b))| {
-            let d = a - b;
-            *gx = if d > T::ZERO {
-                g
-            } else if d < T::ZERO {
-                -g
-            } else {
-                T::ZERO
-            };
-        });
+        .par_chunks_mut(CHUNK)
+        .zip(x.par_chunks(CHUNK).zip(y.par_chunks(CHUNK)))
+        .for_each(|(gx, (x, y))| sign_times(gx, x, y, g));
+}
+
+/// Elements per task of the element-wise passes.
+const CHUNK: usize = 4096;
+
+/// `g·sign(d)` (+0 where `d` is zero or NaN), as selects.
+#[inline(always)]
+fn sign_times_one<T: Real>(d: T, g: T) -> T {
+    let pos = if d > T::ZERO { g } else { T::ZERO };
+    if d < T::ZERO {
+        -g
+    } else {
+        pos
+    }
+}
+
+multiversion!(fn sign_times<T: Real>(gx: &mut [T], x: &[T], y: &[T], g: T) => sign_times_body);
+
+/// `gx_i = g·sign(x_i − y_i)`.
+#[inline(always)]
+fn sign_times_body<T: Real>(gx: &mut [T], x: &[T], y: &[T], g: T) {
+    for ((gx, &a), &b) in gx.iter_mut().zip(x).zip(y) {
+        *gx = sign_times_one(a - b, g);
+    }
+}
+
+/// [`l1_vjp`] added onto `grad_x`: `grad_x_i += grad_out / n · sign(x_i −
+/// y_i)` (adding +0 where equal).
+pub(crate) fn l1_vjp_add<T: Real>(x: &[T], y: &[T], grad_out: T, grad_x: &mut [T]) {
+    let g = grad_out / T::from_usize(x.len());
+    grad_x
+        .par_chunks_mut(CHUNK)
+        .zip(x.par_chunks(CHUNK).zip(y.par_chunks(CHUNK)))
+        .for_each(|(gx, (x, y))| add_sign_times(gx, x, y, g));
+}
+
+multiversion!(fn add_sign_times<T: Real>(gx: &mut [T], x: &[T], y: &[T], g: T) => add_sign_times_body);
+
+/// `gx_i += g·sign(x_i − y_i)`.
+#[inline(always)]
+fn add_sign_times_body<T: Real>(gx: &mut [T], x: &[T], y: &[T], g: T) {
+    for ((gx, &a), &b) in gx.iter_mut().zip(x).zip(y) {
+        *gx += sign_times_one(a - b, g);
+    }
 }
 
 #[cfg(test)]

@@ -20,6 +20,8 @@ pub mod ssim;
 
 use crate::error::{Error, Result};
 use crate::math::Real;
+use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 /// Default weight of the D-SSIM term.
 pub const LAMBDA_DSSIM: f64 = 0.2;
@@ -81,12 +83,10 @@ pub fn loss_and_grad<T: Real>(
     let fwd = ssim::ssim(image, gt, h, w);
     let loss = w_l1 * l1v + w_ssim * (T::ONE - fwd.value);
 
-    let mut grad = vec![T::ZERO; image.len()];
-    l1::l1_vjp(image, gt, w_l1, &mut grad);
-    let g_ssim = ssim::ssim_vjp(&fwd, image, gt, -w_ssim);
-    for (g, s) in grad.iter_mut().zip(&g_ssim) {
-        *g += *s;
-    }
+    // The L1 term is added onto the SSIM term (IEEE addition commutes, so
+    // this is `l1 + ssim` element by element).
+    let mut grad = ssim::ssim_vjp(&fwd, image, gt, -w_ssim);
+    l1::l1_vjp_add(image, gt, w_l1, &mut grad);
     Ok((
         LossOutput {
             l1: l1v,
@@ -95,6 +95,30 @@ pub fn loss_and_grad<T: Real>(
         },
         grad,
     ))
+}
+
+/// A vector of `n` values made by rows of `w` in parallel: each task zeroes
+/// its row (while it is in cache) and then runs `f(row index, row)` on it.
+/// A serial zeroed allocation of a few MB costs as much as the pass that
+/// fills it.
+pub(crate) fn par_rows<T: Real>(n: usize, w: usize, f: impl Fn(usize, &mut [T]) + Sync) -> Vec<T> {
+    let mut v: Vec<T> = Vec::with_capacity(n);
+    v.spare_capacity_mut()[..n]
+        .par_chunks_mut(w.max(1))
+        .enumerate()
+        .for_each(|(r, row)| {
+            for s in row.iter_mut() {
+                s.write(T::ZERO);
+            }
+            // SAFETY: every element of `row` was initialised just above, and
+            // `MaybeUninit<T>` has the layout of `T`.
+            let row = unsafe { &mut *(row as *mut [MaybeUninit<T>] as *mut [T]) };
+            f(r, row);
+        });
+    // SAFETY: the chunks cover the first `n` slots and each task initialised
+    // its chunk; a panic in a task propagates before this line.
+    unsafe { v.set_len(n) };
+    v
 }
 
 #[cfg(test)]

@@ -42,6 +42,7 @@
 //! The adjoint of a zero-padded correlation with a symmetric window is the
 //! same zero-padded correlation, so the backward reuses [`blur`].
 
+use crate::kernels::fastmath::multiversion;
 use crate::math::Real;
 use rayon::prelude::*;
 
@@ -136,40 +137,81 @@ pub fn window<T: Real>() -> [T; WINDOW_SIZE] {
 
 /// Zero-padded separable correlation of every `[h, w]` plane of `src` with
 /// the window `g` (rows first, then columns; taps in index order).
+///
+/// Both passes run across a row's pixels as vectors, each pixel adding its
+/// in-image taps in index order from +0 (the row pass's first and last
+/// `PAD` pixels, whose taps the edge cuts, one at a time).
 pub fn blur<T: Real>(src: &[T], h: usize, w: usize, g: &[T; WINDOW_SIZE]) -> Vec<T> {
     if src.is_empty() || h == 0 || w == 0 {
         return vec![T::ZERO; src.len()];
     }
-    let mut tmp = vec![T::ZERO; src.len()];
-    tmp.par_chunks_mut(w)
-        .zip(src.par_chunks(w))
-        .for_each(|(o, s)| {
-            for (j, oj) in o.iter_mut().enumerate() {
-                let k0 = PAD.saturating_sub(j);
-                let k1 = WINDOW_SIZE.min(w + PAD - j);
-                let mut acc = T::ZERO;
-                for k in k0..k1 {
-                    acc += g[k] * s[j + k - PAD];
-                }
-                *oj = acc;
-            }
-        });
-    let plane = h * w;
-    let mut out = vec![T::ZERO; src.len()];
-    out.par_chunks_mut(w).enumerate().for_each(|(r, o)| {
-        let base = (r / h) * plane;
-        let i = r % h;
-        let k0 = PAD.saturating_sub(i);
-        let k1 = WINDOW_SIZE.min(h + PAD - i);
-        for k in k0..k1 {
-            let row = &tmp[base + (i + k - PAD) * w..][..w];
-            let gk = g[k];
-            for (oj, &v) in o.iter_mut().zip(row) {
-                *oj += gk * v;
-            }
-        }
+    let tmp = super::par_rows(src.len(), w, |r, o| {
+        blur_row(o, &src[r * w..(r + 1) * w], g)
     });
-    out
+    let plane = h * w;
+    super::par_rows(src.len(), w, |r, o| {
+        let base = (r / h) * plane;
+        blur_column_row(o, &tmp[base..base + plane], r % h, w, g);
+    })
+}
+
+multiversion!(fn blur_row<T: Real>(o: &mut [T], s: &[T], g: &[T; WINDOW_SIZE]) => blur_row_body);
+
+/// `o[j] = Σ_k g[k]·s[j + k − PAD]` over the taps inside the row, k
+/// ascending from +0 (`o` is zero on entry).
+#[inline(always)]
+fn blur_row_body<T: Real>(o: &mut [T], s: &[T], g: &[T; WINDOW_SIZE]) {
+    let w = s.len();
+    let edge = |j: usize| {
+        let k0 = PAD.saturating_sub(j);
+        let k1 = WINDOW_SIZE.min(w + PAD - j);
+        let mut acc = T::ZERO;
+        for (k, &gk) in g.iter().enumerate().take(k1).skip(k0) {
+            acc += gk * s[j + k - PAD];
+        }
+        acc
+    };
+    if w <= 2 * PAD {
+        for (j, oj) in o.iter_mut().enumerate() {
+            *oj = edge(j);
+        }
+        return;
+    }
+    // Pixels PAD..w−PAD see every tap: the k-th tap of pixel j is
+    // s[j − PAD + k], so o[PAD..] gains g[k]·s[k..] for each k in turn.
+    let inner = w - 2 * PAD;
+    for (k, &gk) in g.iter().enumerate() {
+        for (oj, &v) in o[PAD..PAD + inner].iter_mut().zip(&s[k..k + inner]) {
+            *oj += gk * v;
+        }
+    }
+    for j in (0..PAD).chain(w - PAD..w) {
+        o[j] = edge(j);
+    }
+}
+
+multiversion!(fn blur_column_row<T: Real>(o: &mut [T], plane: &[T], i: usize, w: usize, g: &[T; WINDOW_SIZE]) => blur_column_row_body);
+
+/// Row `i` of the column pass over one `[h, w]` plane: `o[j] = Σ_k g[k]·
+/// plane[i + k − PAD][j]` over the in-image taps, k ascending from +0 (`o`
+/// is zero on entry).
+#[inline(always)]
+fn blur_column_row_body<T: Real>(
+    o: &mut [T],
+    plane: &[T],
+    i: usize,
+    w: usize,
+    g: &[T; WINDOW_SIZE],
+) {
+    let h = plane.len() / w;
+    let k0 = PAD.saturating_sub(i);
+    let k1 = WINDOW_SIZE.min(h + PAD - i);
+    for (k, &gk) in g.iter().enumerate().take(k1).skip(k0) {
+        let row = &plane[(i + k - PAD) * w..][..w];
+        for (oj, &v) in o.iter_mut().zip(row) {
+            *oj += gk * v;
+        }
+    }
 }
 
 /// What the SSIM backward needs: the local statistics of every pixel.
@@ -209,39 +251,45 @@ fn factors<T: Real>(mx: T, my: T, sxx: T, syy: T, sxy: T) -> (T, T, T, T) {
 /// SSIM of `x` against `y`, both `[C, H, W]` with `C = x.len() / (h w)`.
 /// The caller guarantees `x.len() == y.len()` and that it is a multiple of
 /// `h w` (see [`crate::loss::loss_and_grad`] for the checked entry point).
+///
+/// The element-wise passes run a row at a time across the row's pixels as
+/// vectors; every value is the same sequence of roundings as the formulas
+/// above, pixel by pixel.
 pub fn ssim<T: Real>(x: &[T], y: &[T], h: usize, w: usize) -> SsimSaved<T> {
     let g = window::<T>();
-    let xx: Vec<T> = x.par_iter().map(|&a| a * a).collect();
-    let yy: Vec<T> = y.par_iter().map(|&b| b * b).collect();
-    let xy: Vec<T> = x
-        .par_iter()
-        .zip(y.par_iter())
-        .map(|(&a, &b)| a * b)
-        .collect();
+    let n = x.len();
+    let row = w.max(1);
+    let (mut xx, mut yy, mut xy) = (zeroed(n), zeroed(n), zeroed(n));
+    (
+        xx.par_chunks_mut(row),
+        yy.par_chunks_mut(row),
+        xy.par_chunks_mut(row),
+        x.par_chunks(row),
+        y.par_chunks(row),
+    )
+        .into_par_iter()
+        .for_each(|(xx, yy, xy, x, y)| products_row(xx, yy, xy, x, y));
     let mu_x = blur(x, h, w, &g);
     let mu_y = blur(y, h, w, &g);
     let mut sigma_xx = blur(&xx, h, w, &g);
     let mut sigma_yy = blur(&yy, h, w, &g);
     let mut sigma_xy = blur(&xy, h, w, &g);
-    sigma_xx
-        .par_iter_mut()
-        .zip(sigma_yy.par_iter_mut().zip(sigma_xy.par_iter_mut()))
-        .zip(mu_x.par_iter().zip(mu_y.par_iter()))
-        .for_each(|((sxx, (syy, sxy)), (&mx, &my))| {
-            *sxx -= mx * mx;
-            *syy -= my * my;
-            *sxy -= mx * my;
-        });
-    let n = x.len();
-    let row = w.max(1);
-    let row_sums: Vec<T> = (0..n / row)
+    let row_sums: Vec<T> = (
+        sigma_xx.par_chunks_mut(row),
+        sigma_yy.par_chunks_mut(row),
+        sigma_xy.par_chunks_mut(row),
+        mu_x.par_chunks(row),
+        mu_y.par_chunks(row),
+    )
         .into_par_iter()
-        .map(|r| {
+        .map_init(Vec::new, |map, (sxx, syy, sxy, mx, my)| {
+            map.clear();
+            map.resize(mx.len(), T::ZERO);
+            ssim_row(sxx, syy, sxy, mx, my, map);
+            // The row's map values summed in column order.
             let mut s = T::ZERO;
-            for p in r * row..(r + 1) * row {
-                let (a1, a2, b1, b2) =
-                    factors(mu_x[p], mu_y[p], sigma_xx[p], sigma_yy[p], sigma_xy[p]);
-                s += (a1 * a2) / (b1 * b2);
+            for &v in map.iter() {
+                s += v;
             }
             s
         })
@@ -267,6 +315,58 @@ pub fn ssim<T: Real>(x: &[T], y: &[T], h: usize, w: usize) -> SsimSaved<T> {
     }
 }
 
+multiversion!(fn products_row<T: Real>(xx: &mut [T], yy: &mut [T], xy: &mut [T], x: &[T], y: &[T]) => products_row_body);
+
+/// `x²`, `y²` and `xy` of one row.
+#[inline(always)]
+fn products_row_body<T: Real>(xx: &mut [T], yy: &mut [T], xy: &mut [T], x: &[T], y: &[T]) {
+    for (v, &a) in xx.iter_mut().zip(x) {
+        *v = a * a;
+    }
+    for (v, &b) in yy.iter_mut().zip(y) {
+        *v = b * b;
+    }
+    for ((v, &a), &b) in xy.iter_mut().zip(x).zip(y) {
+        *v = a * b;
+    }
+}
+
+multiversion!(fn ssim_row<T: Real>(sxx: &mut [T], syy: &mut [T], sxy: &mut [T], mx: &[T], my: &[T], map: &mut [T]) => ssim_row_body);
+
+/// One row: the blurred squares and product become the (co)variances
+/// (`σ = w*(··) − μ·μ`), and `map` receives the SSIM map.
+#[inline(always)]
+fn ssim_row_body<T: Real>(
+    sxx: &mut [T],
+    syy: &mut [T],
+    sxy: &mut [T],
+    mx: &[T],
+    my: &[T],
+    map: &mut [T],
+) {
+    for (((sxx, syy), sxy), (&mx, &my)) in sxx
+        .iter_mut()
+        .zip(syy.iter_mut())
+        .zip(sxy.iter_mut())
+        .zip(mx.iter().zip(my))
+    {
+        *sxx -= mx * mx;
+        *syy -= my * my;
+        *sxy -= mx * my;
+    }
+    for (((((m, &mx), &my), &sxx), &syy), &sxy) in map
+        .iter_mut()
+        .zip(mx)
+        .zip(my)
+        .zip(sxx.iter())
+        .zip(syy.iter())
+        .zip(sxy.iter())
+    {
+        let (a1, a2, b1, b2) = factors(mx, my, sxx, syy, sxy);
+        *m = (a1 * a2) / (b1 * b2);
+    }
+}
+
 /// Backward of [`ssim`] with respect to `x`: `dL/dx` given `grad_out = dL/dSSIM`.
 pub fn ssim_vjp<T: Real>(fwd: &SsimSaved<T>, x: &[T], y: &[T], grad_out: T) -> Vec<T> {
     let n = x.len();
@@ -274,33 +374,89 @@ pub fn ssim_vjp<T: Real>(fwd: &SsimSaved<T>, x: &[T], y: &[T], grad_out: T) -> V
         return vec![];
     }
     let gbar = grad_out / T::from_usize(n);
-    let two = T::from_f64(2.0);
-    let mut d_mu = vec![T::ZERO; n];
-    let mut d_xx = vec![T::ZERO; n];
-    let mut d_xy = vec![T::ZERO; n];
-    d_mu.par_iter_mut()
-        .zip(d_xx.par_iter_mut().zip(d_xy.par_iter_mut()))
-        .enumerate()
-        .for_each(|(p, (dm, (dxx, dxy)))| {
-            let (mx, my) = (fwd.mu_x[p], fwd.mu_y[p]);
-            let (a1, a2, b1, b2) =
-                factors(mx, my, fwd.sigma_xx[p], fwd.sigma_yy[p], fwd.sigma_xy[p]);
-            let d = b1 * b2;
-            let s = (a1 * a2) / d;
-            *dm = gbar * ((two * my * (a2 - a1)) / d - (two * mx * s * (b2 - b1)) / d);
-            *dxx = gbar * (-s / b2);
-            *dxy = gbar * ((two * a1) / d);
-        });
+    let row = fwd.w.max(1);
+    let (mut d_mu, mut d_xx, mut d_xy) = (zeroed(n), zeroed(n), zeroed(n));
+    (
+        d_mu.par_chunks_mut(row),
+        d_xx.par_chunks_mut(row),
+        d_xy.par_chunks_mut(row),
+        (
+            fwd.mu_x.par_chunks(row),
+            fwd.mu_y.par_chunks(row),
+            fwd.sigma_xx.par_chunks(row),
+            fwd.sigma_yy.par_chunks(row),
+            fwd.sigma_xy.par_chunks(row),
+        ),
+    )
+        .into_par_iter()
+        .for_each(|(dm, dxx, dxy, stats)| map_vjp_row(dm, dxx, dxy, stats, gbar));
     let g = window::<T>();
     let (h, w) = (fwd.h, fwd.w);
     let b_mu = blur(&d_mu, h, w, &g);
     let b_xx = blur(&d_xx, h, w, &g);
     let b_xy = blur(&d_xy, h, w, &g);
-    let mut grad = vec![T::ZERO; n];
-    grad.par_iter_mut().enumerate().for_each(|(p, gx)| {
-        *gx = b_mu[p] + two * x[p] * b_xx[p] + y[p] * b_xy[p];
-    });
+    let mut grad = zeroed(n);
+    (
+        grad.par_chunks_mut(row),
+        b_mu.par_chunks(row),
+        b_xx.par_chunks(row),
+        b_xy.par_chunks(row),
+        (x.par_chunks(row), y.par_chunks(row)),
+    )
+        .into_par_iter()
+        .for_each(|(gx, bm, bxx, bxy, (x, y))| input_vjp_row(gx, bm, bxx, bxy, x, y));
     grad
+}
+
+/// `n` zeros, written in parallel.
+fn zeroed<T: Real>(n: usize) -> Vec<T> {
+    super::par_rows(n, 4096, |_, _| {})
+}
+
+/// One row of the five statistics `(μx, μy, σxx, σyy, σxy)`.
+type Stats<'a, T> = (&'a [T], &'a [T], &'a [T], &'a [T], &'a [T]);
+
+multiversion!(fn map_vjp_row<T: Real>(dm: &mut [T], dxx: &mut [T], dxy: &mut [T], stats: Stats<'_, T>, gbar: T) => map_vjp_row_body);
+
+/// One row of `ḡ·dS/dμx`, `ḡ·dS/d(w*x²)` and `ḡ·dS/d(w*xy)` (module docs).
+#[inline(always)]
+fn map_vjp_row_body<T: Real>(
+    dm: &mut [T],
+    dxx: &mut [T],
+    dxy: &mut [T],
+    (mu_x, mu_y, sigma_xx, sigma_yy, sigma_xy): Stats<'_, T>,
+    gbar: T,
+) {
+    let two = T::from_f64(2.0);
+    for ((((((dm, dxx), dxy), &mx), &my), (&sxx, &syy)), &sxy) in dm
+        .iter_mut()
+        .zip(dxx.iter_mut())
+        .zip(dxy.iter_mut())
+        .zip(mu_x)
+        .zip(mu_y)
+        .zip(sigma_xx.iter().zip(sigma_yy))
+        .zip(sigma_xy)
+    {
+        let (a1, a2, b1, b2) = factors(mx, my, sxx, syy, sxy);
+        let d = b1 * b2;
+        let s = (a1 * a2) / d;
+        *dm = gbar * ((two * my * (a2 - a1)) / d - (two * mx * s * (b2 - b1)) / d);
+        *dxx = gbar * (-s / b2);
+        *dxy = gbar * ((two * a1) / d);
+    }
+}
+
+multiversion!(fn input_vjp_row<T: Real>(gx: &mut [T], b_mu: &[T], b_xx: &[T], b_xy: &[T], x: &[T], y: &[T]) => input_vjp_row_body);
+
+/// One row of `dL/dx = w*(ḡ dS/dμx) + 2x · w*(ḡ dS/d(w*x²)) + y · w*(ḡ dS/d(w*xy))`.
+#[inline(always)]
+fn input_vjp_row_body<T: Real>(gx: &mut [T], b_mu: &[T], b_xx: &[T], b_xy: &[T], x: &[T], y: &[T]) {
+    let two = T::from_f64(2.0);
+    for (((((gx, &bm), &bxx), &bxy), &x), &y) in
+        gx.iter_mut().zip(b_mu).zip(b_xx).zip(b_xy).zip(x).zip(y)
+    {
+        *gx = bm + two * x * bxx + y * bxy;
+    }
 }
 
 #[cfg(test)]
@@ -400,6 +556,100 @@ mod tests {
     fn random_image(seed: u64, n: usize) -> Vec<f64> {
         let mut r = Rng::new(seed);
         (0..n).map(|_| r.uniform()).collect()
+    }
+
+    /// The blur as defined in the module docs, one pixel at a time: taps in
+    /// index order from +0, out-of-image taps skipped.
+    fn blur_serial(src: &[f32], h: usize, w: usize) -> Vec<f32> {
+        let g = window::<f32>();
+        let mut tmp = vec![0f32; src.len()];
+        for (o, s) in tmp.chunks_mut(w).zip(src.chunks(w)) {
+            for (j, oj) in o.iter_mut().enumerate() {
+                let mut acc = 0f32;
+                for (k, &gk) in g.iter().enumerate() {
+                    if (PAD..w + PAD).contains(&(j + k)) {
+                        acc += gk * s[j + k - PAD];
+                    }
+                }
+                *oj = acc;
+            }
+        }
+        let mut out = vec![0f32; src.len()];
+        for (p, o) in out.iter_mut().enumerate() {
+            let (c, i, j) = (p / (h * w), (p / w) % h, p % w);
+            let mut acc = 0f32;
+            for (k, &gk) in g.iter().enumerate() {
+                if (PAD..h + PAD).contains(&(i + k)) {
+                    acc += gk * tmp[c * h * w + (i + k - PAD) * w + j];
+                }
+            }
+            *o = acc;
+        }
+        out
+    }
+
+    /// Images with negative values, exact zeros and negative zeros.
+    fn signed_image(seed: u64, n: usize) -> Vec<f32> {
+        let mut r = Rng::new(seed);
+        (0..n)
+            .map(|i| match i % 7 {
+                3 => 0.0,
+                5 => -0.0,
+                _ => (r.uniform() - 0.5) as f32,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn blur_has_the_bits_of_the_serial_definition_on_every_path() {
+        use crate::kernels::fastmath::{force_isa, Isa};
+        let g = window::<f32>();
+        for &(h, w) in &[
+            (1, 1),
+            (3, 4),
+            (7, 10),
+            (13, 11),
+            (12, 12),
+            (5, 23),
+            (11, 37),
+        ] {
+            let x = signed_image((h * 100 + w) as u64, 2 * h * w);
+            let want: Vec<u32> = blur_serial(&x, h, w).iter().map(|v| v.to_bits()).collect();
+            for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
+                if force_isa(Some(isa)) {
+                    let got: Vec<u32> = blur(&x, h, w, &g).iter().map(|v| v.to_bits()).collect();
+                    assert_eq!(got, want, "{h}x{w} on {isa:?}");
+                }
+            }
+            force_isa(None);
+        }
+    }
+
+    #[test]
+    fn ssim_and_its_gradient_have_the_same_bits_on_every_path() {
+        use crate::kernels::fastmath::{force_isa, Isa};
+        let (h, w) = (19, 27);
+        let x = signed_image(21, 3 * h * w);
+        let y = signed_image(22, 3 * h * w);
+        let run = || {
+            let f = ssim(&x, &y, h, w);
+            let g = ssim_vjp(&f, &x, &y, 0.7f32);
+            let (l, gl) = crate::loss::loss_and_grad(&x, &y, h, w, 0.2).unwrap();
+            (
+                f.value.to_bits(),
+                g.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                l.loss.to_bits(),
+                gl.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+            )
+        };
+        force_isa(Some(Isa::Baseline));
+        let want = run();
+        for isa in [Isa::Avx2, Isa::Avx512] {
+            if force_isa(Some(isa)) {
+                assert!(run() == want, "{isa:?} differs from the baseline");
+            }
+        }
+        force_isa(None);
     }
 
     #[test]
