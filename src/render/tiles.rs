@@ -39,6 +39,9 @@ pub(crate) struct Binning {
 /// about 4096, at most 32 of them (so the per-(chunk, tile) counts stay
 /// small), all but the last of equal length. Depends on `n` only; the
 /// result of [`bin`] does not depend on it at all.
+/// The fewest Gaussians per task of the element-wise steps.
+const MIN_TASK: usize = 4096;
+
 fn chunk_len(n: usize) -> usize {
     const TARGET: usize = 4096;
     const MAX_CHUNKS: usize = 32;
@@ -109,8 +112,11 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
 
     // 1. The Gaussians that touch a tile, sorted by `(depth bits, index)`,
     //    and their tile rectangles in that order.
+    // (`with_min_len`: small scenes stay on one thread, where handing the
+    // work out costs more than it saves.)
     let mut keys: Vec<K> = proj
         .par_iter()
+        .with_min_len(MIN_TASK)
         .enumerate()
         .filter(|(_, p)| {
             p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1]
@@ -120,6 +126,7 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
     radix_sort_by_depth(&mut keys);
     let rects: Vec<[u32; 4]> = keys
         .par_iter()
+        .with_min_len(MIN_TASK)
         .map(|k| {
             let p = &proj[k.index() as usize];
             [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
