@@ -532,6 +532,10 @@ fn forward<T: Real>(
         blended_end.par_chunks_mut(grid_x),
     )
         .into_par_iter()
+        // Stealable pieces of at most half a tile row: the rows' costs are
+        // very uneven, and rayon's adaptive split alone left one thread
+        // idle for up to a third of the blend.
+        .with_max_len(8)
         .enumerate()
         .map(
             |(py, (c0, c1, c2, depth, final_t, n_contrib, blended, blended_end))| {

@@ -436,7 +436,7 @@ fn entry_gradients<T: Real>(
         pos = e;
     }
     assert!(pos == m, "tile ranges do not cover the list");
-    chunks.into_par_iter().for_each_init(
+    chunks.into_par_iter().with_max_len(2).for_each_init(
         || (Vec::new(), Vec::new()),
         |(rec, scratch), (tile, s, out)| {
             let job = TileJob {
