@@ -47,6 +47,8 @@
 //!   PNG plots, temporal smoothness of a learned deformation).
 //! - [`bench`]: throughput measurements and their harness (`bench`
 //!   subcommand, `cargo bench`).
+//! - [`memory`], [`threads`]: process-wide allocator tuning and worker pools
+//!   (optionally pinned), for speed only.
 //!
 //! ## Determinism
 //! The same inputs give the same bits whatever the thread count, run or CPU:
@@ -93,7 +95,7 @@ pub mod optim;
 pub mod oracle;
 pub mod render;
 pub mod report;
-
+pub mod threads;
 pub mod train;
 
 pub use error::{Error, Result};

@@ -55,14 +55,25 @@ fn cli_regen_and_run_reproduce_the_files() {
             "{name}"
         );
     }
-    // `case run` on a committed input writes the committed expected output.
+    // `case run` on a committed input writes the committed expected output,
+    // with the threads unpinned or pinned (the global pool, or a pool of 3).
     let input = dir().join("rasterize_f32_inria.input.safetensors");
-    let st = cli(&["case", "run", s(&input), s(&tmp.join("out.safetensors"))]);
-    assert!(st.status.success(), "{}", text(&st));
-    assert_eq!(
-        std::fs::read(tmp.join("out.safetensors")).unwrap(),
-        std::fs::read(dir().join("rasterize_f32_inria.expected.safetensors")).unwrap()
-    );
+    for flags in [
+        &[][..],
+        &["--pin-threads"],
+        &["--pin-threads", "--threads", "3"],
+    ] {
+        let out = tmp.join("out.safetensors");
+        let mut args = flags.to_vec();
+        args.extend(["case", "run", s(&input), s(&out)]);
+        let st = cli(&args);
+        assert!(st.status.success(), "{flags:?}: {}", text(&st));
+        assert_eq!(
+            std::fs::read(&out).unwrap(),
+            std::fs::read(dir().join("rasterize_f32_inria.expected.safetensors")).unwrap(),
+            "{flags:?}"
+        );
+    }
     std::fs::remove_dir_all(&tmp).unwrap();
 }
 

@@ -76,7 +76,10 @@ pub fn repeat<R, E>(
 
 /// Logical CPUs available to this process.
 pub fn available_cores() -> usize {
-    std::thread::available_parallelism().map_or(1, |n| n.get())
+    // Read once: inside a pinned worker (`--pin-threads`) the system
+    // reports that worker's single CPU.
+    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
 
 /// The thread counts a scaling measurement runs on: 1 and every core (1
@@ -93,18 +96,20 @@ pub fn one_and_all_cores() -> Vec<usize> {
 /// A rayon pool of `threads` workers, to run a measurement on with
 /// `pool.install`.
 pub fn thread_pool(threads: usize) -> Result<rayon::ThreadPool> {
-    rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .map_err(|e| Error::invalid("thread pool", e.to_string()))
+    crate::threads::pool(threads).map_err(|e| Error::invalid("thread pool", e.to_string()))
 }
 
 /// The line every measurement states its threads with: the current rayon
 /// pool's workers and the cores the machine reports.
 pub fn threads_line() -> String {
     format!(
-        "threads: {} (rayon pool; machine reports {} available)",
+        "threads: {} (rayon pool{}; machine reports {} available)",
         rayon::current_num_threads(),
+        if crate::threads::pinning() {
+            ", each pinned to a CPU"
+        } else {
+            ""
+        },
         available_cores()
     )
 }

@@ -32,6 +32,10 @@ struct Cli {
     /// Worker threads, 1 to 1024 (default: all cores). Results are bit-identical for any value.
     #[arg(long, global = true)]
     threads: Option<usize>,
+    /// Pin each worker thread to a CPU of its own (Linux; speed only, never results). Off by
+    /// default: pinned processes started side by side would share CPUs.
+    #[arg(long, global = true)]
+    pin_threads: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -108,13 +112,24 @@ where
             };
         }
     };
+    // The core count and the CPUs to pin to are read here, before any
+    // worker is pinned (a pinned worker sees only its own CPU).
+    crate::bench::harness::available_cores();
+    crate::threads::set_pinning(cli.pin_threads);
     finish(match cli.threads {
-        None => dispatch(cli.command),
+        None => {
+            if cli.pin_threads {
+                // The global pool, pinned, unless it already runs (a second
+                // call in one process keeps the first call's pool).
+                crate::threads::pin_global_pool();
+            }
+            dispatch(cli.command)
+        }
         Some(n) if !(1..=MAX_THREADS).contains(&n) => Err(Error::invalid(
             "--threads",
             format!("{n} (expected 1 to {MAX_THREADS})"),
         )),
-        Some(n) => match rayon::ThreadPoolBuilder::new().num_threads(n).build() {
+        Some(n) => match crate::threads::pool(n) {
             Ok(pool) => pool.install(|| dispatch(cli.command)),
             Err(e) => Err(Error::invalid(
                 "--threads",
