@@ -13,6 +13,9 @@
 #
 #   benches/compare_opensplat.sh OPENSPLAT_DIR DNERF_SCENE_DIR [REPS=3] [POINTS=20000] [CAMERAS=10] [DOWNSCALE=2] [STEPS="0 250"]
 #
+# With PIN_THREADS=1 in the environment, liquid-splat's workers are pinned
+# one per CPU (as `--pin-threads`).
+#
 # OPENSPLAT_DIR: a checkout of github.com/pierotofy/OpenSplat (measured with
 # 1.1.5); only rasterizer/gsplat-cpu is compiled. Needs python3 with torch
 # and a C++20 compiler that builds libtorch's headers (CXX, default
@@ -56,7 +59,7 @@ echo "building liquid-splat's side (cargo bench --bench opensplat_scene)"
 cargo bench --quiet --manifest-path "$root/Cargo.toml" --bench opensplat_scene --no-run
 
 echo "machine: $(grep -m1 'model name' /proc/cpuinfo 2>/dev/null | cut -d: -f2 | sed 's/^ //'), $(nproc) CPUs"
-echo "threads: OpenSplat 1 (torch::set_num_threads(1), OMP_NUM_THREADS=1); liquid-splat 1 and 2 (rayon pools)"
+echo "threads: OpenSplat 1 (torch::set_num_threads(1), OMP_NUM_THREADS=1); liquid-splat 1 and 2 (rayon pools$([ "${PIN_THREADS:-}" = 1 ] && echo ', pinned'))"
 status=0
 for steps in $steps_list; do
     dir="$tmp/state$steps"

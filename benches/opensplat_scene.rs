@@ -28,6 +28,9 @@
 //! tanfovy, campos[3], background[3]`), `grad{k}.f32` (`dL/dcolor` `[3,H,W]`),
 //! `ls_color{k}.f32` (`[3,H,W]`) and `ls_grads{k}.f32` (gradients of the
 //! means, scales, quaternions, opacities and SH, same layouts as the inputs).
+//! With the environment variable `PIN_THREADS=1` the pools' workers are
+//! pinned one per CPU (`--pin-threads` of the command-line tool).
+//!
 //! Prints `liquid-splat threads=T fwd_ms=F bwd_ms=B fwd_cpu_ms=FC bwd_cpu_ms=BC`:
 //! wall milliseconds, each the sum over the cameras of the minimum over
 //! `REPS` runs, and CPU milliseconds of all threads (Linux), each the sum
@@ -76,6 +79,7 @@ fn cpu_ns() -> u64 {
 fn main() {
     // As the command-line tool: freed memory is reused, not returned.
     liquid_splat::memory::keep_freed_memory();
+    liquid_splat::threads::set_pinning(std::env::var("PIN_THREADS").is_ok_and(|v| v == "1"));
     let args: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| a != "--bench")
@@ -228,10 +232,7 @@ fn main() {
         liquid_splat::kernels::fastmath::isa()
     );
     for threads in [1usize, 2] {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .expect("thread pool");
+        let pool = liquid_splat::threads::pool(threads).expect("thread pool");
         let (mut fwd, mut bwd, mut fwd_cpu, mut bwd_cpu) = (0.0, 0.0, 0u64, 0u64);
         let reps = reps.max(1);
         pool.install(|| {
