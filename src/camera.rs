@@ -410,9 +410,9 @@ mod tests {
         let rc = cam.raster::<f64>();
         let w2c = cam.w2c();
         let p = cam.projection();
-        for i in 0..4 {
-            for j in 0..4 {
-                assert_eq!(rc.viewmatrix[4 * j + i], w2c[i][j]);
+        for (i, w2c_i) in w2c.iter().enumerate() {
+            for (j, &w2c_ij) in w2c_i.iter().enumerate() {
+                assert_eq!(rc.viewmatrix[4 * j + i], w2c_ij);
                 let pw: f64 = (0..4).map(|k| p[i][k] * w2c[k][j]).sum();
                 assert!((rc.projmatrix[4 * j + i] - pw).abs() < 1e-12);
             }

@@ -45,7 +45,7 @@
 //!   resume rule, smoothness sweep, run records).
 //! - [`report`]: per-run records and the experiment report (Markdown, CSV,
 //!   PNG plots, temporal smoothness of a learned deformation).
-//! - [`bench`]: throughput measurements and their harness (`bench`
+//! - [`bench`](mod@bench): throughput measurements and their harness (`bench`
 //!   subcommand, `cargo bench`).
 //! - [`memory`], [`threads`]: process-wide allocator tuning and worker pools
 //!   (optionally pinned), for speed only.

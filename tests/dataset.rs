@@ -436,8 +436,8 @@ fn shared_data_lego_loads() {
             "{t:?} {:?}",
             f.camera.translation
         );
-        for j in 0..3 {
-            assert!((r[i][j] - f.camera.rotation[i][j]).abs() < 1e-6);
+        for (a, b) in r[i].iter().zip(&f.camera.rotation[i]) {
+            assert!((a - b).abs() < 1e-6);
         }
     }
 }

@@ -7,7 +7,7 @@
 //!   thread and all cores, against the machine's FMA peak.
 //! - [`deform`]: the deformation fields' forward and forward+backward, their
 //!   per-operation profiles and the matrix kernels alone.
-//! - [`lpips`]: LPIPS (VGG16) of one image pair.
+//! - [`lpips`](fn@lpips): LPIPS (VGG16) of one image pair.
 //! - [`train`]: milliseconds per training iteration by stage.
 
 pub mod harness;

@@ -73,8 +73,8 @@ pub struct LpipsArgs {
     /// The lpips package's weights/v0.1/vgg.pth (inside the installed package).
     #[arg(long, requires = "lpips_vgg", value_name = "PTH")]
     pub lpips_lin: Option<PathBuf>,
-    /// LPIPS with normalize=True ([0,1] mapped to [-1,1] first). Default: as D-3DGS's
-    /// metrics.py calls it, [0,1] images passed as they are.
+    /// LPIPS with normalize=True (\[0,1\] mapped to \[-1,1\] first). Default: as D-3DGS's
+    /// metrics.py calls it, \[0,1\] images passed as they are.
     #[arg(long)]
     pub lpips_normalize: bool,
     /// Accept weight files other than the published ones (reported with their SHA-256).

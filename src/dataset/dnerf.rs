@@ -7,7 +7,7 @@
 //! folders) are ignored. Upstream reads only train and test; val is read here too.
 //!
 //! **Images** are converted to RGBA and composited exactly as upstream does
-//! ([`composite`](super::image::composite)), then optionally box-downscaled
+//! ([`super::image::composite`]), then optionally box-downscaled
 //! ([`super::image::box_downscale`]), then divided by 255 in f32.
 //!
 //! **Field of view.** Upstream computes `fovy = focal2fov(fov2focal(fovx, W), H)` and then
@@ -294,8 +294,8 @@ mod tests {
                     "{t:?} {:?}",
                     cam.translation
                 );
-                for j in 0..3 {
-                    assert!((r[i][j] - cam.rotation[i][j]).abs() < 1e-12);
+                for (a, b) in r[i].iter().zip(&cam.rotation[i]) {
+                    assert!((a - b).abs() < 1e-12);
                 }
             }
             // Looking elsewhere, the x translation has the opposite sign.

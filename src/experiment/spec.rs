@@ -312,7 +312,7 @@ pub fn prepare_run(
 }
 
 /// Train the run [`prepare_run`] set up, in the precision of `spec`,
-/// calling `on_event` as it goes (see [`train::run`]).
+/// calling `on_event` as it goes (see [`train::run`](fn@crate::train::run)).
 pub fn train_run(
     spec: &RunSpec,
     config: &TrainConfig,

@@ -349,8 +349,8 @@ mod tests {
         assert!((g.opacity[0] + 2.1972246).abs() < 1e-6);
         assert_eq!(&g.rotation[..4], &[1.0, 0.0, 0.0, 0.0]);
         let d = brute(&g.xyz);
-        for i in 0..g.len() {
-            assert_eq!(g.scaling[3 * i], libm::logf(libm::sqrtf(d[i].max(1e-7))));
+        for (i, di) in d.iter().enumerate().take(g.len()) {
+            assert_eq!(g.scaling[3 * i], libm::logf(libm::sqrtf(di.max(1e-7))));
         }
         // Same seed, same points; fewer than 4 points is an error.
         let g2: Gaussians<f32> = initial_gaussians(&init).unwrap();

@@ -13,7 +13,7 @@
 //! **Decision (docs/DECISIONS.md §3).** In f32 the deformation fields evaluate
 //! every `exp`, `erf`, `tanh` and `sigmoid` of their activations and of the CfC
 //! cell — forward and backward alike — with the functions of this module and
-//! nothing else; f64 keeps the pinned libm of [`Real`] (it is the
+//! nothing else; f64 keeps the pinned libm of [`Real`](crate::math::Real) (it is the
 //! gradient-check and reference precision). Why: libm's scalar `tanhf` costs
 //! about 25 ns and cannot be vectorised; these cost about 1 ns per value in
 //! 16-wide AVX-512 loops and made the CfC field several times faster.

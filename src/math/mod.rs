@@ -2,7 +2,7 @@
 //!
 //! - [`real`]: the `Real` scalar trait (f32 / f64) over one pinned math library.
 //! - [`rng`]: the seeded, portable random number generator.
-//! - [`vec`], [`quat`]: small vectors and 3×3 matrices (arrays generic over
+//! - [`vec`](mod@vec), [`quat`]: small vectors and 3×3 matrices (arrays generic over
 //!   `Real`, glam's f64 types for camera geometry), quaternions and their
 //!   rotation matrices.
 //! - [`sh`], [`covariance`]: spherical-harmonics colour and 3D covariance, each with its vjp.

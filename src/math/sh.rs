@@ -312,16 +312,16 @@ mod tests {
             let phi = i as f64 * 2.399963229728653;
             let d = [r * libm::cos(phi), r * libm::sin(phi), z];
             let b = sh_basis(3, d);
-            for j in 0..16 {
-                for k in 0..16 {
-                    gram[j][k] += b[j] * b[k] * 4.0 * std::f64::consts::PI / n as f64;
+            for (gj, &bj) in gram.iter_mut().zip(&b) {
+                for (gjk, &bk) in gj.iter_mut().zip(&b) {
+                    *gjk += bj * bk * 4.0 * std::f64::consts::PI / n as f64;
                 }
             }
         }
-        for j in 0..16 {
-            for k in 0..16 {
+        for (j, gj) in gram.iter().enumerate() {
+            for (k, &gjk) in gj.iter().enumerate() {
                 let want = if j == k { 1.0 } else { 0.0 };
-                assert!((gram[j][k] - want).abs() < 2e-3, "({j},{k}) {}", gram[j][k]);
+                assert!((gjk - want).abs() < 2e-3, "({j},{k}) {gjk}");
             }
         }
     }

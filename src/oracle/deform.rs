@@ -3,7 +3,7 @@
 //!
 //! Case metadata: `stage=deform`, `field=mlp|cfc`, and optionally `variant`,
 //! `depth`, `width`, `activation`, `backbone_units`, `backbone_layers`,
-//! `is_6dof` (defaults per field kind, see [`FieldConfig::new`]). Case tensors:
+//! `is_6dof` (defaults per field kind, see [`FieldConfig::new`](crate::deform::FieldConfig::new)). Case tensors:
 //! the weights under their PyTorch `state_dict` names, `xyz` `[N,3]`, `t`
 //! `[N,1]`, and the cotangents `grad_d_xyz` `[N,3]`, `grad_d_rotation` `[N,4]`,
 //! `grad_d_scaling` `[N,3]` (each optional, absent = zeros), all of one dtype (F32 or F64, which selects the
