@@ -1,18 +1,21 @@
-//! Worker pools for the command-line tool and the benchmarks: `n` rayon
-//! workers, optionally each pinned to a CPU of its own (`--pin-threads`).
+//! Worker pools for the command-line tool and the benchmarks, optionally
+//! with each worker pinned to one CPU (`--pin-threads`).
 //!
 //! Why pinning exists: on a machine with few cores, Linux sometimes wakes a
 //! pool's second worker on the CPU where the first is running, and short
 //! parallel stages then run on one CPU. Measured on a 2-core machine with
-//! `bench raster`: the 64×64 frame's forward at 2 threads took 0.48–0.50 ms
-//! in three pinned runs, and 0.44–0.81 ms unpinned, the slow runs with every
-//! stage on one CPU. Pinned, worker `i` runs only on the `i`-th CPU (modulo
-//! their count) of the CPUs the process could use when pinning was turned
-//! on.
+//! `bench raster`, the 64×64 frame's forward at 2 threads: 0.43–0.86 ms
+//! over six unpinned runs (the slow ones with every stage on one CPU),
+//! 0.44–0.50 ms over five pinned runs.
 //!
+//! Pinned, worker `i` runs only on the `i`-th of the CPUs the process could
+//! use when pinning was turned on (read once then, from the thread that
+//! turned it on), wrapping around when there are more workers than CPUs.
 //! Off by default: two pinned processes started side by side would share the
-//! same CPUs. Pinning changes speed only, never results; where the operating
-//! system is not Linux it does nothing.
+//! same CPUs. A pinned global pool stays pinned for the rest of the process
+//! (in Python, for later calls of the command-line entry point too). Pinning
+//! changes speed only, never results; where the operating system is not
+//! Linux it does nothing.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
@@ -35,45 +38,100 @@ pub fn set_pinning(on: bool) {
     PIN.store(on, Ordering::Relaxed);
 }
 
-/// Whether [`pool`] pins its workers (and the platform can).
+/// Whether pinning is on and possible (Linux, and the CPUs could be read).
 pub fn pinning() -> bool {
-    PIN.load(Ordering::Relaxed) && cfg!(target_os = "linux")
+    #[cfg(target_os = "linux")]
+    {
+        PIN.load(Ordering::Relaxed) && CPUS.get().is_some_and(|c| !c.is_empty())
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        false
+    }
 }
 
-/// A rayon pool of `threads` workers, pinned one per CPU when
-/// [`pinning`] is on.
+/// The logical CPUs this process may use: with [`pinning`] on, the ones read
+/// when it was turned on (inside a pinned worker the system would report
+/// that worker's single CPU); otherwise what the system reports now.
+pub fn cores() -> usize {
+    #[cfg(target_os = "linux")]
+    if pinning() {
+        if let Some(c) = CPUS.get() {
+            return c.len();
+        }
+    }
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+/// Pin the calling thread to the `i`-th CPU (wrapping) when [`pinning`] is
+/// on; otherwise do nothing. Best effort: a refusal leaves it unpinned.
+pub fn pin_current_thread(i: usize) {
+    #[cfg(target_os = "linux")]
+    if pinning() {
+        if let Some(cpus) = CPUS.get() {
+            pin_to(cpus[i % cpus.len()]);
+        }
+    }
+    #[cfg(not(target_os = "linux"))]
+    let _ = i;
+}
+
+/// With [`pinning`] on, a start handler that pins worker `i` to the `i`-th
+/// CPU (wrapping); the CPUs are captured now, so the workers pin themselves
+/// even if pinning is turned off before they start.
+type Pinner = Box<dyn Fn(usize) + Send + Sync>;
+
+fn pinner() -> Option<Pinner> {
+    #[cfg(target_os = "linux")]
+    if pinning() {
+        let cpus = CPUS.get()?.clone();
+        return Some(Box::new(move |i: usize| {
+            pin_to(cpus[i % cpus.len()]);
+        }));
+    }
+    None
+}
+
+/// A rayon pool of `threads` workers, worker `i` pinned to the `i`-th CPU
+/// (wrapping) when [`pinning`] is on.
 pub fn pool(threads: usize) -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
     let builder = rayon::ThreadPoolBuilder::new().num_threads(threads);
-    #[cfg(target_os = "linux")]
-    if pinning() {
-        let cpus = CPUS.get_or_init(allowed_cpus).clone();
-        if !cpus.is_empty() {
-            return builder
-                .start_handler(move |i| pin_to(cpus[i % cpus.len()]))
-                .build();
-        }
-    }
-    builder.build()
-}
-
-/// Start rayon's global pool with one worker per core, pinned when
-/// [`pinning`] is on; does nothing if the global pool already runs.
-pub fn pin_global_pool() {
-    let builder = rayon::ThreadPoolBuilder::new();
-    #[cfg(target_os = "linux")]
-    if pinning() {
-        let cpus = CPUS.get_or_init(allowed_cpus).clone();
-        if !cpus.is_empty() {
-            let _ = builder
-                .num_threads(cpus.len())
-                .start_handler(move |i| pin_to(cpus[i % cpus.len()]))
-                .build_global();
-        }
+    match pinner() {
+        Some(pin) => builder.start_handler(pin).build(),
+        None => builder.build(),
     }
 }
 
-/// The CPUs this process may run on, ascending (empty if the system does
-/// not say).
+/// When [`pinning`] is on, start rayon's global pool with `threads` workers
+/// (`None`: rayon's default count), pinned as [`pool`] pins them. Returns
+/// whether the global pool's workers are now pinned: false when pinning is
+/// off or impossible, and when the global pool was already running (it is
+/// left as it is).
+pub fn pin_global_pool(threads: Option<usize>) -> bool {
+    pinner().is_some_and(|pin| {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads.unwrap_or(0))
+            .start_handler(pin)
+            .build_global()
+            .is_ok()
+    })
+}
+
+/// Whether the calling thread runs on one CPU only while [`pinning`] is on
+/// and more than one could be used: a pinned worker.
+pub fn current_thread_is_pinned() -> bool {
+    #[cfg(target_os = "linux")]
+    {
+        pinning() && cores() > 1 && allowed_cpus().len() == 1
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        false
+    }
+}
+
+/// The CPUs the calling thread may run on, ascending (empty if the system
+/// does not say).
 #[cfg(target_os = "linux")]
 fn allowed_cpus() -> Vec<usize> {
     // SAFETY: `cpu_set_t` is plain data for which all-zero is the empty set;
@@ -90,44 +148,48 @@ fn allowed_cpus() -> Vec<usize> {
     }
 }
 
-/// Restrict the calling thread to `cpu` (best effort: a refusal leaves it
-/// unpinned, which changes only speed).
+/// Restrict the calling thread to `cpu`; returns whether the system
+/// accepted (a refusal leaves it as it was, which changes only speed).
 #[cfg(target_os = "linux")]
-fn pin_to(cpu: usize) {
+fn pin_to(cpu: usize) -> bool {
     // SAFETY: as in `allowed_cpus`; `cpu < CPU_SETSIZE` since it came from
     // that range, and pid 0 is the calling thread.
     unsafe {
         let mut set: libc::cpu_set_t = std::mem::zeroed();
         libc::CPU_SET(cpu, &mut set);
-        let _ = libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set);
+        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) == 0
     }
 }
 
-#[cfg(test)]
+#[cfg(all(test, target_os = "linux"))]
 mod tests {
     use super::*;
 
     #[test]
-    fn pinned_pools_run_and_give_the_same_sums() {
-        use rayon::prelude::*;
-        let v: Vec<f64> = (0..10_000).map(|i| (i as f64).sin()).collect();
-        let sum = |p: &rayon::ThreadPool| {
-            p.install(|| {
-                v.par_chunks(100)
-                    .map(|c| c.iter().sum::<f64>())
-                    .collect::<Vec<_>>()
-            })
-        };
-        let plain = sum(&pool(3).unwrap());
+    fn pinned_workers_each_run_on_their_cpu() {
+        let cpus = allowed_cpus();
+        // Where the system refuses to pin (or there is one CPU), there is
+        // nothing to observe.
+        let accepted = std::thread::spawn({
+            let c = cpus[0];
+            move || pin_to(c)
+        })
+        .join()
+        .unwrap();
+        if cpus.len() < 2 || !accepted {
+            return;
+        }
+        // Pinning is process-wide state: it is on only while the pool is
+        // built (other tests build unpinned pools meanwhile, at worst
+        // pinned ones, which changes only speed).
         set_pinning(true);
-        let pinned = pool(3).unwrap();
+        let pinned = pool(3);
         set_pinning(false);
-        assert_eq!(sum(&pinned), plain);
-        #[cfg(target_os = "linux")]
-        {
-            // Each worker runs on exactly one CPU.
-            let counts = pinned.broadcast(|_| allowed_cpus().len());
-            assert!(counts.iter().all(|&c| c == 1), "{counts:?}");
+        let got = pinned
+            .unwrap()
+            .broadcast(|ctx| (ctx.index(), allowed_cpus()));
+        for (i, set) in got {
+            assert_eq!(set, vec![cpus[i % cpus.len()]], "worker {i}");
         }
     }
 }

@@ -607,6 +607,7 @@ fn forward_matches_scalar_reimplementation() {
 /// f32 transcendental functions (exp, erf, tanh, sigmoid).
 #[test]
 fn fields_are_bit_identical_across_cpu_paths() {
+    let _isa = liquid_splat::kernels::fastmath::isa_test_lock();
     use liquid_splat::kernels::fastmath::{force_isa, Isa};
     let n = 700;
     for cfg in [

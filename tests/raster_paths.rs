@@ -74,6 +74,7 @@ fn cases() -> Vec<(SceneSpec, ColorSource, CovSource)> {
 
 #[test]
 fn every_instruction_set_and_thread_count_gives_the_same_bits() {
+    let _isa = liquid_splat::kernels::fastmath::isa_test_lock();
     let mut paths = vec![Isa::Baseline];
     for isa in [Isa::Avx2, Isa::Avx512] {
         if force_isa(Some(isa)) {

@@ -74,12 +74,9 @@ pub fn repeat<R, E>(
     Ok(s)
 }
 
-/// Logical CPUs available to this process.
+/// Logical CPUs available to this process ([`crate::threads::cores`]).
 pub fn available_cores() -> usize {
-    // Read once: inside a pinned worker (`--pin-threads`) the system
-    // reports that worker's single CPU.
-    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
-    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+    crate::threads::cores()
 }
 
 /// The thread counts a scaling measurement runs on: 1 and every core (1
@@ -105,8 +102,8 @@ pub fn threads_line() -> String {
     format!(
         "threads: {} (rayon pool{}; machine reports {} available)",
         rayon::current_num_threads(),
-        if crate::threads::pinning() {
-            ", each pinned to a CPU"
+        if crate::threads::current_thread_is_pinned() {
+            ", each worker pinned to a CPU"
         } else {
             ""
         },
@@ -135,7 +132,12 @@ pub fn fma_peak(threads: usize, iters: usize) -> Option<(&'static str, f64)> {
             };
         let t0 = Instant::now();
         let sum: f32 = (0..threads.max(1))
-            .map(|_| std::thread::spawn(move || run(iters)))
+            .map(|i| {
+                std::thread::spawn(move || {
+                    crate::threads::pin_current_thread(i);
+                    run(iters)
+                })
+            })
             .collect::<Vec<_>>()
             .into_iter()
             .map(|h| h.join().unwrap_or(0.0))

@@ -32,8 +32,8 @@ struct Cli {
     /// Worker threads, 1 to 1024 (default: all cores). Results are bit-identical for any value.
     #[arg(long, global = true)]
     threads: Option<usize>,
-    /// Pin each worker thread to a CPU of its own (Linux; speed only, never results). Off by
-    /// default: pinned processes started side by side would share CPUs.
+    /// Pin worker i to the i-th CPU the process may use, wrapping (Linux; speed only, never
+    /// results). Off by default: pinned processes started side by side would share CPUs.
     #[arg(long, global = true)]
     pin_threads: bool,
     #[command(subcommand)]
@@ -112,30 +112,42 @@ where
             };
         }
     };
-    // The core count and the CPUs to pin to are read here, before any
-    // worker is pinned (a pinned worker sees only its own CPU).
-    crate::bench::harness::available_cores();
+    // The CPUs to pin to are read here, before any worker is pinned (a
+    // pinned worker sees only its own CPU).
     crate::threads::set_pinning(cli.pin_threads);
-    finish(match cli.threads {
-        None => {
-            if cli.pin_threads {
-                // The global pool, pinned, unless it already runs (a second
-                // call in one process keeps the first call's pool).
-                crate::threads::pin_global_pool();
-            }
-            dispatch(cli.command)
+    if let Some(n) = cli.threads {
+        if !(1..=MAX_THREADS).contains(&n) {
+            return finish(Err(Error::invalid(
+                "--threads",
+                format!("{n} (expected 1 to {MAX_THREADS})"),
+            )));
         }
-        Some(n) if !(1..=MAX_THREADS).contains(&n) => Err(Error::invalid(
-            "--threads",
-            format!("{n} (expected 1 to {MAX_THREADS})"),
-        )),
-        Some(n) => match crate::threads::pool(n) {
+    }
+    // Pinned, the command runs on this thread with rayon's global pool
+    // pinned (so that the benchmarks' own pools and threads are not started
+    // from a pinned worker); if that pool already runs (a second call in one
+    // process), on a pool of its own as without pinning.
+    let global = cli.pin_threads && crate::threads::pin_global_pool(cli.threads);
+    if cli.pin_threads && !global && (cli.threads.is_none() || !cfg!(target_os = "linux")) {
+        eprintln!(
+            "note: --pin-threads: {}",
+            if cfg!(target_os = "linux") {
+                "this process's worker pool was already running (or its CPUs could not be \
+                 read) and stays unpinned; add --threads N for a new, pinned pool"
+            } else {
+                "pinning is available on Linux only; the threads stay unpinned"
+            }
+        );
+    }
+    finish(match cli.threads {
+        Some(n) if !global => match crate::threads::pool(n) {
             Ok(pool) => pool.install(|| dispatch(cli.command)),
             Err(e) => Err(Error::invalid(
                 "--threads",
                 format!("{n}: cannot start {n} threads: {e}"),
             )),
         },
+        _ => dispatch(cli.command),
     })
 }
 

@@ -720,6 +720,7 @@ mod tests {
     /// with 1 or 3 threads.
     #[test]
     fn chunked_backward_matches_the_reference_products() {
+        let _isa = crate::kernels::fastmath::isa_test_lock();
         use crate::kernels::fastmath::{force_isa, Isa};
         use crate::kernels::matmul::reference;
         // Three chunks and a partial one; two input blocks.

@@ -57,6 +57,15 @@ pub fn sigmoid<T: Real>(x: T) -> T {
     x.fast_sigmoid()
 }
 
+/// Serialises the tests that pin the instruction set with [`force_isa`]
+/// (a process-wide setting): such a test holds the guard while it runs, so
+/// that another one does not change the path underneath it.
+#[doc(hidden)]
+pub fn isa_test_lock() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// Which instruction set the element-wise loops and the matrix kernels of
 /// the fields run on (all give the same bits; see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -344,6 +353,7 @@ mod tests {
 
     #[test]
     fn sin_cos_gives_the_libm_bits() {
+        let _isa = crate::kernels::fastmath::isa_test_lock();
         let xs = sin_cos_inputs();
         // The scalar function, on its whole range.
         for &x in &xs {

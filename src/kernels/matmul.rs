@@ -1323,6 +1323,7 @@ mod tests {
     /// automatic choice. Results are the same on all paths by design, so
     /// pinning the path here cannot change what other tests compute.
     fn on_every_path(check: impl Fn()) {
+        let _isa = crate::kernels::fastmath::isa_test_lock();
         use crate::kernels::fastmath::{force_isa, Isa};
         for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
             if force_isa(Some(isa)) {

@@ -111,6 +111,73 @@ mod tests {
         assert!(r.passes(1e-6), "{r}");
     }
 
+    /// `l1_vjp` and `l1_vjp_add` give, on every instruction-set path, the
+    /// bits of the branches `d > 0 → g, d < 0 → −g, else +0` (NaN and signed
+    /// zeros included), with `g = grad_out / n`.
+    #[test]
+    fn sign_gradient_has_the_bits_of_the_branches_on_every_path() {
+        let _isa = crate::kernels::fastmath::isa_test_lock();
+        use crate::kernels::fastmath::{force_isa, Isa};
+        let vals = [
+            0.0f32,
+            -0.0,
+            1.0,
+            -1.0,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            1e-30,
+            -1e-30,
+        ];
+        let (mut x, mut y) = (Vec::new(), Vec::new());
+        for &a in &vals {
+            for &b in &vals {
+                x.push(a);
+                y.push(b);
+            }
+        }
+        let base: Vec<f32> = (0..x.len())
+            .map(|i| vals[(i * 7 + 3) % vals.len()])
+            .collect();
+        for grad_out in [0.75f32, -0.0, 0.0] {
+            let g = grad_out / x.len() as f32;
+            let branch = |a: f32, b: f32| {
+                let d = a - b;
+                if d > 0.0 {
+                    g
+                } else if d < 0.0 {
+                    -g
+                } else {
+                    0.0
+                }
+            };
+            let want: Vec<u32> = x
+                .iter()
+                .zip(&y)
+                .map(|(&a, &b)| branch(a, b).to_bits())
+                .collect();
+            let want_add: Vec<u32> = x
+                .iter()
+                .zip(&y)
+                .zip(&base)
+                .map(|((&a, &b), &c)| (c + branch(a, b)).to_bits())
+                .collect();
+            for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
+                if force_isa(Some(isa)) {
+                    let mut got = vec![9.0f32; x.len()];
+                    l1_vjp(&x, &y, grad_out, &mut got);
+                    let got: Vec<u32> = got.iter().map(|v| v.to_bits()).collect();
+                    assert_eq!(got, want, "{isa:?}, grad_out {grad_out}");
+                    let mut got = base.clone();
+                    l1_vjp_add(&x, &y, grad_out, &mut got);
+                    let got: Vec<u32> = got.iter().map(|v| v.to_bits()).collect();
+                    assert_eq!(got, want_add, "{isa:?}, grad_out {grad_out}, added");
+                }
+            }
+            force_isa(None);
+        }
+    }
+
     #[test]
     fn l1_subgradient_at_zero_is_zero() {
         let x = [0.5f32, 0.25, 1.0];

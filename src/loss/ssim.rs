@@ -560,12 +560,12 @@ mod tests {
 
     /// The blur as defined in the module docs, one pixel at a time: taps in
     /// index order from +0, out-of-image taps skipped.
-    fn blur_serial(src: &[f32], h: usize, w: usize) -> Vec<f32> {
-        let g = window::<f32>();
-        let mut tmp = vec![0f32; src.len()];
+    fn blur_serial<T: Real>(src: &[T], h: usize, w: usize) -> Vec<T> {
+        let g = window::<T>();
+        let mut tmp = vec![T::ZERO; src.len()];
         for (o, s) in tmp.chunks_mut(w).zip(src.chunks(w)) {
             for (j, oj) in o.iter_mut().enumerate() {
-                let mut acc = 0f32;
+                let mut acc = T::ZERO;
                 for (k, &gk) in g.iter().enumerate() {
                     if (PAD..w + PAD).contains(&(j + k)) {
                         acc += gk * s[j + k - PAD];
@@ -574,10 +574,10 @@ mod tests {
                 *oj = acc;
             }
         }
-        let mut out = vec![0f32; src.len()];
+        let mut out = vec![T::ZERO; src.len()];
         for (p, o) in out.iter_mut().enumerate() {
             let (c, i, j) = (p / (h * w), (p / w) % h, p % w);
-            let mut acc = 0f32;
+            let mut acc = T::ZERO;
             for (k, &gk) in g.iter().enumerate() {
                 if (PAD..h + PAD).contains(&(i + k)) {
                     acc += gk * tmp[c * h * w + (i + k - PAD) * w + j];
@@ -602,6 +602,7 @@ mod tests {
 
     #[test]
     fn blur_has_the_bits_of_the_serial_definition_on_every_path() {
+        let _isa = crate::kernels::fastmath::isa_test_lock();
         use crate::kernels::fastmath::{force_isa, Isa};
         let g = window::<f32>();
         for &(h, w) in &[
@@ -615,10 +616,20 @@ mod tests {
         ] {
             let x = signed_image((h * 100 + w) as u64, 2 * h * w);
             let want: Vec<u32> = blur_serial(&x, h, w).iter().map(|v| v.to_bits()).collect();
+            let x64: Vec<f64> = x.iter().map(|&v| v as f64 * 1.000_000_1).collect();
+            let want64: Vec<u64> = blur_serial(&x64, h, w)
+                .iter()
+                .map(|v| v.to_bits())
+                .collect();
             for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
                 if force_isa(Some(isa)) {
                     let got: Vec<u32> = blur(&x, h, w, &g).iter().map(|v| v.to_bits()).collect();
                     assert_eq!(got, want, "{h}x{w} on {isa:?}");
+                    let got: Vec<u64> = blur(&x64, h, w, &window::<f64>())
+                        .iter()
+                        .map(|v| v.to_bits())
+                        .collect();
+                    assert_eq!(got, want64, "{h}x{w} on {isa:?}, f64");
                 }
             }
             force_isa(None);
@@ -627,6 +638,7 @@ mod tests {
 
     #[test]
     fn ssim_and_its_gradient_have_the_same_bits_on_every_path() {
+        let _isa = crate::kernels::fastmath::isa_test_lock();
         use crate::kernels::fastmath::{force_isa, Isa};
         let (h, w) = (19, 27);
         let x = signed_image(21, 3 * h * w);

@@ -119,6 +119,7 @@ fn bits<T: Real>(v: &LpipsValue<T>) -> Vec<u64> {
 /// Bit-identical results for 1, 2 and 3 threads and on every kernel path
 /// this CPU has (the weights are packed for the path in force).
 fn check_determinism<T: Real>() {
+    let _isa = crate::kernels::fastmath::isa_test_lock();
     let w = random_weights(3);
     let (h, wd) = (33, 21);
     let a: Vec<T> = random_image(4, h, wd)

@@ -701,6 +701,7 @@ mod tests {
     }
 
     fn check_all_paths<T: Real>() {
+        let _isa = crate::kernels::fastmath::isa_test_lock();
         // Sizes with a partial last batch, one Gaussian, and none.
         for (n, seed) in [(203usize, 3u64), (16, 4), (1, 5), (0, 6)] {
             let [means, scales, rots, opac, sh, rest] = scene::<T>(n, seed);

@@ -457,7 +457,7 @@ fn forward_row_body<V: Lanes>(
     let k = Blend::<V::T>::new();
     let ty = py / BLOCK;
     // One allocation per row, of the most entries the row can blend (every
-    // entry of the tiles it crosses), shrunk in place when the row is done:
+    // entry of the tiles it crosses), shrunk when the row is done:
     // growing the vector step by step cost reallocations whose allocator
     // locks the threads contended for.
     out.blended.clear();

@@ -35,13 +35,13 @@ pub(crate) struct Binning {
     pub ranges: Vec<[u32; 2]>,
 }
 
+/// The fewest Gaussians per task of the element-wise steps.
+const MIN_TASK: usize = 4096;
+
 /// Gaussians per chunk of the counting sort for `n` Gaussians: chunks of
 /// about 4096, at most 32 of them (so the per-(chunk, tile) counts stay
 /// small), all but the last of equal length. Depends on `n` only; the
 /// result of [`bin`] does not depend on it at all.
-/// The fewest Gaussians per task of the element-wise steps.
-const MIN_TASK: usize = 4096;
-
 fn chunk_len(n: usize) -> usize {
     const TARGET: usize = 4096;
     const MAX_CHUNKS: usize = 32;
