@@ -66,21 +66,17 @@ pub fn cores() -> usize {
 /// Pin the calling thread to the `i`-th CPU (wrapping) when [`pinning`] is
 /// on; otherwise do nothing. Best effort: a refusal leaves it unpinned.
 pub fn pin_current_thread(i: usize) {
-    #[cfg(target_os = "linux")]
-    if pinning() {
-        if let Some(cpus) = CPUS.get() {
-            pin_to(cpus[i % cpus.len()]);
-        }
+    if let Some(pin) = pinner() {
+        pin(i);
     }
-    #[cfg(not(target_os = "linux"))]
-    let _ = i;
 }
+
+/// A start handler for a pool's workers.
+type Pinner = Box<dyn Fn(usize) + Send + Sync>;
 
 /// With [`pinning`] on, a start handler that pins worker `i` to the `i`-th
 /// CPU (wrapping); the CPUs are captured now, so the workers pin themselves
 /// even if pinning is turned off before they start.
-type Pinner = Box<dyn Fn(usize) + Send + Sync>;
-
 fn pinner() -> Option<Pinner> {
     #[cfg(target_os = "linux")]
     if pinning() {

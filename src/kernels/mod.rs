@@ -100,6 +100,18 @@ where
     unsafe { &mut *(buf as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
+/// `s` with every slot set to `v`, as the initialised slice of the same
+/// memory (for a writer of [`vec_written_by`] or [`par_blocks_written`]
+/// that starts from a constant).
+pub(crate) fn filled<T: Copy>(s: &mut [MaybeUninit<T>], v: T) -> &mut [T] {
+    for x in s.iter_mut() {
+        x.write(v);
+    }
+    // SAFETY: every slot was written just above, and `MaybeUninit<T>` has
+    // the layout of `T`.
+    unsafe { &mut *(s as *mut [MaybeUninit<T>] as *mut [T]) }
+}
+
 /// An initialised slice as slots to overwrite.
 ///
 /// # Safety

@@ -19,9 +19,8 @@ pub mod metrics;
 pub mod ssim;
 
 use crate::error::{Error, Result};
+use crate::kernels::{filled, par_blocks_written, vec_written_by};
 use crate::math::Real;
-use rayon::prelude::*;
-use std::mem::MaybeUninit;
 
 /// Default weight of the D-SSIM term.
 pub const LAMBDA_DSSIM: f64 = 0.2;
@@ -102,23 +101,13 @@ pub fn loss_and_grad<T: Real>(
 /// A serial zeroed allocation of a few MB costs as much as the pass that
 /// fills it.
 pub(crate) fn par_rows<T: Real>(n: usize, w: usize, f: impl Fn(usize, &mut [T]) + Sync) -> Vec<T> {
-    let mut v: Vec<T> = Vec::with_capacity(n);
-    v.spare_capacity_mut()[..n]
-        .par_chunks_mut(w.max(1))
-        .enumerate()
-        .for_each(|(r, row)| {
-            for s in row.iter_mut() {
-                s.write(T::ZERO);
-            }
-            // SAFETY: every element of `row` was initialised just above, and
-            // `MaybeUninit<T>` has the layout of `T`.
-            let row = unsafe { &mut *(row as *mut [MaybeUninit<T>] as *mut [T]) };
+    vec_written_by(n, |buf| {
+        par_blocks_written(buf, w, &mut [(); 0], 0, |r, row, _| {
+            let row = filled(row, T::ZERO);
             f(r, row);
-        });
-    // SAFETY: the chunks cover the first `n` slots and each task initialised
-    // its chunk; a panic in a task propagates before this line.
-    unsafe { v.set_len(n) };
-    v
+            row
+        })
+    })
 }
 
 #[cfg(test)]

@@ -45,6 +45,7 @@ use super::rasterize::{
 };
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
 use crate::error::{Error, Result};
+use crate::kernels::filled;
 use crate::math::covariance::{cov3d_vjp, cov3d_vjp_scaled};
 use crate::math::pack::Pack;
 use crate::math::sh::{coeffs_for_degree, color_vjp};
@@ -511,16 +512,6 @@ struct OutChunk<'a, T> {
     rotations: &'a mut [MaybeUninit<T>],
 }
 
-/// `s` with every element set to zero, as an initialised slice.
-fn zeroed<T: Real>(s: &mut [MaybeUninit<T>]) -> &mut [T] {
-    for x in s.iter_mut() {
-        x.write(T::ZERO);
-    }
-    // SAFETY: every element was written just above, and `MaybeUninit<T>`
-    // has the layout of `T`.
-    unsafe { std::slice::from_raw_parts_mut(s.as_mut_ptr() as *mut T, s.len()) }
-}
-
 /// The first `len` spare slots of `v` (whose capacity is at least `len`).
 fn spare<T>(v: &mut Vec<T>, len: usize) -> &mut [MaybeUninit<T>] {
     &mut v.spare_capacity_mut()[..len]
@@ -619,18 +610,18 @@ fn gaussian_gradients<T: Real>(
             a
         }));
         let mut o = Outputs {
-            means3d: zeroed(out.means3d),
-            means2d: zeroed(out.means2d),
-            colors: zeroed(out.colors),
-            opacities: zeroed(out.opacities),
-            scales_or_cov: zeroed(out.scales_or_cov),
-            rotations: zeroed(out.rotations),
+            means3d: filled(out.means3d, T::ZERO),
+            means2d: filled(out.means2d, T::ZERO),
+            colors: filled(out.colors, T::ZERO),
+            opacities: filled(out.opacities, T::ZERO),
+            scales_or_cov: filled(out.scales_or_cov, T::ZERO),
+            rotations: filled(out.rotations, T::ZERO),
         };
         chain_rule(&ctx, s, acc, &mut o);
     });
     // SAFETY: the chunks are consecutive pieces of each buffer's first
     // `w·n` spare slots (`w` its width) that together cover all of them, and
-    // every task wrote every slot of its pieces (`zeroed`); a panic in a
+    // every task wrote every slot of its pieces (`filled`); a panic in a
     // task propagates before these lines, leaving the buffers empty.
     unsafe {
         grads.means3d.set_len(3 * n);
