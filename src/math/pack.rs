@@ -82,8 +82,15 @@ impl<T: Real> Arith for T {
     }
 }
 
-/// `L` numbers computed lane by lane.
+/// `L` numbers computed lane by lane (laid out as `[T; L]`).
+///
+/// The operations are written as loops over the lanes, not with
+/// `std::array::from_fn`: in the large lane-parallel functions the compiler
+/// may leave `from_fn`'s closures out of line, and an out-of-line function
+/// is compiled without the caller's instruction set (so for SSE2 inside an
+/// AVX-512 kernel).
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(transparent)]
 pub struct Pack<T, const L: usize>(pub [T; L]);
 
 impl<T: Real, const L: usize> Pack<T, L> {
@@ -106,7 +113,11 @@ macro_rules! pack_op {
             type Output = Self;
             #[inline(always)]
             fn $f(self, o: Self) -> Self {
-                Pack(std::array::from_fn(|l| self.0[l] $op o.0[l]))
+                let mut r = self;
+                for l in 0..L {
+                    r.0[l] = self.0[l] $op o.0[l];
+                }
+                r
             }
         }
     };
@@ -120,7 +131,11 @@ impl<T: Real, const L: usize> Neg for Pack<T, L> {
     type Output = Self;
     #[inline(always)]
     fn neg(self) -> Self {
-        Pack(std::array::from_fn(|l| -self.0[l]))
+        let mut r = self;
+        for l in 0..L {
+            r.0[l] = -self.0[l];
+        }
+        r
     }
 }
 
@@ -144,21 +159,39 @@ impl<T: Real, const L: usize> Arith for Pack<T, L> {
     }
     #[inline(always)]
     fn sqrt(self) -> Self {
-        Pack(std::array::from_fn(|l| Real::sqrt(self.0[l])))
+        let mut r = self;
+        for l in 0..L {
+            r.0[l] = Real::sqrt(self.0[l]);
+        }
+        r
     }
     #[inline(always)]
     fn clamp(self, lo: Self, hi: Self) -> Self {
-        Pack(std::array::from_fn(|l| {
-            Real::clamp(self.0[l], lo.0[l], hi.0[l])
-        }))
+        let mut r = self;
+        for l in 0..L {
+            r.0[l] = Real::clamp(self.0[l], lo.0[l], hi.0[l]);
+        }
+        r
     }
     #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // a loop over lanes (see the type's docs)
     fn eq_mask(self, o: Self) -> [bool; L] {
-        std::array::from_fn(|l| self.0[l] == o.0[l])
+        let mut m = [false; L];
+        for l in 0..L {
+            m[l] = self.0[l] == o.0[l];
+        }
+        m
     }
     #[inline(always)]
+    #[allow(clippy::needless_range_loop)] // a loop over lanes (see the type's docs)
     fn select(m: [bool; L], a: Self, b: Self) -> Self {
-        Pack(std::array::from_fn(|l| if m[l] { a.0[l] } else { b.0[l] }))
+        let mut r = b;
+        for l in 0..L {
+            if m[l] {
+                r.0[l] = a.0[l];
+            }
+        }
+        r
     }
 }
 

@@ -42,7 +42,7 @@ pub const SH_C3: [f64; 7] = [
 pub const MAX_SH_DEGREE: usize = 3;
 
 /// Number of coefficients used by `degree`: `(degree + 1)²`.
-pub fn coeffs_for_degree(degree: usize) -> usize {
+pub const fn coeffs_for_degree(degree: usize) -> usize {
     (degree + 1) * (degree + 1)
 }
 

@@ -157,8 +157,9 @@ pub(crate) use x86::{Avx2, Avx512};
 #[cfg(target_arch = "x86_64")]
 mod x86 {
     use super::{expc, Lanes, LANES};
+    use crate::math::pack::Arith;
     use std::arch::x86_64::*;
-    use std::ops::{Add, Div, Mul, Neg, Sub};
+    use std::ops::{Add, AddAssign, Div, Mul, Neg, Sub};
 
     /// One AVX-512 register of 16 f32 lanes. Only built inside functions
     /// compiled with `avx512f` on a CPU that has it.
@@ -506,6 +507,267 @@ mod x86 {
         #[inline(always)]
         fn exp(self) -> Self {
             Avx2([exp8(self.0[0]), exp8(self.0[1])])
+        }
+    }
+
+    // The chain rules' arithmetic ([`Arith`]) on the same registers: the
+    // per-Gaussian backward runs its packs of 16 Gaussians in them, so the
+    // values stay in registers instead of 16-element arrays.
+    const fn splat16(v: f32) -> [f32; 16] {
+        [v; 16]
+    }
+
+    impl AddAssign for Avx512 {
+        #[inline(always)]
+        fn add_assign(&mut self, o: Self) {
+            *self = *self + o;
+        }
+    }
+
+    impl Arith for Avx512 {
+        type Elem = f32;
+        type Mask = u16;
+        // SAFETY: `__m512` is sixteen f32 lanes, the size and layout of the array.
+        const ZERO: Self =
+            Avx512(unsafe { std::mem::transmute::<[f32; 16], __m512>(splat16(0.0)) });
+        // SAFETY: as for ZERO.
+        const ONE: Self = Avx512(unsafe { std::mem::transmute::<[f32; 16], __m512>(splat16(1.0)) });
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            <Self as Lanes>::splat(v)
+        }
+        #[inline(always)]
+        fn sqrt(self) -> Self {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
+            Avx512(unsafe { _mm512_sqrt_ps(self.0) })
+        }
+        #[inline(always)]
+        fn clamp(self, lo: Self, hi: Self) -> Self {
+            // Real::clamp: min(hi, max(lo, v)), max(v, o) = o > v ? o : v,
+            // min(v, o) = o < v ? o : v.
+            let m = <Self as Lanes>::select(lo.gt(self), lo, self);
+            <Self as Lanes>::select(hi.lt(m), hi, m)
+        }
+        #[inline(always)]
+        fn eq_mask(self, o: Self) -> u16 {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
+            unsafe { _mm512_cmp_ps_mask::<_CMP_EQ_OQ>(self.0, o.0) }
+        }
+        #[inline(always)]
+        fn select(m: u16, a: Self, b: Self) -> Self {
+            <Self as Lanes>::select(m, a, b)
+        }
+    }
+
+    impl AddAssign for Avx2 {
+        #[inline(always)]
+        fn add_assign(&mut self, o: Self) {
+            *self = *self + o;
+        }
+    }
+
+    impl Arith for Avx2 {
+        type Elem = f32;
+        type Mask = [__m256; 2];
+        // SAFETY: `__m256` is eight f32 lanes, the size and layout of the array.
+        const ZERO: Self =
+            Avx2(unsafe { std::mem::transmute::<[f32; 16], [__m256; 2]>(splat16(0.0)) });
+        // SAFETY: as for ZERO.
+        const ONE: Self =
+            Avx2(unsafe { std::mem::transmute::<[f32; 16], [__m256; 2]>(splat16(1.0)) });
+        #[inline(always)]
+        fn splat(v: f32) -> Self {
+            <Self as Lanes>::splat(v)
+        }
+        #[inline(always)]
+        fn sqrt(self) -> Self {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
+            unsafe { Avx2([_mm256_sqrt_ps(self.0[0]), _mm256_sqrt_ps(self.0[1])]) }
+        }
+        #[inline(always)]
+        fn clamp(self, lo: Self, hi: Self) -> Self {
+            // As for Avx512.
+            let m = <Self as Lanes>::select(lo.gt(self), lo, self);
+            <Self as Lanes>::select(hi.lt(m), hi, m)
+        }
+        #[inline(always)]
+        fn eq_mask(self, o: Self) -> Self::Mask {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
+            unsafe {
+                [
+                    _mm256_cmp_ps::<_CMP_EQ_OQ>(self.0[0], o.0[0]),
+                    _mm256_cmp_ps::<_CMP_EQ_OQ>(self.0[1], o.0[1]),
+                ]
+            }
+        }
+        #[inline(always)]
+        fn select(m: Self::Mask, a: Self, b: Self) -> Self {
+            <Self as Lanes>::select(m, a, b)
+        }
+    }
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod arith_tests {
+    use super::{Avx2, Avx512, Lanes, LANES};
+    use crate::math::pack::Arith;
+
+    /// Signed zeros, infinities, NaN, subnormals and ordinary values.
+    const V: [f32; LANES] = [
+        0.0,
+        -0.0,
+        1.0,
+        -1.0,
+        0.5,
+        -2.5,
+        f32::INFINITY,
+        f32::NEG_INFINITY,
+        f32::NAN,
+        1e-38,
+        -1e-40,
+        3.0,
+        7.25,
+        -0.75,
+        2.0,
+        f32::MAX,
+    ];
+
+    /// The bits of `v`, every NaN as one pattern (which NaN an operation
+    /// returns is not specified, and the compiler may fold constants to
+    /// another one).
+    fn bits(v: f32) -> u32 {
+        if v.is_nan() {
+            f32::NAN.to_bits()
+        } else {
+            v.to_bits()
+        }
+    }
+
+    /// Every [`Arith`] operation of `N` on lanes `a`, `b`, `lo`, `hi`, as
+    /// bits (masks as 0/1), in a fixed order.
+    #[inline(always)]
+    fn ops<N: Arith<Elem = f32> + Lanes<T = f32>>(
+        a: [f32; LANES],
+        b: [f32; LANES],
+        lo: [f32; LANES],
+        hi: [f32; LANES],
+        mask_bits: impl Fn(<N as Arith>::Mask) -> u16,
+    ) -> Vec<u32> {
+        let (a, b, lo, hi) = (N::load(&a), N::load(&b), N::load(&lo), N::load(&hi));
+        let mut out = Vec::new();
+        let mut put = |v: N| {
+            let mut x = [0.0f32; LANES];
+            v.store(&mut x);
+            out.extend(x.map(bits));
+        };
+        put(a + b);
+        put(a - b);
+        put(a * b);
+        put(a / b);
+        put(-a);
+        let mut c = a;
+        c += b;
+        put(c);
+        put(Arith::sqrt(a));
+        put(Arith::clamp(a, lo, hi));
+        let m = a.eq_mask(b);
+        put(<N as Arith>::select(m, a, b));
+        put(<N as Arith>::ZERO);
+        put(<N as Arith>::ONE);
+        put(<N as Arith>::splat(-3.5));
+        out.push(mask_bits(m) as u32);
+        out
+    }
+
+    /// The same on one lane at a time, as [`Arith`] for `f32` computes it.
+    fn scalar(a: [f32; LANES], b: [f32; LANES], lo: [f32; LANES], hi: [f32; LANES]) -> Vec<u32> {
+        let mut out = Vec::new();
+        let each = |f: &dyn Fn(usize) -> f32| (0..LANES).map(|l| bits(f(l))).collect::<Vec<_>>();
+        out.extend(each(&|l| a[l] + b[l]));
+        out.extend(each(&|l| a[l] - b[l]));
+        out.extend(each(&|l| a[l] * b[l]));
+        out.extend(each(&|l| a[l] / b[l]));
+        out.extend(each(&|l| -a[l]));
+        out.extend(each(&|l| {
+            let mut c = a[l];
+            c += b[l];
+            c
+        }));
+        out.extend(each(&|l| Arith::sqrt(a[l])));
+        out.extend(each(&|l| Arith::clamp(a[l], lo[l], hi[l])));
+        out.extend(each(&|l| {
+            <f32 as Arith>::select(a[l].eq_mask(b[l]), a[l], b[l])
+        }));
+        out.extend(each(&|_| <f32 as Arith>::ZERO));
+        out.extend(each(&|_| <f32 as Arith>::ONE));
+        out.extend(each(&|_| <f32 as Arith>::splat(-3.5)));
+        let mask = (0..LANES).fold(0u16, |m, l| m | (a[l].eq_mask(b[l]) as u16) << l);
+        out.push(mask as u32);
+        out
+    }
+
+    #[target_feature(enable = "avx512f")]
+    fn on_avx512(a: [f32; LANES], b: [f32; LANES], lo: [f32; LANES], hi: [f32; LANES]) -> Vec<u32> {
+        ops::<Avx512>(a, b, lo, hi, |m| m)
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn on_avx2(a: [f32; LANES], b: [f32; LANES], lo: [f32; LANES], hi: [f32; LANES]) -> Vec<u32> {
+        ops::<Avx2>(a, b, lo, hi, <Avx2 as Lanes>::bits)
+    }
+
+    #[test]
+    fn register_arithmetic_gives_the_scalar_bits() {
+        let rot = |k: usize| -> [f32; LANES] { std::array::from_fn(|l| V[(l + k) % LANES]) };
+        for k in 0..LANES {
+            let (a, b) = (V, rot(k));
+            // Bounds in order, reversed, and with NaN among them.
+            let (lo, hi) = (rot((k + 3) % LANES), rot((k + 7) % LANES));
+            let want = scalar(a, b, lo, hi);
+            let first_diff = |got: &[u32]| {
+                got.iter().zip(&want).position(|(g, w)| g != w).map(|i| {
+                    let names = [
+                        "add",
+                        "sub",
+                        "mul",
+                        "div",
+                        "neg",
+                        "add_assign",
+                        "sqrt",
+                        "clamp",
+                        "select",
+                        "zero",
+                        "one",
+                        "splat",
+                        "mask",
+                    ];
+                    format!(
+                        "{} lane {}: got {:#x}, want {:#x} (a {}, b {}, lo {}, hi {})",
+                        names[i / LANES],
+                        i % LANES,
+                        got[i],
+                        want[i],
+                        a[i % LANES],
+                        b[i % LANES],
+                        lo[i % LANES],
+                        hi[i % LANES]
+                    )
+                })
+            };
+            if std::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU has AVX-512F (checked above).
+                let got = unsafe { on_avx512(a, b, lo, hi) };
+                assert!(got == want, "AVX-512, rotation {k}: {:?}", first_diff(&got));
+            }
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2 (checked above).
+                let got = unsafe { on_avx2(a, b, lo, hi) };
+                assert!(got == want, "AVX2, rotation {k}: {:?}", first_diff(&got));
+            }
         }
     }
 }

@@ -58,6 +58,7 @@ pub(crate) mod rasterize_vjp;
 pub mod scene;
 pub mod stages;
 pub(crate) mod tiles;
+pub(crate) mod transpose;
 
 use crate::camera::RasterCamera;
 use crate::error::{Error, Result};

@@ -18,8 +18,9 @@
 //! Lanes past the end of the last batch repeat its first Gaussian and are
 //! discarded; lanes of culled Gaussians compute values that are not used.
 //! The SH coefficients of a batch (up to 48 values per Gaussian) are
-//! transposed with vector shuffles where `T` is f32 (16×16 blocks with
-//! AVX-512, 8×8 with AVX2; only bits move) and prefetched two batches ahead:
+//! transposed with vector shuffles where `T` is f32
+//! ([`super::transpose::load_rows`]; only bits move) and prefetched two
+//! batches ahead:
 //! they are read once per frame, and their cache misses dominated the stage.
 //!
 //! The outputs are written once, by index, into buffers that are not
@@ -32,10 +33,12 @@
 use super::project::{
     assemble, footprint, project_core, Footprint, Intrinsics, ProjectCore, Projected,
 };
-use super::rasterize::{candidate_rows, power_min, Splat};
+use super::rasterize::{candidate_rows, path, power_min, Splat};
+use super::transpose::load_rows;
 use super::{Colors, Covariances, RasterInput};
 use crate::kernels::fastmath::multiversion;
 use crate::math::covariance::cov3d;
+use crate::math::pack::Pack;
 use crate::math::sh::{sh_to_color_with, ShColorSaved};
 use crate::math::Real;
 use rayon::prelude::*;
@@ -366,20 +369,12 @@ impl<T: Real> ShBatch<'_, T> {
             (g(0) + 2 * BATCH) * self.stride * 3,
             BATCH * self.stride * 3,
         );
-        let mut c = [[T::ZERO; BATCH]; MAX_SH_VALUES];
-        let src: [&[T]; BATCH] = std::array::from_fn(|l| {
-            let base = g(l) * self.stride * 3;
-            &self.coeffs[base..base + n]
-        });
-        let done = transpose_f32(&src, n, &mut c);
-        for l in 0..BATCH {
-            for j in done..n {
-                c[j][l] = src[l][j];
-            }
-        }
+        let mut c = [Pack([T::ZERO; BATCH]); MAX_SH_VALUES];
+        let at: [usize; BATCH] = std::array::from_fn(|l| g(l) * self.stride * 3);
+        load_rows(path::<T>(), self.coeffs, &at, &mut c[..n]);
         for l in 0..BATCH {
             let m = [self.mean[0][l], self.mean[1][l], self.mean[2][l]];
-            let r = sh_to_color_with(D, |j| c[j][l], m, self.campos);
+            let r = sh_to_color_with(D, |j| c[j].0[l], m, self.campos);
             for ch in 0..3 {
                 color[ch][l] = r.color[ch];
                 clamped[ch][l] = r.clamped[ch];
@@ -391,7 +386,7 @@ impl<T: Real> ShBatch<'_, T> {
 /// Ask the CPU to bring `len` values of `v` from `start` into its caches
 /// (the batch after next reads them); only a hint, clipped to `v`.
 #[inline(always)]
-fn prefetch<T>(v: &[T], start: usize, len: usize) {
+pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
@@ -407,136 +402,6 @@ fn prefetch<T>(v: &[T], start: usize, len: usize) {
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = (v, start, len);
-}
-
-/// `c[j][l] = src[l][j]` for `j` below the returned count, with vector
-/// shuffles where `T` is f32 and the CPU has AVX-512 (blocks of 16 values)
-/// or AVX2 (blocks of 8); returns 0 (nothing done) otherwise. Only moves
-/// bits. Every `src[l]` holds `n` values.
-#[inline(always)]
-fn transpose_f32<T: Real>(
-    src: &[&[T]; BATCH],
-    n: usize,
-    c: &mut [[T; BATCH]; MAX_SH_VALUES],
-) -> usize {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use super::rasterize::{path, Path};
-        let p = path::<T>();
-        if p == Path::Portable {
-            return 0;
-        }
-        let out = c.as_mut_ptr() as *mut f32;
-        let width = if p == Path::Avx512 { 16 } else { 8 };
-        let blocks = n / width;
-        for b in 0..blocks {
-            let at: [*const f32; BATCH] =
-                std::array::from_fn(|l| src[l][b * width..(b + 1) * width].as_ptr() as *const f32);
-            // SAFETY: a vector path is chosen only for T = f32 on a CPU with
-            // its feature (`path`); each `at[l]` starts `width` values of a
-            // row (sliced above) and `c` has rows `b·width .. (b + 1)·width`
-            // of BATCH values (`(b + 1)·width ≤ n ≤ MAX_SH_VALUES`).
-            unsafe {
-                let o = out.add(b * width * BATCH);
-                if p == Path::Avx512 {
-                    x86::transpose16(&at, o);
-                } else {
-                    let lo: [*const f32; 8] = std::array::from_fn(|l| at[l]);
-                    let hi: [*const f32; 8] = std::array::from_fn(|l| at[8 + l]);
-                    x86::transpose8(&lo, o);
-                    x86::transpose8(&hi, o.add(8));
-                }
-            }
-        }
-        blocks * width
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        let _ = (src, n, c);
-        0
-    }
-}
-
-#[cfg(target_arch = "x86_64")]
-mod x86 {
-    use super::BATCH;
-    use std::arch::x86_64::*;
-
-    /// `out[BATCH·j + l] = rows[l][j]` for `l, j < 16`.
-    ///
-    /// # Safety
-    /// AVX-512F is present; `rows[l]` can be read for 16 values and `out`
-    /// written for `16·BATCH`.
-    #[target_feature(enable = "avx512f")]
-    pub(super) unsafe fn transpose16(rows: &[*const f32; 16], out: *mut f32) {
-        // SAFETY: the caller guarantees the feature and the extents.
-        unsafe {
-            let mut r: [__m512; 16] = std::array::from_fn(|l| _mm512_loadu_ps(rows[l]));
-            let mut t = [_mm512_setzero_ps(); 16];
-            // 32-bit interleave of row pairs, then 64-bit of pair pairs:
-            // each 128-bit lane q of r[4a + b] then holds column 4q + b of
-            // rows 4a .. 4a + 3.
-            for k in 0..8 {
-                t[2 * k] = _mm512_unpacklo_ps(r[2 * k], r[2 * k + 1]);
-                t[2 * k + 1] = _mm512_unpackhi_ps(r[2 * k], r[2 * k + 1]);
-            }
-            let pd = |x: __m512| _mm512_castps_pd(x);
-            let ps = |x: __m512d| _mm512_castpd_ps(x);
-            for k in 0..4 {
-                let b = 4 * k;
-                r[b] = ps(_mm512_unpacklo_pd(pd(t[b]), pd(t[b + 2])));
-                r[b + 1] = ps(_mm512_unpackhi_pd(pd(t[b]), pd(t[b + 2])));
-                r[b + 2] = ps(_mm512_unpacklo_pd(pd(t[b + 1]), pd(t[b + 3])));
-                r[b + 3] = ps(_mm512_unpackhi_pd(pd(t[b + 1]), pd(t[b + 3])));
-            }
-            // Gather the 128-bit lanes in two steps.
-            for k in 0..4 {
-                t[k] = _mm512_shuffle_f32x4::<0x88>(r[k], r[k + 4]);
-                t[k + 4] = _mm512_shuffle_f32x4::<0xdd>(r[k], r[k + 4]);
-                t[k + 8] = _mm512_shuffle_f32x4::<0x88>(r[k + 8], r[k + 12]);
-                t[k + 12] = _mm512_shuffle_f32x4::<0xdd>(r[k + 8], r[k + 12]);
-            }
-            for k in 0..8 {
-                r[k] = _mm512_shuffle_f32x4::<0x88>(t[k], t[k + 8]);
-                r[k + 8] = _mm512_shuffle_f32x4::<0xdd>(t[k], t[k + 8]);
-            }
-            for (j, v) in r.iter().enumerate() {
-                _mm512_storeu_ps(out.add(BATCH * j), *v);
-            }
-        }
-    }
-
-    /// `out[BATCH·j + l] = rows[l][j]` for `l, j < 8`.
-    ///
-    /// # Safety
-    /// AVX2 is present; `rows[l]` can be read for 8 values and `out`
-    /// written at `BATCH·j + l` for `l, j < 8`.
-    #[target_feature(enable = "avx2")]
-    pub(super) unsafe fn transpose8(rows: &[*const f32; 8], out: *mut f32) {
-        // SAFETY: the caller guarantees the feature and the extents.
-        unsafe {
-            let r: [__m256; 8] = std::array::from_fn(|l| _mm256_loadu_ps(rows[l]));
-            let mut t = [_mm256_setzero_ps(); 8];
-            for k in 0..4 {
-                t[2 * k] = _mm256_unpacklo_ps(r[2 * k], r[2 * k + 1]);
-                t[2 * k + 1] = _mm256_unpackhi_ps(r[2 * k], r[2 * k + 1]);
-            }
-            let mut u = [_mm256_setzero_ps(); 8];
-            for k in 0..2 {
-                let b = 4 * k;
-                u[b] = _mm256_shuffle_ps::<0x44>(t[b], t[b + 2]);
-                u[b + 1] = _mm256_shuffle_ps::<0xEE>(t[b], t[b + 2]);
-                u[b + 2] = _mm256_shuffle_ps::<0x44>(t[b + 1], t[b + 3]);
-                u[b + 3] = _mm256_shuffle_ps::<0xEE>(t[b + 1], t[b + 3]);
-            }
-            for k in 0..4 {
-                let lo = _mm256_permute2f128_ps::<0x20>(u[k], u[k + 4]);
-                let hi = _mm256_permute2f128_ps::<0x31>(u[k], u[k + 4]);
-                _mm256_storeu_ps(out.add(BATCH * k), lo);
-                _mm256_storeu_ps(out.add(BATCH * (k + 4)), hi);
-            }
-        }
-    }
 }
 
 #[cfg(test)]

@@ -477,13 +477,18 @@ pub(crate) fn project_vjp<N: Arith>(
     // a = A0ᵀVA0, b = A1ᵀVA0, c = A1ᵀVA1.
     let mut gcov = [N::ZERO; 6];
     let slots = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)];
+    // (A function, not a closure: a closure the compiler leaves out of line
+    // would run without the caller's vector instruction set.)
+    #[inline(always)]
+    fn full<N: Arith>(a0: &[N; 3], a1: &[N; 3], d: [N; 3], i: usize, j: usize) -> N {
+        a0[i] * a0[j] * d[0] + a1[i] * a0[j] * d[1] + a1[i] * a1[j] * d[2]
+    }
     for (s, &(i, j)) in slots.iter().enumerate() {
-        let full =
-            |i: usize, j: usize| a0[i] * a0[j] * da + a1[i] * a0[j] * db + a1[i] * a1[j] * dc;
+        let d = [da, db, dc];
         gcov[s] = if i == j {
-            full(i, i)
+            full(&a0, &a1, d, i, i)
         } else {
-            full(i, j) + full(j, i)
+            full(&a0, &a1, d, i, j) + full(&a0, &a1, d, j, i)
         };
     }
     let va0: [N; 3] = std::array::from_fn(|i| v[i][0] * a0[0] + v[i][1] * a0[1] + v[i][2] * a0[2]);

@@ -26,10 +26,13 @@
 //! covariance; in chunks of [`CHUNK`] Gaussians, each task forming its
 //! chunk's sums first and then writing every output of its chunk once, into
 //! result buffers that are never zeroed beforehand). The chain rule runs
-//! several Gaussians per vector ([`crate::math::pack::Pack`]: 16 with
-//! AVX-512, 8 with AVX2, 4 otherwise), each lane computing exactly the
-//! scalar operations of its Gaussian, so the bits do not depend on the
-//! width.
+//! several Gaussians per vector, each lane computing exactly the scalar
+//! operations of its Gaussian ([`crate::math::pack::Arith`]), so the bits do
+//! not depend on the width: in f32, 16 Gaussians in one AVX-512 register or
+//! two AVX2 registers per value (the [`super::lanes`] types, whose values
+//! stay in registers), 4 per [`crate::math::pack::Pack`] otherwise. A
+//! block's inputs move from the Gaussians' rows into value-major registers,
+//! and its results back, by transposes ([`super::transpose`]).
 //!
 //! Determinism: the contributions of a row's 16 pixels to an entry are summed
 //! by a fixed pairwise tree (lane `l` with `l + 8`, then `+ 4`, `+ 2`, `+ 1`),
@@ -39,10 +42,13 @@
 //! depends on the number of threads or the vector width.
 
 use super::lanes::{Lanes, Scalar};
+use super::preprocess::prefetch;
 use super::project::{self, ProjectedGrad};
+use super::rasterize::path;
 use super::rasterize::{
     self as raster, lane_x, replay_row, Blend, Blended, Record, Row, Splat, LANES,
 };
+use super::transpose::{load_rows, store_rows};
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
 use crate::error::{Error, Result};
 use crate::kernels::filled;
@@ -58,6 +64,7 @@ use std::mem::MaybeUninit;
 /// in NDC units and `conic[1]` holds half of `dL/dB`, as upstream
 /// accumulates them.
 #[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
 pub(crate) struct EntryGrad<T> {
     /// dL/d(colour), RGB.
     pub color: [T; 3],
@@ -71,6 +78,10 @@ pub(crate) struct EntryGrad<T> {
     pub depth: T,
 }
 
+/// Values per [`EntryGrad`], as laid out: colour 3, centre 2, conic 3,
+/// opacity, depth.
+const ENTRY_VALUES: usize = 10;
+
 impl<T: Real> EntryGrad<T> {
     /// All zeros.
     pub const ZERO: Self = EntryGrad {
@@ -80,6 +91,14 @@ impl<T: Real> EntryGrad<T> {
         opacity: T::ZERO,
         depth: T::ZERO,
     };
+
+    /// The entries' values, [`ENTRY_VALUES`] per entry in field order.
+    fn values(e: &[Self]) -> &[T] {
+        const { assert!(std::mem::size_of::<EntryGrad<T>>() == ENTRY_VALUES * std::mem::size_of::<T>()) };
+        // SAFETY: `EntryGrad` is `repr(C)` with ten `T` fields and no
+        // padding (the size asserted above), so `e` is `10·len` `T`s.
+        unsafe { std::slice::from_raw_parts(e.as_ptr() as *const T, e.len() * ENTRY_VALUES) }
+    }
 
     /// Add `o` field by field.
     #[inline]
@@ -147,21 +166,33 @@ fn tile_vjp_body<V: Lanes>(
         let row = Row { x0, nx, py };
         let t_final = replay_row::<V>(job.splats, blended, row, &k, rec);
         let base = py * job.width + x0;
-        let mut g = [[zero; LANES]; 3];
-        for (ch, gc) in g.iter_mut().enumerate() {
-            gc[..nx].copy_from_slice(&job.grad_color[ch * hw + base..ch * hw + base + nx]);
-        }
-        let g = g.map(|v| V::load(&v));
+        let g: [V; 3] = std::array::from_fn(|ch| {
+            V::load(&lane_row(
+                &job.grad_color[ch * hw + base..ch * hw + base + nx],
+            ))
+        });
         match job.mode {
             GradientMode::Exact => {
-                let mut gd = [zero; LANES];
-                if let Some(d) = job.grad_depth {
-                    gd[..nx].copy_from_slice(&d[base..base + nx]);
-                }
+                let gd = match job.grad_depth {
+                    Some(d) => lane_row(&d[base..base + nx]),
+                    None => [zero; LANES],
+                };
                 exact_row::<V>(job, row, &k, rec, &g, V::load(&gd), grads);
             }
             GradientMode::Inria => inria_row::<V>(job, row, &k, rec, &g, t_final, grads),
         }
+    }
+}
+
+/// A row's values (at most [`LANES`]) in lanes, zeros past its end. A full
+/// row is one fixed-size copy (a vector load); a variable-length
+/// `copy_from_slice` would call `memcpy`, which costs more than the copy
+/// here (the call saves the vector registers).
+#[inline(always)]
+fn lane_row<T: Real>(src: &[T]) -> [T; LANES] {
+    match <[T; LANES]>::try_from(src) {
+        Ok(full) => full,
+        Err(_) => std::array::from_fn(|l| src.get(l).copied().unwrap_or(T::ZERO)),
     }
 }
 
@@ -495,6 +526,9 @@ fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> (Vec<usize>, Vec<u32>
     (start, index)
 }
 
+/// The most colour values of a Gaussian (SH degree 3: 16 coefficients × RGB).
+const MAX_COLOR_VALUES: usize = 3 * coeffs_for_degree(crate::math::sh::MAX_SH_DEGREE);
+
 /// Gaussians per task of step 3: each task writes one contiguous piece of
 /// every output.
 const CHUNK: usize = 128;
@@ -661,53 +695,170 @@ struct Outputs<'a, T> {
 }
 
 /// The chain rule of step 3 for the chunk of Gaussians starting at `s`
-/// (`acc` their entry sums), several Gaussians per vector: the widest
-/// [`Pack`] the instruction set runs well (16 lanes with AVX-512, 8 with
-/// AVX2, 4 otherwise). Every lane computes exactly what the scalar
-/// [`project::project_vjp`], [`crate::math::sh::sh_to_color_vjp`] and
-/// [`cov3d_vjp`] compute on that Gaussian alone (see [`crate::math::pack`]),
-/// so the bits do not depend on the width.
+/// (`acc` their entry sums), several Gaussians per vector: 16 lanes in
+/// AVX-512 registers ([`Avx512`]) or pairs of AVX2 registers ([`Avx2`]) in
+/// f32, 4 lanes of [`Pack`] otherwise. Every lane computes exactly what the
+/// scalar [`project::project_vjp`], [`crate::math::sh::sh_to_color_vjp`] and
+/// [`cov3d_vjp`] compute on that Gaussian alone (see
+/// [`crate::math::pack`]), so the bits do not depend on the width.
 fn chain_rule<T: Real>(ctx: &Ctx<'_, T>, s: usize, acc: &[EntryGrad<T>], o: &mut Outputs<'_, T>) {
     #[cfg(target_arch = "x86_64")]
     {
+        use super::lanes::{Avx2, Avx512};
         use super::rasterize::{path, Path};
+        /// `x` as its f32 version.
+        ///
+        /// # Safety
+        /// `T` is `f32`.
+        unsafe fn f32_ref<X, Y>(x: &X) -> &Y {
+            // SAFETY: the caller guarantees `T` is `f32`, so `X` and `Y`
+            // are the same type.
+            unsafe { &*(x as *const X as *const Y) }
+        }
         #[target_feature(enable = "avx512f")]
-        unsafe fn avx512<T: Real>(
-            ctx: &Ctx<'_, T>,
+        unsafe fn avx512(
+            ctx: &Ctx<'_, f32>,
             s: usize,
-            acc: &[EntryGrad<T>],
-            o: &mut Outputs<'_, T>,
+            acc: &[EntryGrad<f32>],
+            o: &mut Outputs<'_, f32>,
         ) {
-            chain_rule_lanes::<T, 16>(ctx, s, acc, o)
+            chain_rule_lanes::<f32, 16, Avx512>(ctx, s, acc, o)
         }
         #[target_feature(enable = "avx2")]
-        unsafe fn avx2<T: Real>(
-            ctx: &Ctx<'_, T>,
+        unsafe fn avx2(
+            ctx: &Ctx<'_, f32>,
             s: usize,
-            acc: &[EntryGrad<T>],
-            o: &mut Outputs<'_, T>,
+            acc: &[EntryGrad<f32>],
+            o: &mut Outputs<'_, f32>,
         ) {
-            chain_rule_lanes::<T, 8>(ctx, s, acc, o)
+            chain_rule_lanes::<f32, 16, Avx2>(ctx, s, acc, o)
         }
-        match path::<T>() {
-            // SAFETY: `path` chooses AVX-512 only on a CPU that has it.
-            Path::Avx512 => return unsafe { avx512(ctx, s, acc, o) },
-            // SAFETY: `path` chooses AVX2 only on a CPU that has it.
-            Path::Avx2 => return unsafe { avx2(ctx, s, acc, o) },
-            Path::Portable => {}
+        let p = path::<T>();
+        if p != Path::Portable {
+            // SAFETY: `path` chooses a vector path only for T = f32 (so the
+            // casts are to the same types) on a CPU with its feature.
+            unsafe {
+                let ctx: &Ctx<'_, f32> = f32_ref(ctx);
+                let acc: &[EntryGrad<f32>] =
+                    std::slice::from_raw_parts(acc.as_ptr() as *const EntryGrad<f32>, acc.len());
+                let o: &mut Outputs<'_, f32> = super::rasterize::as_f32(o);
+                match p {
+                    Path::Avx512 => avx512(ctx, s, acc, o),
+                    _ => avx2(ctx, s, acc, o),
+                }
+            }
+            return;
         }
     }
-    chain_rule_lanes::<T, 4>(ctx, s, acc, o)
+    chain_rule_lanes::<T, 4, Pack<T, 4>>(ctx, s, acc, o)
 }
 
-/// [`chain_rule`] with `L` Gaussians per [`Pack`]. Lanes past the chunk's
-/// end repeat its last Gaussian; lanes of culled Gaussians are computed and
-/// not written (their outputs stay zero). Each lane's inputs are first
-/// copied into fixed-size rows, and a block's results are kept value by
-/// value and then written Gaussian by Gaussian.
+/// A lane-parallel number the chain rule of step 3 computes in, moved from
+/// and to a [`Pack`] of `L` lanes.
+trait ChainLanes<const L: usize>: crate::math::pack::Arith {
+    fn from_pack(p: &Pack<Self::Elem, L>) -> Self;
+    fn to_pack(self) -> Pack<Self::Elem, L>;
+    fn mask(m: [bool; L]) -> Self::Mask;
+}
+
+impl<T: Real, const L: usize> ChainLanes<L> for Pack<T, L> {
+    #[inline(always)]
+    fn from_pack(p: &Pack<T, L>) -> Self {
+        *p
+    }
+    #[inline(always)]
+    fn to_pack(self) -> Pack<T, L> {
+        self
+    }
+    #[inline(always)]
+    fn mask(m: [bool; L]) -> [bool; L] {
+        m
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86_lanes {
+    use super::ChainLanes;
+    use crate::math::pack::Pack;
+    use crate::render::lanes::{Avx2, Avx512, Lanes};
+
+    /// The lanes' bits (lane `l` is bit `l`).
+    #[inline(always)]
+    fn bits(m: [bool; 16]) -> u16 {
+        let mut b = 0u16;
+        for (l, &v) in m.iter().enumerate() {
+            b |= (v as u16) << l;
+        }
+        b
+    }
+
+    impl ChainLanes<16> for Avx512 {
+        #[inline(always)]
+        fn from_pack(p: &Pack<f32, 16>) -> Self {
+            <Self as Lanes>::load(&p.0)
+        }
+        #[inline(always)]
+        fn to_pack(self) -> Pack<f32, 16> {
+            let mut p = Pack([0.0; 16]);
+            self.store(&mut p.0);
+            p
+        }
+        #[inline(always)]
+        fn mask(m: [bool; 16]) -> u16 {
+            bits(m)
+        }
+    }
+
+    impl ChainLanes<16> for Avx2 {
+        #[inline(always)]
+        fn from_pack(p: &Pack<f32, 16>) -> Self {
+            <Self as Lanes>::load(&p.0)
+        }
+        #[inline(always)]
+        fn to_pack(self) -> Pack<f32, 16> {
+            let mut p = Pack([0.0; 16]);
+            self.store(&mut p.0);
+            p
+        }
+        #[inline(always)]
+        fn mask(m: [bool; 16]) -> <Self as Lanes>::M {
+            <Self as Lanes>::from_bits(bits(m))
+        }
+    }
+}
+
+/// `W` packs as `N`s.
+#[inline(always)]
+fn from_packs<T: Real, const L: usize, N: ChainLanes<L, Elem = T>, const W: usize>(
+    p: &[Pack<T, L>; W],
+) -> [N; W] {
+    let mut out = [N::ZERO; W];
+    for a in 0..W {
+        out[a] = N::from_pack(&p[a]);
+    }
+    out
+}
+
+/// `W` `N`s as packs.
+#[inline(always)]
+fn to_packs<T: Real, const L: usize, N: ChainLanes<L, Elem = T>, const W: usize>(
+    v: &[N; W],
+) -> [Pack<T, L>; W] {
+    let mut out = [Pack([T::ZERO; L]); W];
+    for a in 0..W {
+        out[a] = v[a].to_pack();
+    }
+    out
+}
+
+/// [`chain_rule`] with `L` Gaussians per block, computed in `N`. Lanes past
+/// the chunk's end repeat its last Gaussian; lanes of culled Gaussians are
+/// computed and not written (their outputs stay zero). Each block's inputs
+/// are moved from the Gaussians' rows into packs and its results back into
+/// the rows ([`load_rows`], [`store_rows`]).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // lanes and slots as indices
-fn chain_rule_lanes<T: Real, const L: usize>(
+fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
     ctx: &Ctx<'_, T>,
     s: usize,
     acc: &[EntryGrad<T>],
@@ -724,7 +875,8 @@ fn chain_rule_lanes<T: Real, const L: usize>(
         Some((_, degree)) => 3 * coeffs_for_degree(degree),
         None => 3,
     };
-    let zero = [T::ZERO; L];
+    let zero_pack = Pack([T::ZERO; L]);
+    let p = path::<T>();
     let mut j0 = 0;
     while j0 < len {
         let cnt = L.min(len - j0);
@@ -736,123 +888,107 @@ fn chain_rule_lanes<T: Real, const L: usize>(
         if !live.contains(&true) {
             continue;
         }
-        // Lane-major copies of the inputs.
-        let mut r_mean = [[T::ZERO; 3]; L];
-        let mut r_acc = [EntryGrad::ZERO; L];
-        let mut r_cov3d = [[T::ZERO; 6]; L];
-        let mut r_cov2d = [[T::ZERO; 3]; L];
-        for l in 0..L {
-            let j = jl[l];
-            r_mean[l].copy_from_slice(&means[3 * j..3 * j + 3]);
-            r_acc[l] = acc[j];
-            r_cov3d[l] = cov3d[j];
-            r_cov2d[l] = proj[j].cov2d;
-        }
-        let mean: [Pack<T, L>; 3] = transpose(&r_mean);
+        // Each lane's rows of the inputs, moved into packs.
+        let rows = |w: usize| -> [usize; L] { std::array::from_fn(|l| w * jl[l]) };
+        let mut mean = [zero_pack; 3];
+        load_rows(p, means, &rows(3), &mut mean);
+        let mut e = [zero_pack; ENTRY_VALUES];
+        load_rows(p, EntryGrad::values(acc), &rows(ENTRY_VALUES), &mut e);
+        let mut c3 = [zero_pack; 6];
+        load_rows(p, cov3d.as_flattened(), &rows(6), &mut c3);
+        let cov2d: [Pack<T, L>; 3] = std::array::from_fn(|a| Pack(jl.map(|j| proj[j].cov2d[a])));
+        let mean_n: [N; 3] = from_packs(&mean);
+        let e_n: [N; ENTRY_VALUES] = from_packs(&e);
         let g = ProjectedGrad {
-            xy: transpose(&r_acc.map(|e| e.xy)),
-            conic: transpose(&r_acc.map(|e| e.conic)),
-            depth: Pack(r_acc.map(|e| e.depth)),
+            xy: [e_n[3], e_n[4]],
+            conic: [e_n[5], e_n[6], e_n[7]],
+            depth: e_n[9],
         };
         let (mut gmean, gcov, gndc) = project::project_vjp(
             &saved.intr,
-            mean,
-            transpose(&r_cov3d),
-            transpose(&r_cov2d),
-            [jl.map(|j| proj[j].clamped_x), jl.map(|j| proj[j].clamped_y)],
+            mean_n,
+            from_packs(&c3),
+            from_packs(&cov2d),
+            [
+                N::mask(jl.map(|j| proj[j].clamped_x)),
+                N::mask(jl.map(|j| proj[j].clamped_y)),
+            ],
             g,
             ctx.mode,
         );
-        let mut col = [zero; 48];
+        let mut col = [zero_pack; MAX_COLOR_VALUES];
         match ctx.sh {
             Some((coeffs, degree)) => {
-                let mut r_coef = [[T::ZERO; 48]; L];
-                for l in 0..L {
-                    let c = &coeffs[(s + jl[l]) * cstride..];
-                    r_coef[l][..ncol].copy_from_slice(&c[..ncol]);
-                }
+                // The coefficients are read once per frame, far from the
+                // caches: ask for the next block's while this one computes.
+                prefetch(coeffs, (s + j0) * cstride, L * cstride);
+                let mut coef = [zero_pack; MAX_COLOR_VALUES];
+                let at: [usize; L] = std::array::from_fn(|l| (s + jl[l]) * cstride);
+                load_rows(p, coeffs, &at, &mut coef[..ncol]);
                 let colors = &saved.colors[s..s + len];
+                let clamped: [[bool; L]; 3] =
+                    std::array::from_fn(|ch| jl.map(|j| colors[j].clamped[ch]));
                 let gd = color_vjp(
                     degree,
-                    |q| Pack(std::array::from_fn(|l| r_coef[l][q])),
-                    mean,
-                    input.camera.campos.map(Pack::splat),
-                    std::array::from_fn(|ch| jl.map(|j| colors[j].clamped[ch])),
-                    transpose(&r_acc.map(|e| e.color)),
-                    |q, v| col[q] = v.0,
+                    |q| N::from_pack(&coef[q]),
+                    mean_n,
+                    input.camera.campos.map(N::splat),
+                    [
+                        N::mask(clamped[0]),
+                        N::mask(clamped[1]),
+                        N::mask(clamped[2]),
+                    ],
+                    [e_n[0], e_n[1], e_n[2]],
+                    |q, v| col[q] = v.to_pack(),
                 );
                 for a in 0..3 {
                     gmean[a] += gd[a];
                 }
             }
-            None => {
-                for ch in 0..3 {
-                    col[ch] = r_acc.map(|e| e.color[ch]);
-                }
-            }
+            None => col[..3].copy_from_slice(&e[..3]),
         }
-        let mut cov = [zero; 6];
-        let mut rot = [zero; 4];
+        let mut cov = [zero_pack; 6];
+        let mut rot = [zero_pack; 4];
         match ctx.scale_rot {
             Some((scales, rotations, modifier)) => {
-                let mut r_scale = [[T::ZERO; 3]; L];
-                let mut r_rot = [[T::ZERO; 4]; L];
-                for l in 0..L {
-                    let i = s + jl[l];
-                    r_scale[l].copy_from_slice(&scales[3 * i..3 * i + 3]);
-                    r_rot[l].copy_from_slice(&rotations[4 * i..4 * i + 4]);
-                }
-                let scale = transpose(&r_scale);
-                let q = transpose(&r_rot);
-                let modifier = Pack::splat(modifier);
+                let mut scale = [zero_pack; 3];
+                let mut q = [zero_pack; 4];
+                let at = |w: usize| -> [usize; L] { std::array::from_fn(|l| w * (s + jl[l])) };
+                load_rows(p, scales, &at(3), &mut scale);
+                load_rows(p, rotations, &at(4), &mut q);
+                let modifier = N::splat(modifier);
                 let (gs, gq) = match ctx.mode {
-                    GradientMode::Exact => cov3d_vjp(scale, modifier, q, gcov),
-                    GradientMode::Inria => cov3d_vjp_scaled(scale, modifier, q, gcov),
+                    GradientMode::Exact => {
+                        cov3d_vjp(from_packs(&scale), modifier, from_packs(&q), gcov)
+                    }
+                    GradientMode::Inria => {
+                        cov3d_vjp_scaled(from_packs(&scale), modifier, from_packs(&q), gcov)
+                    }
                 };
-                for a in 0..3 {
-                    cov[a] = gs[a].0;
-                }
-                for q in 0..4 {
-                    rot[q] = gq[q].0;
-                }
+                cov[..3].copy_from_slice(&to_packs(&gs));
+                rot = to_packs(&gq);
             }
-            None => {
-                for q in 0..6 {
-                    cov[q] = gcov[q].0;
-                }
-            }
+            None => cov = to_packs(&gcov),
         }
+        let gmean = to_packs(&gmean);
+        let gndc = to_packs(&gndc);
+        // The live lanes' rows of the outputs (the others stay zero); the
+        // rows of the chunk's outputs are those of `acc` (`rows`).
+        let lanes = live
+            .iter()
+            .enumerate()
+            .fold(0u32, |m, (l, &v)| m | (v as u32) << l);
         for l in (0..cnt).filter(|&l| live[l]) {
             let j = b + l;
-            o.opacities[j] = r_acc[l].opacity;
+            o.opacities[j] = e[8].0[l];
             o.means2d[3 * j] = gndc[0].0[l];
             o.means2d[3 * j + 1] = gndc[1].0[l];
-            for (a, v) in o.means3d[3 * j..3 * j + 3].iter_mut().enumerate() {
-                *v = gmean[a].0[l];
-            }
-            for (v, c) in o.scales_or_cov[cov_w * j..cov_w * (j + 1)]
-                .iter_mut()
-                .zip(&cov)
-            {
-                *v = c[l];
-            }
-            if ctx.scale_rot.is_some() {
-                for (v, r) in o.rotations[4 * j..4 * j + 4].iter_mut().zip(&rot) {
-                    *v = r[l];
-                }
-            }
-            for (v, c) in o.colors[cstride * j..cstride * j + ncol]
-                .iter_mut()
-                .zip(&col)
-            {
-                *v = c[l];
-            }
         }
+        store_rows(p, o.means3d, &rows(3), lanes, &gmean);
+        store_rows(p, o.scales_or_cov, &rows(cov_w), lanes, &cov[..cov_w]);
+        if ctx.scale_rot.is_some() {
+            store_rows(p, o.rotations, &rows(4), lanes, &rot);
+        }
+        store_rows(p, o.colors, &rows(cstride), lanes, &col[..ncol]);
     }
-}
-
-/// `W` packs from `L` lane-major rows: pack `a`, lane `l` is `rows[l][a]`.
-#[inline(always)]
-fn transpose<T: Real, const L: usize, const W: usize>(rows: &[[T; W]; L]) -> [Pack<T, L>; W] {
-    std::array::from_fn(|a| Pack(std::array::from_fn(|l| rows[l][a])))
 }

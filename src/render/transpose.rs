@@ -1,0 +1,385 @@
+//! Moving a block of Gaussians' values between their rows (one Gaussian's
+//! values side by side, as the arrays store them) and value-major
+//! [`Pack`]s (one value of every Gaussian side by side, as the lane-parallel
+//! code computes with them): [`load_rows`] and [`store_rows`].
+//!
+//! In f32 with AVX-512 (16 lanes) or AVX2 (8 or 16 lanes, in groups of 8)
+//! a block of at most 16 (or 8) values per row moves by masked loads, a
+//! transpose in registers and masked stores; otherwise value by value. Both
+//! only move bits, so every path gives the same values.
+
+use super::rasterize::{path, Path};
+use crate::math::pack::Pack;
+use crate::math::Real;
+
+/// `out[a]`, lane `l`, is `src[at[l] + a]` for every `a < out.len()`, on
+/// path `p` (the caller's [`path`], asked once for many calls).
+///
+/// Panics when a row `at[l] .. at[l] + out.len()` runs past `src`.
+#[inline(always)]
+pub(crate) fn load_rows<T: Real, const L: usize>(
+    p: Path,
+    src: &[T],
+    at: &[usize; L],
+    out: &mut [Pack<T, L>],
+) {
+    let w = out.len();
+    for &a in at {
+        assert!(a + w <= src.len(), "load_rows: a row runs past the values");
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        debug_assert!(p == path::<T>(), "a path other than the running one");
+        let wide = match p {
+            Path::Avx512 => L == 16,
+            Path::Avx2 => L.is_multiple_of(8),
+            Path::Portable => false,
+        };
+        if wide {
+            let s = src.as_ptr() as *const f32;
+            let o = out.as_mut_ptr() as *mut f32;
+            let step = if p == Path::Avx512 { 16 } else { 8 };
+            for c in (0..w).step_by(step) {
+                let n = step.min(w - c);
+                for g in (0..L).step_by(step) {
+                    // SAFETY: `path` picks a vector path only for T = f32 on
+                    // a CPU with its feature; `Pack` is a transparent
+                    // `[T; L]`, so `out` is `w` rows of `L` f32 values and
+                    // value `c + j`, lane `g + l` is at `o + L·(c + j) + g + l`;
+                    // row `at[g + l]` holds values `c .. c + n` (asserted
+                    // above); `g + l < L` (L is 16 with AVX-512, a multiple
+                    // of 8 with AVX2).
+                    unsafe {
+                        if p == Path::Avx512 {
+                            let rows: [*const f32; 16] = std::array::from_fn(|l| s.add(at[l] + c));
+                            x86::load16(&rows, n, o.add(L * c), L);
+                        } else {
+                            let rows: [*const f32; 8] =
+                                std::array::from_fn(|l| s.add(at[g + l] + c));
+                            x86::load8(&rows, n, o.add(L * c + g), L);
+                        }
+                    }
+                }
+            }
+            return;
+        }
+    }
+    for (a, o) in out.iter_mut().enumerate() {
+        *o = Pack(std::array::from_fn(|l| src[at[l] + a]));
+    }
+}
+
+/// `dst[at[l] + a] = vals[a]`, lane `l`, for every `a < vals.len()` and
+/// every lane `l` whose bit is set in `lanes`; the other values of `dst`
+/// are left as they are; on path `p` (as for [`load_rows`]).
+///
+/// Panics when the row `at[l] .. at[l] + vals.len()` of a written lane runs
+/// past `dst`.
+#[inline(always)]
+pub(crate) fn store_rows<T: Real, const L: usize>(
+    p: Path,
+    dst: &mut [T],
+    at: &[usize; L],
+    lanes: u32,
+    vals: &[Pack<T, L>],
+) {
+    let w = vals.len();
+    for (l, &a) in at.iter().enumerate() {
+        assert!(
+            lanes >> l & 1 == 0 || a + w <= dst.len(),
+            "store_rows: a row runs past the values"
+        );
+    }
+    #[cfg(target_arch = "x86_64")]
+    {
+        debug_assert!(p == path::<T>(), "a path other than the running one");
+        let wide = match p {
+            Path::Avx512 => L == 16,
+            Path::Avx2 => L.is_multiple_of(8),
+            Path::Portable => false,
+        };
+        if wide {
+            let d = dst.as_mut_ptr() as *mut f32;
+            let v = vals.as_ptr() as *const f32;
+            let step = if p == Path::Avx512 { 16 } else { 8 };
+            for c in (0..w).step_by(step) {
+                let n = step.min(w - c);
+                for g in (0..L).step_by(step) {
+                    let live = (lanes >> g) & ((1 << step) - 1);
+                    if live == 0 {
+                        continue;
+                    }
+                    // SAFETY: as in `load_rows`; the rows of the lanes
+                    // written hold values `c .. c + n` (asserted above), and
+                    // a lane not written is never addressed.
+                    unsafe {
+                        if p == Path::Avx512 {
+                            let rows: [*mut f32; 16] = std::array::from_fn(|l| {
+                                if live >> l & 1 != 0 {
+                                    d.add(at[l] + c)
+                                } else {
+                                    std::ptr::null_mut()
+                                }
+                            });
+                            x86::store16(&rows, live, n, v.add(L * c), L);
+                        } else {
+                            let rows: [*mut f32; 8] = std::array::from_fn(|l| {
+                                if live >> l & 1 != 0 {
+                                    d.add(at[g + l] + c)
+                                } else {
+                                    std::ptr::null_mut()
+                                }
+                            });
+                            x86::store8(&rows, live, n, v.add(L * c + g), L);
+                        }
+                    }
+                }
+            }
+            return;
+        }
+    }
+    for (a, v) in vals.iter().enumerate() {
+        for l in (0..L).filter(|&l| lanes >> l & 1 != 0) {
+            dst[at[l] + a] = v.0[l];
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+mod x86 {
+    use std::arch::x86_64::*;
+
+    /// The 16×16 transpose: lane `l` of result `j` is lane `j` of `r[l]`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    fn t16(mut r: [__m512; 16]) -> [__m512; 16] {
+        let mut t = [_mm512_setzero_ps(); 16];
+        // 32-bit interleave of row pairs, then 64-bit of pair pairs: each
+        // 128-bit lane q of r[4a + b] then holds column 4q + b of rows
+        // 4a .. 4a + 3.
+        for k in 0..8 {
+            t[2 * k] = _mm512_unpacklo_ps(r[2 * k], r[2 * k + 1]);
+            t[2 * k + 1] = _mm512_unpackhi_ps(r[2 * k], r[2 * k + 1]);
+        }
+        let pd = |x: __m512| _mm512_castps_pd(x);
+        let ps = |x: __m512d| _mm512_castpd_ps(x);
+        for k in 0..4 {
+            let b = 4 * k;
+            r[b] = ps(_mm512_unpacklo_pd(pd(t[b]), pd(t[b + 2])));
+            r[b + 1] = ps(_mm512_unpackhi_pd(pd(t[b]), pd(t[b + 2])));
+            r[b + 2] = ps(_mm512_unpacklo_pd(pd(t[b + 1]), pd(t[b + 3])));
+            r[b + 3] = ps(_mm512_unpackhi_pd(pd(t[b + 1]), pd(t[b + 3])));
+        }
+        // Gather the 128-bit lanes in two steps.
+        for k in 0..4 {
+            t[k] = _mm512_shuffle_f32x4::<0x88>(r[k], r[k + 4]);
+            t[k + 4] = _mm512_shuffle_f32x4::<0xdd>(r[k], r[k + 4]);
+            t[k + 8] = _mm512_shuffle_f32x4::<0x88>(r[k + 8], r[k + 12]);
+            t[k + 12] = _mm512_shuffle_f32x4::<0xdd>(r[k + 8], r[k + 12]);
+        }
+        for k in 0..8 {
+            r[k] = _mm512_shuffle_f32x4::<0x88>(t[k], t[k + 8]);
+            r[k + 8] = _mm512_shuffle_f32x4::<0xdd>(t[k], t[k + 8]);
+        }
+        r
+    }
+
+    /// `out[stride·j + l] = rows[l][j]` for `l < 16`, `j < n ≤ 16`.
+    ///
+    /// # Safety
+    /// AVX-512F is present; `rows[l]` can be read for `n` values and `out`
+    /// written at `stride·j + l` for `l < 16`, `j < n`, `stride ≥ 16`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn load16(rows: &[*const f32; 16], n: usize, out: *mut f32, stride: usize) {
+        let m = ((1u32 << n) - 1) as __mmask16;
+        // SAFETY: the caller guarantees the extents; masked-off values are
+        // not read.
+        unsafe {
+            let t = t16(std::array::from_fn(|l| _mm512_maskz_loadu_ps(m, rows[l])));
+            for (j, v) in t.iter().enumerate().take(n) {
+                _mm512_storeu_ps(out.add(stride * j), *v);
+            }
+        }
+    }
+
+    /// `rows[l][j] = vals[stride·j + l]` for `j < n ≤ 16` and the lanes `l`
+    /// whose bit is set in `lanes`.
+    ///
+    /// # Safety
+    /// AVX-512F is present; `vals` can be read at `stride·j + l` for
+    /// `l < 16`, `j < n`, and `rows[l]` written for `n` values for every
+    /// lane set in `lanes`.
+    #[target_feature(enable = "avx512f")]
+    #[inline]
+    pub(super) unsafe fn store16(
+        rows: &[*mut f32; 16],
+        lanes: u32,
+        n: usize,
+        vals: *const f32,
+        stride: usize,
+    ) {
+        let m = ((1u32 << n) - 1) as __mmask16;
+        // SAFETY: the caller guarantees the extents; masked-off values and
+        // lanes are not written.
+        unsafe {
+            let t = t16(std::array::from_fn(|j| {
+                if j < n {
+                    _mm512_loadu_ps(vals.add(stride * j))
+                } else {
+                    _mm512_setzero_ps()
+                }
+            }));
+            for (l, v) in t.iter().enumerate() {
+                if lanes >> l & 1 != 0 {
+                    _mm512_mask_storeu_ps(rows[l], m, *v);
+                }
+            }
+        }
+    }
+
+    /// The 8×8 transpose: lane `l` of result `j` is lane `j` of `r[l]`.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn t8(r: [__m256; 8]) -> [__m256; 8] {
+        let mut t = [_mm256_setzero_ps(); 8];
+        for k in 0..4 {
+            t[2 * k] = _mm256_unpacklo_ps(r[2 * k], r[2 * k + 1]);
+            t[2 * k + 1] = _mm256_unpackhi_ps(r[2 * k], r[2 * k + 1]);
+        }
+        let mut u = [_mm256_setzero_ps(); 8];
+        for k in 0..2 {
+            let b = 4 * k;
+            u[b] = _mm256_shuffle_ps::<0x44>(t[b], t[b + 2]);
+            u[b + 1] = _mm256_shuffle_ps::<0xEE>(t[b], t[b + 2]);
+            u[b + 2] = _mm256_shuffle_ps::<0x44>(t[b + 1], t[b + 3]);
+            u[b + 3] = _mm256_shuffle_ps::<0xEE>(t[b + 1], t[b + 3]);
+        }
+        let mut o = [_mm256_setzero_ps(); 8];
+        for k in 0..4 {
+            o[k] = _mm256_permute2f128_ps::<0x20>(u[k], u[k + 4]);
+            o[k + 4] = _mm256_permute2f128_ps::<0x31>(u[k], u[k + 4]);
+        }
+        o
+    }
+
+    /// The mask of the first `n ≤ 8` values for `maskload` / `maskstore`.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    fn first(n: usize) -> __m256i {
+        let i = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+        _mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), i)
+    }
+
+    /// `out[stride·j + l] = rows[l][j]` for `l < 8`, `j < n ≤ 8`.
+    ///
+    /// # Safety
+    /// AVX2 is present; `rows[l]` can be read for `n` values and `out`
+    /// written at `stride·j + l` for `l < 8`, `j < n`, `stride ≥ 8`.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    pub(super) unsafe fn load8(rows: &[*const f32; 8], n: usize, out: *mut f32, stride: usize) {
+        let m = first(n);
+        // SAFETY: the caller guarantees the extents; masked-off values are
+        // not read.
+        unsafe {
+            let t = t8(std::array::from_fn(|l| _mm256_maskload_ps(rows[l], m)));
+            for (j, v) in t.iter().enumerate().take(n) {
+                _mm256_storeu_ps(out.add(stride * j), *v);
+            }
+        }
+    }
+
+    /// `rows[l][j] = vals[stride·j + l]` for `j < n ≤ 8` and the lanes `l`
+    /// whose bit is set in `lanes`.
+    ///
+    /// # Safety
+    /// AVX2 is present; `vals` can be read at `stride·j + l` for `l < 8`,
+    /// `j < n`, and `rows[l]` written for `n` values for every lane set in
+    /// `lanes`.
+    #[target_feature(enable = "avx2")]
+    #[inline]
+    pub(super) unsafe fn store8(
+        rows: &[*mut f32; 8],
+        lanes: u32,
+        n: usize,
+        vals: *const f32,
+        stride: usize,
+    ) {
+        let m = first(n);
+        // SAFETY: the caller guarantees the extents; masked-off values and
+        // lanes are not written.
+        unsafe {
+            let t = t8(std::array::from_fn(|j| {
+                if j < n {
+                    _mm256_loadu_ps(vals.add(stride * j))
+                } else {
+                    _mm256_setzero_ps()
+                }
+            }));
+            for (l, v) in t.iter().enumerate() {
+                if lanes >> l & 1 != 0 {
+                    _mm256_maskstore_ps(rows[l], m, *v);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::kernels::fastmath::{force_isa, isa_test_lock, Isa};
+
+    /// Every path moves the same values as the definition, for widths across
+    /// the vector blocks, scattered and overlapping rows, and partial lanes.
+    fn round_trip<T: Real, const L: usize>() {
+        let src: Vec<T> = (0..700)
+            .map(|i| T::from_f64(i as f64 * 0.5 - 3.0))
+            .collect();
+        for w in [1usize, 3, 7, 8, 9, 10, 15, 16, 17, 24, 33, 48] {
+            let at: [usize; L] = std::array::from_fn(|l| (l * 37 + w * 5) % (700 - w));
+            let mut packs = vec![Pack([T::ZERO; L]); w];
+            load_rows(path::<T>(), &src, &at, &mut packs);
+            for (a, p) in packs.iter().enumerate() {
+                for l in 0..L {
+                    assert_eq!(p.0[l], src[at[l] + a], "load w {w} value {a} lane {l}");
+                }
+            }
+            for lanes in [
+                0u32,
+                1,
+                (1 << L) - 1,
+                0b1010_0110_0101_1001 & ((1 << L) - 1),
+            ] {
+                // Disjoint rows so that each written value has one writer.
+                let at: [usize; L] = std::array::from_fn(|l| 3 + l * (w + 2));
+                let mut dst = vec![T::from_f64(-1.0); 3 + L * (w + 2)];
+                store_rows(path::<T>(), &mut dst, &at, lanes, &packs);
+                let mut want = vec![T::from_f64(-1.0); dst.len()];
+                for l in (0..L).filter(|&l| lanes >> l & 1 != 0) {
+                    for a in 0..w {
+                        want[at[l] + a] = packs[a].0[l];
+                    }
+                }
+                assert_eq!(dst, want, "store w {w} lanes {lanes:b}");
+            }
+        }
+    }
+
+    #[test]
+    fn every_path_moves_the_values_of_the_definition() {
+        let _guard = isa_test_lock();
+        for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
+            if !force_isa(Some(isa)) {
+                continue;
+            }
+            round_trip::<f32, 16>();
+            round_trip::<f32, 8>();
+            round_trip::<f32, 4>();
+            round_trip::<f64, 16>();
+            round_trip::<f64, 4>();
+        }
+        force_isa(None);
+    }
+}
