@@ -64,6 +64,17 @@ pub(crate) trait Lanes:
         }
         (b[0] + b[2]) + (b[1] + b[3])
     }
+    /// [`tree_sum`](Self::tree_sum) of each of 16 values at once (element
+    /// `k` is the sum of `v[k]`), with the same bits; the vector types
+    /// share the shuffles of the four levels among the values.
+    #[inline(always)]
+    fn tree_sums(v: [Self; 16]) -> [Self::T; 16] {
+        let mut out = [Self::T::ZERO; 16];
+        for (o, x) in out.iter_mut().zip(v) {
+            *o = x.tree_sum();
+        }
+        out
+    }
 }
 
 /// The portable implementation: sixteen scalars, each lane the scalar
@@ -272,6 +283,52 @@ mod x86 {
                 let lo = _mm512_castps512_ps256(self.0);
                 let hi = _mm256_castpd_ps(_mm512_extractf64x4_pd::<1>(_mm512_castps_pd(self.0)));
                 sum8(_mm256_add_ps(lo, hi))
+            }
+        }
+        #[inline(always)]
+        fn tree_sums(v: [Self; 16]) -> [f32; 16] {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
+            unsafe {
+                // Level 1, a[l] = v[l] + v[l + 8], two values per register:
+                // 128-bit quarters [a0..3, a4..7] of v[2k], then of v[2k + 1].
+                let mut s1 = [_mm512_setzero_ps(); 8];
+                for (k, s) in s1.iter_mut().enumerate() {
+                    let (a, b) = (v[2 * k].0, v[2 * k + 1].0);
+                    *s = _mm512_add_ps(
+                        _mm512_shuffle_f32x4::<0x44>(a, b),
+                        _mm512_shuffle_f32x4::<0xEE>(a, b),
+                    );
+                }
+                // Level 2, b[l] = a[l] + a[l + 4]: quarter i of s2[k] is
+                // value 4k + i's b.
+                let mut s2 = [_mm512_setzero_ps(); 4];
+                for (k, s) in s2.iter_mut().enumerate() {
+                    let (p, q) = (s1[2 * k], s1[2 * k + 1]);
+                    *s = _mm512_add_ps(
+                        _mm512_shuffle_f32x4::<0x88>(p, q),
+                        _mm512_shuffle_f32x4::<0xDD>(p, q),
+                    );
+                }
+                // Level 3, c[l] = b[l] + b[l + 2]: quarter i of s3[k] is
+                // [c0, c1] of value 8k + i, then of value 8k + 4 + i.
+                let mut s3 = [_mm512_setzero_ps(); 2];
+                for (k, s) in s3.iter_mut().enumerate() {
+                    let (p, q) = (s2[2 * k], s2[2 * k + 1]);
+                    *s = _mm512_add_ps(
+                        _mm512_shuffle_ps::<0x44>(p, q),
+                        _mm512_shuffle_ps::<0xEE>(p, q),
+                    );
+                }
+                // Level 4, c0 + c1: lane 4i + j is value 4j + i's sum.
+                let s4 = _mm512_add_ps(
+                    _mm512_shuffle_ps::<0x88>(s3[0], s3[1]),
+                    _mm512_shuffle_ps::<0xDD>(s3[0], s3[1]),
+                );
+                let idx = _mm512_setr_epi32(0, 4, 8, 12, 1, 5, 9, 13, 2, 6, 10, 14, 3, 7, 11, 15);
+                let mut out = [0.0f32; 16];
+                _mm512_storeu_ps(out.as_mut_ptr(), _mm512_permutexvar_ps(idx, s4));
+                out
             }
         }
         #[inline(always)]
@@ -505,6 +562,50 @@ mod x86 {
             unsafe { sum8(_mm256_add_ps(self.0[0], self.0[1])) }
         }
         #[inline(always)]
+        fn tree_sums(v: [Self; 16]) -> [f32; 16] {
+            // As Avx512's, in 128-bit halves, eight values at a time.
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection).
+            unsafe {
+                let mut out = [0.0f32; 16];
+                for (h, o) in out.chunks_exact_mut(8).enumerate() {
+                    let w = &v[8 * h..8 * h + 8];
+                    // Level 1, a[l] = v[l] + v[l + 8].
+                    let mut a = [_mm256_setzero_ps(); 8];
+                    for (x, y) in a.iter_mut().zip(w) {
+                        *x = _mm256_add_ps(y.0[0], y.0[1]);
+                    }
+                    // Level 2, b[l] = a[l] + a[l + 4]: halves [b of 2k, b of 2k + 1].
+                    let mut b = [_mm256_setzero_ps(); 4];
+                    for (k, x) in b.iter_mut().enumerate() {
+                        let (p, q) = (a[2 * k], a[2 * k + 1]);
+                        *x = _mm256_add_ps(
+                            _mm256_permute2f128_ps::<0x20>(p, q),
+                            _mm256_permute2f128_ps::<0x31>(p, q),
+                        );
+                    }
+                    // Level 3, c[l] = b[l] + b[l + 2]: half i of c[k] is
+                    // [c0, c1] of value 4k + i, then of value 4k + 2 + i.
+                    let mut c = [_mm256_setzero_ps(); 2];
+                    for (k, x) in c.iter_mut().enumerate() {
+                        let (p, q) = (b[2 * k], b[2 * k + 1]);
+                        *x = _mm256_add_ps(
+                            _mm256_shuffle_ps::<0x44>(p, q),
+                            _mm256_shuffle_ps::<0xEE>(p, q),
+                        );
+                    }
+                    // Level 4, c0 + c1: lane 4i + j is value 2j + i's sum.
+                    let d = _mm256_add_ps(
+                        _mm256_shuffle_ps::<0x88>(c[0], c[1]),
+                        _mm256_shuffle_ps::<0xDD>(c[0], c[1]),
+                    );
+                    let idx = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+                    _mm256_storeu_ps(o.as_mut_ptr(), _mm256_permutevar8x32_ps(d, idx));
+                }
+                out
+            }
+        }
+        #[inline(always)]
         fn exp(self) -> Self {
             Avx2([exp8(self.0[0]), exp8(self.0[1])])
         }
@@ -718,6 +819,63 @@ mod arith_tests {
     #[target_feature(enable = "avx2")]
     fn on_avx2(a: [f32; LANES], b: [f32; LANES], lo: [f32; LANES], hi: [f32; LANES]) -> Vec<u32> {
         ops::<Avx2>(a, b, lo, hi, <Avx2 as Lanes>::bits)
+    }
+
+    /// `tree_sums` of 16 values against `tree_sum` of each, as bits.
+    #[inline(always)]
+    fn sums<N: Lanes<T = f32>>(x: &[[f32; LANES]; 16]) -> (Vec<u32>, Vec<u32>) {
+        let v: [N; 16] = std::array::from_fn(|k| N::load(&x[k]));
+        let got = N::tree_sums(v).map(bits).to_vec();
+        let want = v.map(|y| bits(y.tree_sum())).to_vec();
+        (got, want)
+    }
+
+    #[target_feature(enable = "avx512f")]
+    fn sums_avx512(x: &[[f32; LANES]; 16]) -> (Vec<u32>, Vec<u32>) {
+        sums::<Avx512>(x)
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn sums_avx2(x: &[[f32; LANES]; 16]) -> (Vec<u32>, Vec<u32>) {
+        sums::<Avx2>(x)
+    }
+
+    #[test]
+    fn batched_tree_sums_give_the_bits_of_one_at_a_time() {
+        // Values whose sums depend on the order (large and small of both
+        // signs, signed zeros, infinities), a different mix per value.
+        let mut r = crate::math::rng::Rng::new(7);
+        for round in 0..200 {
+            let x: [[f32; LANES]; 16] = std::array::from_fn(|k| {
+                std::array::from_fn(|l| match (round + k + l) % 9 {
+                    0 => V[(k * 3 + l) % LANES],
+                    1 => r.uniform_range(-1e8, 1e8) as f32,
+                    _ => r.uniform_range(-1.0, 1.0) as f32 * 10f32.powi((l % 7) as i32 - 3),
+                })
+            });
+            // Each value's tree, and the Scalar one, give the same bits.
+            let scalar: Vec<u32> = x
+                .iter()
+                .map(|v| bits(super::Scalar::load(v).tree_sum()))
+                .collect();
+            let defaults: Vec<u32> =
+                super::Scalar::tree_sums(std::array::from_fn(|k| super::Scalar::load(&x[k])))
+                    .map(bits)
+                    .to_vec();
+            assert_eq!(defaults, scalar, "portable, round {round}");
+            if std::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU has AVX-512F (checked above).
+                let (got, want) = unsafe { sums_avx512(&x) };
+                assert_eq!(want, scalar, "AVX-512 tree_sum, round {round}");
+                assert_eq!(got, want, "AVX-512 tree_sums, round {round}");
+            }
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2 (checked above).
+                let (got, want) = unsafe { sums_avx2(&x) };
+                assert_eq!(want, scalar, "AVX2 tree_sum, round {round}");
+                assert_eq!(got, want, "AVX2 tree_sums, round {round}");
+            }
+        }
     }
 
     #[test]

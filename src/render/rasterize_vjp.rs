@@ -82,6 +82,12 @@ pub(crate) struct EntryGrad<T> {
 /// opacity, depth.
 const ENTRY_VALUES: usize = 10;
 
+/// [`EntryGrad::add_sums`] masks: every value, the depth, the colour and
+/// the depth.
+const ALL_VALUES: u16 = (1 << ENTRY_VALUES) - 1;
+const DEPTH: u16 = 1 << 9;
+const COLOR_DEPTH: u16 = 0b111 | DEPTH;
+
 impl<T: Real> EntryGrad<T> {
     /// All zeros.
     pub const ZERO: Self = EntryGrad {
@@ -98,6 +104,34 @@ impl<T: Real> EntryGrad<T> {
         // SAFETY: `EntryGrad` is `repr(C)` with ten `T` fields and no
         // padding (the size asserted above), so `e` is `10·len` `T`s.
         unsafe { std::slice::from_raw_parts(e.as_ptr() as *const T, e.len() * ENTRY_VALUES) }
+    }
+
+    /// Add `sums[f]` to value `f` (in [`Self::values`] order: colour 0–2,
+    /// centre 3–4, conic 5–7, opacity 8, depth 9) for every bit `f` set in
+    /// `which`; the other values are left as they are (not even `+ 0`,
+    /// which would turn a `−0` into `+0`).
+    #[inline(always)]
+    fn add_sums(&mut self, sums: &[T; 16], which: u16) {
+        let [c0, c1, c2] = &mut self.color;
+        let [x0, x1] = &mut self.xy;
+        let [k0, k1, k2] = &mut self.conic;
+        let v = [
+            c0,
+            c1,
+            c2,
+            x0,
+            x1,
+            k0,
+            k1,
+            k2,
+            &mut self.opacity,
+            &mut self.depth,
+        ];
+        for (f, x) in v.into_iter().enumerate() {
+            if which >> f & 1 != 0 {
+                *x += sums[f];
+            }
+        }
     }
 
     /// Add `o` field by field.
@@ -237,21 +271,26 @@ fn exact_row<V: Lanes>(
         r = V::select(b, a * w + (one - a) * r, r);
         let at = a * t_i;
         let e = &mut grads[rc.j as usize];
-        e.color[0] += V::select(b, g[0] * at, zero).tree_sum();
-        e.color[1] += V::select(b, g[1] * at, zero).tree_sum();
-        e.color[2] += V::select(b, g[2] * at, zero).tree_sum();
-        e.depth += V::select(b, gd * at, zero).tree_sum();
+        // The row's contributions in the entry's value order (see
+        // `EntryGrad::add_sums`), summed over the lanes together.
+        let mut v = [zero; 16];
+        v[0] = V::select(b, g[0] * at, zero);
+        v[1] = V::select(b, g[1] * at, zero);
+        v[2] = V::select(b, g[2] * at, zero);
+        v[9] = V::select(b, gd * at, zero);
         if V::bits(live) == 0 {
+            e.add_sums(&V::tree_sums(v), COLOR_DEPTH);
             continue;
         }
         // alpha = o·G, G = exp(power).
         let gp = dalpha * o * gg;
-        e.opacity += V::select(live, dalpha * gg, zero).tree_sum();
-        e.xy[0] += V::select(live, gp * (V::splat(-ca) * dx - V::splat(cb) * dy), zero).tree_sum();
-        e.xy[1] += V::select(live, gp * (V::splat(-cc) * dy - V::splat(cb) * dx), zero).tree_sum();
-        e.conic[0] += V::select(live, gp * (V::splat(-half) * dx * dx), zero).tree_sum();
-        e.conic[1] += V::select(live, gp * (-dx * dy), zero).tree_sum();
-        e.conic[2] += V::select(live, gp * V::splat(-half * dys * dys), zero).tree_sum();
+        v[8] = V::select(live, dalpha * gg, zero);
+        v[3] = V::select(live, gp * (V::splat(-ca) * dx - V::splat(cb) * dy), zero);
+        v[4] = V::select(live, gp * (V::splat(-cc) * dy - V::splat(cb) * dx), zero);
+        v[5] = V::select(live, gp * (V::splat(-half) * dx * dx), zero);
+        v[6] = V::select(live, gp * (-dx * dy), zero);
+        v[7] = V::select(live, gp * V::splat(-half * dys * dys), zero);
+        e.add_sums(&V::tree_sums(v), ALL_VALUES);
     }
 }
 
@@ -300,12 +339,14 @@ fn inria_row<V: Lanes>(
         let tn = t / (one - a);
         let dchannel_dcolor = a * tn;
         let mut dl_dalpha = zero;
-        let e = &mut grads[rc.j as usize];
+        // The row's contributions in the entry's value order (see
+        // `EntryGrad::add_sums`), summed over the lanes together.
+        let mut v = [zero; 16];
         for ch in 0..3 {
             let c = V::splat(s.color[ch]);
             let acc = last_alpha * last_color[ch] + (one - last_alpha) * accum[ch];
             dl_dalpha = dl_dalpha + (c - acc) * g[ch];
-            e.color[ch] += V::select(b, dchannel_dcolor * g[ch], zero).tree_sum();
+            v[ch] = V::select(b, dchannel_dcolor * g[ch], zero);
             accum[ch] = V::select(b, acc, accum[ch]);
             last_color[ch] = V::select(b, c, last_color[ch]);
         }
@@ -316,12 +357,13 @@ fn inria_row<V: Lanes>(
         let gdy = gg * dy;
         let dg_ddelx = -gdx * V::splat(ca) - gdy * V::splat(cb);
         let dg_ddely = -gdy * V::splat(cc) - gdx * V::splat(cb);
-        e.xy[0] += V::select(b, dl_dg * dg_ddelx * ndc[0], zero).tree_sum();
-        e.xy[1] += V::select(b, dl_dg * dg_ddely * ndc[1], zero).tree_sum();
-        e.conic[0] += V::select(b, neg_half * gdx * dx * dl_dg, zero).tree_sum();
-        e.conic[1] += V::select(b, neg_half * gdx * dy * dl_dg, zero).tree_sum();
-        e.conic[2] += V::select(b, neg_half * gdy * dy * dl_dg, zero).tree_sum();
-        e.opacity += V::select(b, gg * dl_dalpha, zero).tree_sum();
+        v[3] = V::select(b, dl_dg * dg_ddelx * ndc[0], zero);
+        v[4] = V::select(b, dl_dg * dg_ddely * ndc[1], zero);
+        v[5] = V::select(b, neg_half * gdx * dx * dl_dg, zero);
+        v[6] = V::select(b, neg_half * gdx * dy * dl_dg, zero);
+        v[7] = V::select(b, neg_half * gdy * dy * dl_dg, zero);
+        v[8] = V::select(b, gg * dl_dalpha, zero);
+        grads[rc.j as usize].add_sums(&V::tree_sums(v), ALL_VALUES & !DEPTH);
         t = V::select(b, tn, t);
         last_alpha = V::select(b, a, last_alpha);
     }
