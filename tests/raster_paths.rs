@@ -2,7 +2,9 @@
 //! AVX2, portable; those the CPU has) and every thread count: forward outputs
 //! and backward gradients in both gradient modes, f32, on scenes with partial
 //! tiles, stopped pixels, clamped alphas and imbalanced tiles (the parallel
-//! tile and per-Gaussian stages see different splits on each thread count).
+//! tile and per-Gaussian stages see different splits on each thread count),
+//! SH degrees 1 to 3, clamped centres, culled Gaussians (whose gradients
+//! must be +0) and no depth gradient.
 
 mod support;
 
@@ -30,8 +32,13 @@ fn run_bits(spec: &SceneSpec, colors: ColorSource, cov: CovSource) -> Vec<u32> {
     push(&out.final_t);
     bits.extend(&out.n_contrib);
     bits.push(state.pairs_evaluated() as u32);
-    for mode in GradientMode::ALL {
-        let g = rasterize_vjp(&input, &state, &gc, Some(&gd), mode).unwrap();
+    let runs = GradientMode::ALL
+        .into_iter()
+        .map(|mode| (mode, Some(&gd[..])))
+        .chain([(GradientMode::Exact, None)]);
+    for (mode, depth) in runs {
+        let g = rasterize_vjp(&input, &state, &gc, depth, mode).unwrap();
+        let n = out.radii.len();
         for v in [
             &g.means3d,
             &g.means2d,
@@ -41,6 +48,13 @@ fn run_bits(spec: &SceneSpec, colors: ColorSource, cov: CovSource) -> Vec<u32> {
             &g.rotations,
         ] {
             bits.extend(v.iter().map(|x| x.to_bits()));
+            // A culled Gaussian's gradients are +0 (not −0), value by value.
+            let w = v.len() / n;
+            for (i, &r) in out.radii.iter().enumerate() {
+                if r == 0 {
+                    assert!(v[w * i..w * (i + 1)].iter().all(|x| x.to_bits() == 0));
+                }
+            }
         }
     }
     bits
@@ -60,7 +74,20 @@ fn cases() -> Vec<(SceneSpec, ColorSource, CovSource)> {
     let mut tall = SceneSpec::bench(96, 300, 1200, 9);
     tall.spread = 0.4;
     tall.scale_range = (0.005, 0.3);
+    // Lower SH degrees (colour rows of 3·4 and 3·9 values, not whole
+    // vector blocks), centres whose tangent clamp is active, and Gaussians
+    // outside the view (culled) scattered through every block.
+    let mut degree1 = SceneSpec::bench(83, 61, 900, 13);
+    degree1.sh_degree = 1;
+    degree1.off_axis = 40;
+    degree1.spread = 1.8;
+    degree1.scale_range = (0.01, 0.1);
+    let mut degree2 = degree1.clone();
+    degree2.sh_degree = 2;
+    degree2.seed = 17;
     vec![
+        (degree1, ColorSource::Sh, CovSource::ScaleRotation),
+        (degree2, ColorSource::Sh, CovSource::Precomputed),
         (crowded, ColorSource::Sh, CovSource::ScaleRotation),
         (tall, ColorSource::Precomputed, CovSource::ScaleRotation),
         (

@@ -28,7 +28,8 @@ pub trait Arith:
 {
     /// The scalar type of a lane.
     type Elem: Real;
-    /// One condition per lane: `bool` for a scalar, `[bool; L]` for a pack.
+    /// One condition per lane: `bool` for a scalar, `[bool; L]` for a pack,
+    /// the register types' own masks for the rasterizer's vector lanes.
     type Mask: Copy;
     /// `0` in every lane.
     const ZERO: Self;

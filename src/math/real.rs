@@ -32,9 +32,18 @@ impl Display for Precision {
     }
 }
 
-/// A real number type: `f32` or `f64`.
+/// Only `f32` and `f64` are [`Real`] (code that finds `T` to be of f32
+/// precision reinterprets its data as `f32`, which relies on it).
+mod sealed {
+    pub trait Sealed {}
+    impl Sealed for f32 {}
+    impl Sealed for f64 {}
+}
+
+/// A real number type: `f32` or `f64` (sealed: no other type implements it).
 pub trait Real:
-    Copy
+    sealed::Sealed
+    + Copy
     + Clone
     + Send
     + Sync

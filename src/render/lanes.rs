@@ -1,5 +1,7 @@
 //! Sixteen pixels as one value: the vector type the row functions of the
-//! rasterizer are written in ([`super::rasterize`], [`super::rasterize_vjp`]).
+//! rasterizer are written in ([`super::rasterize`], [`super::rasterize_vjp`]),
+//! and sixteen Gaussians as one value in the backward's per-Gaussian chain
+//! rule (the register types implement [`crate::math::pack::Arith`]).
 //!
 //! Three implementations of [`Lanes`] with the same bits: [`Scalar`] (sixteen
 //! scalars, any [`Real`], the portable path and the only one for f64),
@@ -182,9 +184,11 @@ mod x86 {
     #[derive(Clone, Copy, Debug)]
     pub(crate) struct Avx2([__m256; 2]);
 
-    // SAFETY (every `unsafe` block below): these types only exist inside
-    // functions compiled with their target feature, entered after run-time
-    // detection (`fastmath::isa`); loads and stores are of 16-element arrays.
+    // SAFETY (every `unsafe` block below): these types are only operated on
+    // inside functions compiled with their target feature, entered after
+    // run-time detection (`fastmath::isa`); their `Arith` constants are plain
+    // bits, made without an instruction; loads and stores are of 16-element
+    // arrays.
 
     macro_rules! avx512_op {
         ($tr:ident, $f:ident, $intr:ident) => {

@@ -19,7 +19,7 @@
 //! discarded; lanes of culled Gaussians compute values that are not used.
 //! The SH coefficients of a batch (up to 48 values per Gaussian) are
 //! transposed with vector shuffles where `T` is f32
-//! ([`super::transpose::load_rows`]; only bits move) and prefetched two
+//! ([`super::transpose::RowMover`]; only bits move) and prefetched two
 //! batches ahead:
 //! they are read once per frame, and their cache misses dominated the stage.
 //!
@@ -33,8 +33,8 @@
 use super::project::{
     assemble, footprint, project_core, Footprint, Intrinsics, ProjectCore, Projected,
 };
-use super::rasterize::{candidate_rows, path, power_min, Splat};
-use super::transpose::load_rows;
+use super::rasterize::{candidate_rows, power_min, Splat};
+use super::transpose::RowMover;
 use super::{Colors, Covariances, RasterInput};
 use crate::kernels::fastmath::multiversion;
 use crate::math::covariance::cov3d;
@@ -371,7 +371,7 @@ impl<T: Real> ShBatch<'_, T> {
         );
         let mut c = [Pack([T::ZERO; BATCH]); MAX_SH_VALUES];
         let at: [usize; BATCH] = std::array::from_fn(|l| g(l) * self.stride * 3);
-        load_rows(path::<T>(), self.coeffs, &at, &mut c[..n]);
+        RowMover::new::<T>().load(self.coeffs, &at, &mut c[..n]);
         for l in 0..BATCH {
             let m = [self.mean[0][l], self.mean[1][l], self.mean[2][l]];
             let r = sh_to_color_with(D, |j| c[j].0[l], m, self.campos);

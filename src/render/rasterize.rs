@@ -502,7 +502,8 @@ pub(crate) enum Path {
 }
 
 pub(crate) fn path<T: Real>() -> Path {
-    if T::PRECISION != crate::math::Precision::F32 {
+    // The vector paths reinterpret `T` data as `f32`.
+    if std::any::TypeId::of::<T>() != std::any::TypeId::of::<f32>() {
         return Path::Portable;
     }
     match fastmath::isa() {

@@ -31,8 +31,10 @@
 //! not depend on the width: in f32, 16 Gaussians in one AVX-512 register or
 //! two AVX2 registers per value (the [`super::lanes`] types, whose values
 //! stay in registers), 4 per [`crate::math::pack::Pack`] otherwise. A
-//! block's inputs move from the Gaussians' rows into value-major registers,
-//! and its results back, by transposes ([`super::transpose`]).
+//! block's inputs move from the Gaussians' rows into value-major packs, and
+//! most of its results back, by transposes ([`super::transpose`]); the 2D
+//! covariance, the clamp flags, the opacities and the 2D centres' gradients
+//! move lane by lane.
 //!
 //! Determinism: the contributions of a row's 16 pixels to an entry are summed
 //! by a fixed pairwise tree (lane `l` with `l + 8`, then `+ 4`, `+ 2`, `+ 1`),
@@ -44,11 +46,10 @@
 use super::lanes::{Lanes, Scalar};
 use super::preprocess::prefetch;
 use super::project::{self, ProjectedGrad};
-use super::rasterize::path;
 use super::rasterize::{
     self as raster, lane_x, replay_row, Blend, Blended, Record, Row, Splat, LANES,
 };
-use super::transpose::{load_rows, store_rows};
+use super::transpose::RowMover;
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
 use crate::error::{Error, Result};
 use crate::kernels::filled;
@@ -748,13 +749,14 @@ fn chain_rule<T: Real>(ctx: &Ctx<'_, T>, s: usize, acc: &[EntryGrad<T>], o: &mut
     {
         use super::lanes::{Avx2, Avx512};
         use super::rasterize::{path, Path};
-        /// `x` as its f32 version.
+        /// `x` as a `Y`.
         ///
         /// # Safety
-        /// `T` is `f32`.
+        /// `X` and `Y` are the same type (here the f32 instance of a type
+        /// generic over `T`, where `T` is `f32`).
         unsafe fn f32_ref<X, Y>(x: &X) -> &Y {
-            // SAFETY: the caller guarantees `T` is `f32`, so `X` and `Y`
-            // are the same type.
+            // SAFETY: the caller guarantees that `X` and `Y` are the same
+            // type.
             unsafe { &*(x as *const X as *const Y) }
         }
         #[target_feature(enable = "avx512f")]
@@ -897,7 +899,7 @@ fn to_packs<T: Real, const L: usize, N: ChainLanes<L, Elem = T>, const W: usize>
 /// the chunk's end repeat its last Gaussian; lanes of culled Gaussians are
 /// computed and not written (their outputs stay zero). Each block's inputs
 /// are moved from the Gaussians' rows into packs and its results back into
-/// the rows ([`load_rows`], [`store_rows`]).
+/// the rows ([`RowMover`]).
 #[inline(always)]
 #[allow(clippy::needless_range_loop)] // lanes and slots as indices
 fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
@@ -918,7 +920,7 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
         None => 3,
     };
     let zero_pack = Pack([T::ZERO; L]);
-    let p = path::<T>();
+    let mover = RowMover::new::<T>();
     let mut j0 = 0;
     while j0 < len {
         let cnt = L.min(len - j0);
@@ -933,11 +935,11 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
         // Each lane's rows of the inputs, moved into packs.
         let rows = |w: usize| -> [usize; L] { std::array::from_fn(|l| w * jl[l]) };
         let mut mean = [zero_pack; 3];
-        load_rows(p, means, &rows(3), &mut mean);
+        mover.load(means, &rows(3), &mut mean);
         let mut e = [zero_pack; ENTRY_VALUES];
-        load_rows(p, EntryGrad::values(acc), &rows(ENTRY_VALUES), &mut e);
+        mover.load(EntryGrad::values(acc), &rows(ENTRY_VALUES), &mut e);
         let mut c3 = [zero_pack; 6];
-        load_rows(p, cov3d.as_flattened(), &rows(6), &mut c3);
+        mover.load(cov3d.as_flattened(), &rows(6), &mut c3);
         let cov2d: [Pack<T, L>; 3] = std::array::from_fn(|a| Pack(jl.map(|j| proj[j].cov2d[a])));
         let mean_n: [N; 3] = from_packs(&mean);
         let e_n: [N; ENTRY_VALUES] = from_packs(&e);
@@ -966,7 +968,7 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
                 prefetch(coeffs, (s + j0) * cstride, L * cstride);
                 let mut coef = [zero_pack; MAX_COLOR_VALUES];
                 let at: [usize; L] = std::array::from_fn(|l| (s + jl[l]) * cstride);
-                load_rows(p, coeffs, &at, &mut coef[..ncol]);
+                mover.load(coeffs, &at, &mut coef[..ncol]);
                 let colors = &saved.colors[s..s + len];
                 let clamped: [[bool; L]; 3] =
                     std::array::from_fn(|ch| jl.map(|j| colors[j].clamped[ch]));
@@ -996,8 +998,8 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
                 let mut scale = [zero_pack; 3];
                 let mut q = [zero_pack; 4];
                 let at = |w: usize| -> [usize; L] { std::array::from_fn(|l| w * (s + jl[l])) };
-                load_rows(p, scales, &at(3), &mut scale);
-                load_rows(p, rotations, &at(4), &mut q);
+                mover.load(scales, &at(3), &mut scale);
+                mover.load(rotations, &at(4), &mut q);
                 let modifier = N::splat(modifier);
                 let (gs, gq) = match ctx.mode {
                     GradientMode::Exact => {
@@ -1026,11 +1028,60 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
             o.means2d[3 * j] = gndc[0].0[l];
             o.means2d[3 * j + 1] = gndc[1].0[l];
         }
-        store_rows(p, o.means3d, &rows(3), lanes, &gmean);
-        store_rows(p, o.scales_or_cov, &rows(cov_w), lanes, &cov[..cov_w]);
+        mover.store(o.means3d, &rows(3), lanes, &gmean);
+        mover.store(o.scales_or_cov, &rows(cov_w), lanes, &cov[..cov_w]);
         if ctx.scale_rot.is_some() {
-            store_rows(p, o.rotations, &rows(4), lanes, &rot);
+            mover.store(o.rotations, &rows(4), lanes, &rot);
         }
-        store_rows(p, o.colors, &rows(cstride), lanes, &col[..ncol]);
+        mover.store(o.colors, &rows(cstride), lanes, &col[..ncol]);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// An entry whose every value is distinct: value `f` is `f + 1`.
+    fn numbered() -> EntryGrad<f64> {
+        EntryGrad {
+            color: [1.0, 2.0, 3.0],
+            xy: [4.0, 5.0],
+            conic: [6.0, 7.0, 8.0],
+            opacity: 9.0,
+            depth: 10.0,
+        }
+    }
+
+    #[test]
+    fn entry_values_are_in_field_order() {
+        let e = [numbered(), EntryGrad::ZERO];
+        let v = EntryGrad::values(&e);
+        assert_eq!(v.len(), 2 * ENTRY_VALUES);
+        for (f, &x) in v[..ENTRY_VALUES].iter().enumerate() {
+            assert_eq!(x, (f + 1) as f64);
+        }
+        assert!(v[ENTRY_VALUES..].iter().all(|&x| x == 0.0));
+    }
+
+    #[test]
+    fn add_sums_adds_to_the_chosen_values_only() {
+        let sums: [f64; 16] = std::array::from_fn(|f| 100.0 * (f + 1) as f64);
+        for f in 0..ENTRY_VALUES {
+            let mut e = numbered();
+            e.add_sums(&sums, 1 << f);
+            let v = EntryGrad::values(std::slice::from_ref(&e));
+            for (g, &x) in v.iter().enumerate() {
+                let want = (g + 1) as f64 + if g == f { 100.0 * (g + 1) as f64 } else { 0.0 };
+                assert_eq!(x, want, "mask bit {f}, value {g}");
+            }
+        }
+        // A value not chosen keeps a −0 (adding +0 would make it +0).
+        let mut e = EntryGrad {
+            depth: -0.0,
+            ..numbered()
+        };
+        e.add_sums(&[0.0; 16], COLOR_DEPTH & !DEPTH);
+        assert!(e.depth.is_sign_negative());
+        assert_eq!(ALL_VALUES, 0b11_1111_1111);
     }
 }

@@ -1,146 +1,174 @@
 //! Moving a block of Gaussians' values between their rows (one Gaussian's
 //! values side by side, as the arrays store them) and value-major
 //! [`Pack`]s (one value of every Gaussian side by side, as the lane-parallel
-//! code computes with them): [`load_rows`] and [`store_rows`].
+//! code computes with them): [`RowMover::load`] and [`RowMover::store`].
 //!
-//! In f32 with AVX-512 (16 lanes) or AVX2 (8 or 16 lanes, in groups of 8)
-//! a block of at most 16 (or 8) values per row moves by masked loads, a
-//! transpose in registers and masked stores; otherwise value by value. Both
-//! only move bits, so every path gives the same values.
+//! In f32 with AVX-512 and 16 lanes, or AVX2 and a multiple of 8 lanes (in
+//! groups of 8), rows of any length move in column blocks of 16 (or 8)
+//! values, each by masked loads, a transpose in registers and masked
+//! stores; otherwise (f64, other lane counts, the portable path) value by
+//! value. Both only move bits, so every path gives the same values.
 
 use super::rasterize::{path, Path};
 use crate::math::pack::Pack;
 use crate::math::Real;
 
-/// `out[a]`, lane `l`, is `src[at[l] + a]` for every `a < out.len()`, on
-/// path `p` (the caller's [`path`], asked once for many calls).
-///
-/// Panics when a row `at[l] .. at[l] + out.len()` runs past `src`.
-#[inline(always)]
-pub(crate) fn load_rows<T: Real, const L: usize>(
+/// Moves rows on the path the CPU runs, read once when made (by
+/// [`RowMover::new`]; its field cannot be set otherwise, so it only names
+/// a path the CPU has).
+#[derive(Clone, Copy)]
+pub(crate) struct RowMover {
     p: Path,
-    src: &[T],
-    at: &[usize; L],
-    out: &mut [Pack<T, L>],
-) {
-    let w = out.len();
-    for &a in at {
-        assert!(a + w <= src.len(), "load_rows: a row runs past the values");
-    }
-    #[cfg(target_arch = "x86_64")]
-    {
-        debug_assert!(p == path::<T>(), "a path other than the running one");
-        let wide = match p {
-            Path::Avx512 => L == 16,
-            Path::Avx2 => L.is_multiple_of(8),
-            Path::Portable => false,
-        };
-        if wide {
-            let s = src.as_ptr() as *const f32;
-            let o = out.as_mut_ptr() as *mut f32;
-            let step = if p == Path::Avx512 { 16 } else { 8 };
-            for c in (0..w).step_by(step) {
-                let n = step.min(w - c);
-                for g in (0..L).step_by(step) {
-                    // SAFETY: `path` picks a vector path only for T = f32 on
-                    // a CPU with its feature; `Pack` is a transparent
-                    // `[T; L]`, so `out` is `w` rows of `L` f32 values and
-                    // value `c + j`, lane `g + l` is at `o + L·(c + j) + g + l`;
-                    // row `at[g + l]` holds values `c .. c + n` (asserted
-                    // above); `g + l < L` (L is 16 with AVX-512, a multiple
-                    // of 8 with AVX2).
-                    unsafe {
-                        if p == Path::Avx512 {
-                            let rows: [*const f32; 16] = std::array::from_fn(|l| s.add(at[l] + c));
-                            x86::load16(&rows, n, o.add(L * c), L);
-                        } else {
-                            let rows: [*const f32; 8] =
-                                std::array::from_fn(|l| s.add(at[g + l] + c));
-                            x86::load8(&rows, n, o.add(L * c + g), L);
-                        }
-                    }
-                }
-            }
-            return;
-        }
-    }
-    for (a, o) in out.iter_mut().enumerate() {
-        *o = Pack(std::array::from_fn(|l| src[at[l] + a]));
-    }
 }
 
-/// `dst[at[l] + a] = vals[a]`, lane `l`, for every `a < vals.len()` and
-/// every lane `l` whose bit is set in `lanes`; the other values of `dst`
-/// are left as they are; on path `p` (as for [`load_rows`]).
-///
-/// Panics when the row `at[l] .. at[l] + vals.len()` of a written lane runs
-/// past `dst`.
-#[inline(always)]
-pub(crate) fn store_rows<T: Real, const L: usize>(
-    p: Path,
-    dst: &mut [T],
-    at: &[usize; L],
-    lanes: u32,
-    vals: &[Pack<T, L>],
-) {
-    let w = vals.len();
-    for (l, &a) in at.iter().enumerate() {
-        assert!(
-            lanes >> l & 1 == 0 || a + w <= dst.len(),
-            "store_rows: a row runs past the values"
-        );
+impl RowMover {
+    /// The path of `T` now ([`path`]).
+    #[inline(always)]
+    pub(crate) fn new<T: Real>() -> Self {
+        RowMover { p: path::<T>() }
     }
-    #[cfg(target_arch = "x86_64")]
-    {
-        debug_assert!(p == path::<T>(), "a path other than the running one");
-        let wide = match p {
+
+    /// Whether blocks of `L` lanes of `T` move by vector shuffles.
+    #[inline(always)]
+    fn wide<T: Real, const L: usize>(self) -> bool {
+        // The vector code reinterprets the values as f32.
+        if std::any::TypeId::of::<T>() != std::any::TypeId::of::<f32>() {
+            return false;
+        }
+        match self.p {
+            #[cfg(target_arch = "x86_64")]
             Path::Avx512 => L == 16,
+            #[cfg(target_arch = "x86_64")]
             Path::Avx2 => L.is_multiple_of(8),
             Path::Portable => false,
-        };
-        if wide {
-            let d = dst.as_mut_ptr() as *mut f32;
-            let v = vals.as_ptr() as *const f32;
-            let step = if p == Path::Avx512 { 16 } else { 8 };
-            for c in (0..w).step_by(step) {
-                let n = step.min(w - c);
-                for g in (0..L).step_by(step) {
-                    let live = (lanes >> g) & ((1 << step) - 1);
-                    if live == 0 {
-                        continue;
-                    }
-                    // SAFETY: as in `load_rows`; the rows of the lanes
-                    // written hold values `c .. c + n` (asserted above), and
-                    // a lane not written is never addressed.
-                    unsafe {
-                        if p == Path::Avx512 {
-                            let rows: [*mut f32; 16] = std::array::from_fn(|l| {
-                                if live >> l & 1 != 0 {
-                                    d.add(at[l] + c)
-                                } else {
-                                    std::ptr::null_mut()
-                                }
-                            });
-                            x86::store16(&rows, live, n, v.add(L * c), L);
-                        } else {
-                            let rows: [*mut f32; 8] = std::array::from_fn(|l| {
-                                if live >> l & 1 != 0 {
-                                    d.add(at[g + l] + c)
-                                } else {
-                                    std::ptr::null_mut()
-                                }
-                            });
-                            x86::store8(&rows, live, n, v.add(L * c + g), L);
+        }
+    }
+
+    /// `out[a]`, lane `l`, is `src[at[l] + a]` for every `a < out.len()`.
+    ///
+    /// Panics when a row `at[l] .. at[l] + out.len()` runs past `src`.
+    #[inline(always)]
+    pub(crate) fn load<T: Real, const L: usize>(
+        self,
+        src: &[T],
+        at: &[usize; L],
+        out: &mut [Pack<T, L>],
+    ) {
+        let w = out.len();
+        for &a in at {
+            assert!(
+                w <= src.len() && a <= src.len() - w,
+                "RowMover::load: a row runs past the values"
+            );
+        }
+        #[cfg(target_arch = "x86_64")]
+        {
+            let p = self.p;
+            let wide = self.wide::<T, L>();
+            if wide {
+                let s = src.as_ptr() as *const f32;
+                let o = out.as_mut_ptr() as *mut f32;
+                let step = if p == Path::Avx512 { 16 } else { 8 };
+                for c in (0..w).step_by(step) {
+                    let n = step.min(w - c);
+                    for g in (0..L).step_by(step) {
+                        // SAFETY: `wide` holds only for T = f32 and a path of
+                        // this CPU (`RowMover::new`); `Pack` is a transparent
+                        // `[T; L]`, so `out` is `w` rows of `L` f32 values and
+                        // value `c + j`, lane `g + l` is at `o + L·(c + j) + g + l`;
+                        // row `at[g + l]` holds values `c .. c + n` (asserted
+                        // above); `g + l < L` (L is 16 with AVX-512, a multiple
+                        // of 8 with AVX2).
+                        unsafe {
+                            if p == Path::Avx512 {
+                                let rows: [*const f32; 16] =
+                                    std::array::from_fn(|l| s.add(at[l] + c));
+                                x86::load16(&rows, n, o.add(L * c), L);
+                            } else {
+                                let rows: [*const f32; 8] =
+                                    std::array::from_fn(|l| s.add(at[g + l] + c));
+                                x86::load8(&rows, n, o.add(L * c + g), L);
+                            }
                         }
                     }
                 }
+                return;
             }
-            return;
+        }
+        for (a, o) in out.iter_mut().enumerate() {
+            *o = Pack(std::array::from_fn(|l| src[at[l] + a]));
         }
     }
-    for (a, v) in vals.iter().enumerate() {
-        for l in (0..L).filter(|&l| lanes >> l & 1 != 0) {
-            dst[at[l] + a] = v.0[l];
+
+    /// `dst[at[l] + a] = vals[a]`, lane `l`, for every `a < vals.len()` and
+    /// every lane `l` whose bit is set in `lanes`; the other values of `dst`
+    /// are left as they are.
+    ///
+    /// Panics when the row `at[l] .. at[l] + vals.len()` of a written lane runs
+    /// past `dst`.
+    #[inline(always)]
+    pub(crate) fn store<T: Real, const L: usize>(
+        self,
+        dst: &mut [T],
+        at: &[usize; L],
+        lanes: u32,
+        vals: &[Pack<T, L>],
+    ) {
+        let w = vals.len();
+        for (l, &a) in at.iter().enumerate() {
+            assert!(
+                lanes >> l & 1 == 0 || (w <= dst.len() && a <= dst.len() - w),
+                "RowMover::store: a row runs past the values"
+            );
+        }
+        #[cfg(target_arch = "x86_64")]
+        {
+            let p = self.p;
+            let wide = self.wide::<T, L>();
+            if wide {
+                let d = dst.as_mut_ptr() as *mut f32;
+                let v = vals.as_ptr() as *const f32;
+                let step = if p == Path::Avx512 { 16 } else { 8 };
+                for c in (0..w).step_by(step) {
+                    let n = step.min(w - c);
+                    for g in (0..L).step_by(step) {
+                        let live = (lanes >> g) & ((1 << step) - 1);
+                        if live == 0 {
+                            continue;
+                        }
+                        // SAFETY: as in `load_rows`; the rows of the lanes
+                        // written hold values `c .. c + n` (asserted above), and
+                        // a lane not written is never addressed.
+                        unsafe {
+                            if p == Path::Avx512 {
+                                let rows: [*mut f32; 16] = std::array::from_fn(|l| {
+                                    if live >> l & 1 != 0 {
+                                        d.add(at[l] + c)
+                                    } else {
+                                        std::ptr::null_mut()
+                                    }
+                                });
+                                x86::store16(&rows, live, n, v.add(L * c), L);
+                            } else {
+                                let rows: [*mut f32; 8] = std::array::from_fn(|l| {
+                                    if live >> l & 1 != 0 {
+                                        d.add(at[g + l] + c)
+                                    } else {
+                                        std::ptr::null_mut()
+                                    }
+                                });
+                                x86::store8(&rows, live, n, v.add(L * c + g), L);
+                            }
+                        }
+                    }
+                }
+                return;
+            }
+        }
+        for (a, v) in vals.iter().enumerate() {
+            for l in (0..L).filter(|&l| lanes >> l & 1 != 0) {
+                dst[at[l] + a] = v.0[l];
+            }
         }
     }
 }
@@ -340,7 +368,7 @@ mod tests {
         for w in [1usize, 3, 7, 8, 9, 10, 15, 16, 17, 24, 33, 48] {
             let at: [usize; L] = std::array::from_fn(|l| (l * 37 + w * 5) % (700 - w));
             let mut packs = vec![Pack([T::ZERO; L]); w];
-            load_rows(path::<T>(), &src, &at, &mut packs);
+            RowMover::new::<T>().load(&src, &at, &mut packs);
             for (a, p) in packs.iter().enumerate() {
                 for l in 0..L {
                     assert_eq!(p.0[l], src[at[l] + a], "load w {w} value {a} lane {l}");
@@ -355,7 +383,7 @@ mod tests {
                 // Disjoint rows so that each written value has one writer.
                 let at: [usize; L] = std::array::from_fn(|l| 3 + l * (w + 2));
                 let mut dst = vec![T::from_f64(-1.0); 3 + L * (w + 2)];
-                store_rows(path::<T>(), &mut dst, &at, lanes, &packs);
+                RowMover::new::<T>().store(&mut dst, &at, lanes, &packs);
                 let mut want = vec![T::from_f64(-1.0); dst.len()];
                 for l in (0..L).filter(|&l| lanes >> l & 1 != 0) {
                     for a in 0..w {
@@ -365,6 +393,56 @@ mod tests {
                 assert_eq!(dst, want, "store w {w} lanes {lanes:b}");
             }
         }
+    }
+
+    /// Rows that end exactly at the end of the values, on every path: a
+    /// mask one value too wide would read or write past it.
+    fn last_rows<T: Real, const L: usize>() {
+        for w in [1usize, 3, 10, 16, 17, 48] {
+            let len = L * w;
+            let src: Vec<T> = (0..len).map(|i| T::from_f64(i as f64 + 1.0)).collect();
+            // Lane l reads row L − 1 − l, the first lane the last row.
+            let at: [usize; L] = std::array::from_fn(|l| (L - 1 - l) * w);
+            let mut packs = vec![Pack([T::ZERO; L]); w];
+            let mover = RowMover::new::<T>();
+            mover.load(&src, &at, &mut packs);
+            let mut dst = vec![T::ZERO; len];
+            mover.store(&mut dst, &at, u32::MAX >> (32 - L), &packs);
+            assert_eq!(dst, src, "w {w}");
+        }
+    }
+
+    #[test]
+    fn rows_ending_at_the_end_of_the_values_move_whole() {
+        let _guard = isa_test_lock();
+        for isa in [Isa::Baseline, Isa::Avx2, Isa::Avx512] {
+            if !force_isa(Some(isa)) {
+                continue;
+            }
+            last_rows::<f32, 16>();
+            last_rows::<f32, 8>();
+            last_rows::<f64, 16>();
+        }
+        force_isa(None);
+    }
+
+    #[test]
+    #[should_panic(expected = "a row runs past the values")]
+    fn a_row_past_the_end_is_refused_on_load() {
+        let src = [0.0f32; 20];
+        let mut out = [Pack([0.0f32; 16]); 5];
+        RowMover::new::<f32>().load(&src, &[16; 16], &mut out);
+    }
+
+    #[test]
+    #[should_panic(expected = "a row runs past the values")]
+    fn a_written_row_past_the_end_is_refused_on_store() {
+        let mut dst = [0.0f32; 20];
+        let vals = [Pack([1.0f32; 16]); 5];
+        // Lane 3 is written and its row 16..21 runs past 20.
+        let mut at = [0usize; 16];
+        at[3] = 16;
+        RowMover::new::<f32>().store(&mut dst, &at, 1 << 3, &vals);
     }
 
     #[test]
