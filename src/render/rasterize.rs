@@ -293,7 +293,7 @@ pub(crate) fn walk_row<V: Lanes>(
     let mut t = V::splat(V::T::ONE);
     let mut c = [V::splat(zero); 3];
     let mut d = V::splat(zero);
-    let mut last = [0u32; LANES];
+    let start = blended.len();
     let mut evaluated = 0u64;
     let mut active_bits: u16 = if row.nx >= LANES {
         u16::MAX
@@ -348,11 +348,6 @@ pub(crate) fn walk_row<V: Lanes>(
                     mask: b_bits,
                 });
                 t = V::select(b, test_t, t);
-                let mut m = b_bits;
-                while m != 0 {
-                    last[m.trailing_zeros() as usize] = j as u32 + 1;
-                    m &= m - 1;
-                }
             }
             let stop_bits = V::bits(stop);
             if stop_bits != 0 {
@@ -368,6 +363,22 @@ pub(crate) fn walk_row<V: Lanes>(
     }
     // Lanes that never stopped evaluated the whole list.
     evaluated += splats.len() as u64 * active_bits.count_ones() as u64;
+    // Each lane's last blended entry (1-based; 0 if none): the row's entries
+    // read backwards until every lane that blended has been seen.
+    let mut last = [0u32; LANES];
+    let all = blended[start..].iter().fold(0u16, |m, b| m | b.mask);
+    let mut seen = 0u16;
+    for b in blended[start..].iter().rev() {
+        let mut m = b.mask & !seen;
+        seen |= m;
+        while m != 0 {
+            last[m.trailing_zeros() as usize] = b.j + 1;
+            m &= m - 1;
+        }
+        if seen == all {
+            break;
+        }
+    }
     let mut st = RowState {
         t: [zero; LANES],
         c: [[zero; LANES]; 3],
