@@ -338,16 +338,28 @@ pub(crate) fn walk_row<V: Lanes>(
             let stop = V::and(hit, test_t.lt(tmin));
             let b = V::andnot(hit, stop);
             let b_bits = V::bits(b);
-            if b_bits != 0 {
-                for (cv, &col) in c.iter_mut().zip(&s.color) {
-                    *cv = V::select(b, *cv + V::splat(col) * a * t, *cv);
-                }
-                d = V::select(b, d + V::splat(s.depth) * a * t, d);
-                blended.push(Blended {
+            // Without a branch on `b` (whether some lane blends varies from
+            // entry to entry): the selects keep lanes that do not blend as
+            // they are, and the entry is written past the end and kept only
+            // if some lane blends.
+            for (cv, &col) in c.iter_mut().zip(&s.color) {
+                *cv = V::select(b, *cv + V::splat(col) * a * t, *cv);
+            }
+            d = V::select(b, d + V::splat(s.depth) * a * t, d);
+            t = V::select(b, test_t, t);
+            if blended.len() == blended.capacity() {
+                blended.reserve(1);
+            }
+            let len = blended.len();
+            // SAFETY: `len < capacity` (reserved above), so the slot is
+            // allocated; `Blended` is `Copy` (nothing to drop), and the new
+            // length covers only written slots.
+            unsafe {
+                blended.as_mut_ptr().add(len).write(Blended {
                     j: j as u32,
                     mask: b_bits,
                 });
-                t = V::select(b, test_t, t);
+                blended.set_len(len + (b_bits != 0) as usize);
             }
             let stop_bits = V::bits(stop);
             if stop_bits != 0 {
