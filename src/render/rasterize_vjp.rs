@@ -836,39 +836,28 @@ mod x86_lanes {
         b
     }
 
-    impl ChainLanes<16> for Avx512 {
-        #[inline(always)]
-        fn from_pack(p: &Pack<f32, 16>) -> Self {
-            <Self as Lanes>::load(&p.0)
-        }
-        #[inline(always)]
-        fn to_pack(self) -> Pack<f32, 16> {
-            let mut p = Pack([0.0; 16]);
-            self.store(&mut p.0);
-            p
-        }
-        #[inline(always)]
-        fn mask(m: [bool; 16]) -> u16 {
-            bits(m)
-        }
+    /// The register types move through their 16-element loads and stores.
+    macro_rules! chain_lanes {
+        ($($t:ty),*) => {$(
+            impl ChainLanes<16> for $t {
+                #[inline(always)]
+                fn from_pack(p: &Pack<f32, 16>) -> Self {
+                    <Self as Lanes>::load(&p.0)
+                }
+                #[inline(always)]
+                fn to_pack(self) -> Pack<f32, 16> {
+                    let mut p = Pack([0.0; 16]);
+                    self.store(&mut p.0);
+                    p
+                }
+                #[inline(always)]
+                fn mask(m: [bool; 16]) -> <Self as Lanes>::M {
+                    <Self as Lanes>::from_bits(bits(m))
+                }
+            }
+        )*};
     }
-
-    impl ChainLanes<16> for Avx2 {
-        #[inline(always)]
-        fn from_pack(p: &Pack<f32, 16>) -> Self {
-            <Self as Lanes>::load(&p.0)
-        }
-        #[inline(always)]
-        fn to_pack(self) -> Pack<f32, 16> {
-            let mut p = Pack([0.0; 16]);
-            self.store(&mut p.0);
-            p
-        }
-        #[inline(always)]
-        fn mask(m: [bool; 16]) -> <Self as Lanes>::M {
-            <Self as Lanes>::from_bits(bits(m))
-        }
-    }
+    chain_lanes!(Avx512, Avx2);
 }
 
 /// `W` packs as `N`s.
