@@ -548,6 +548,16 @@ pub(crate) unsafe fn as_f32<X, Y>(x: &mut X) -> &mut Y {
     unsafe { &mut *(x as *mut X as *mut Y) }
 }
 
+/// Reinterpret a `&X<T>` as `&X<f32>`.
+///
+/// # Safety
+/// `T` is `f32`.
+#[cfg(target_arch = "x86_64")]
+pub(crate) unsafe fn as_f32_ref<X, Y>(x: &X) -> &Y {
+    // SAFETY: the caller guarantees `T` is `f32`, so `X` and `Y` are the same type.
+    unsafe { &*(x as *const X as *const Y) }
+}
+
 /// Render image row `py` of frame `f` into `out`; adds the pairs evaluated
 /// to `evaluated`.
 pub(crate) fn forward_row<T: Real>(
@@ -572,7 +582,7 @@ pub(crate) fn forward_row<T: Real>(
             // SAFETY: a vector path is chosen only for T = f32, on a CPU
             // with its feature.
             unsafe {
-                let f32f: &Frame<'_, f32> = &*(f as *const Frame<'_, T> as *const Frame<'_, f32>);
+                let f32f: &Frame<'_, f32> = as_f32_ref(f);
                 let o32: &mut RowOut<'_, f32> = as_f32(out);
                 match p {
                     Path::Avx512 => avx512(f32f, py, o32, evaluated),

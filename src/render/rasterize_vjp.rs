@@ -380,7 +380,7 @@ pub(crate) fn tile_vjp<T: Real>(
     #[cfg(target_arch = "x86_64")]
     {
         use super::lanes::{Avx2, Avx512};
-        use super::rasterize::{as_f32, path, Path};
+        use super::rasterize::{as_f32, as_f32_ref, path, Path};
         type G = EntryGrad<f32>;
         type R = Vec<Record<f32>>;
         #[target_feature(enable = "avx512f")]
@@ -396,7 +396,7 @@ pub(crate) fn tile_vjp<T: Real>(
             // SAFETY: a vector path is chosen only for T = f32, on a CPU
             // with its feature.
             unsafe {
-                let j32 = &*(job as *const TileJob<'_, T> as *const TileJob<'_, f32>);
+                let j32: &TileJob<'_, f32> = as_f32_ref(job);
                 let g32: &mut [G] =
                     std::slice::from_raw_parts_mut(grads.as_mut_ptr() as *mut G, grads.len());
                 let r32: &mut R = as_f32(rec);
@@ -748,17 +748,7 @@ fn chain_rule<T: Real>(ctx: &Ctx<'_, T>, s: usize, acc: &[EntryGrad<T>], o: &mut
     #[cfg(target_arch = "x86_64")]
     {
         use super::lanes::{Avx2, Avx512};
-        use super::rasterize::{path, Path};
-        /// `x` as a `Y`.
-        ///
-        /// # Safety
-        /// `X` and `Y` are the same type (here the f32 instance of a type
-        /// generic over `T`, where `T` is `f32`).
-        unsafe fn f32_ref<X, Y>(x: &X) -> &Y {
-            // SAFETY: the caller guarantees that `X` and `Y` are the same
-            // type.
-            unsafe { &*(x as *const X as *const Y) }
-        }
+        use super::rasterize::{as_f32, as_f32_ref, path, Path};
         #[target_feature(enable = "avx512f")]
         unsafe fn avx512(
             ctx: &Ctx<'_, f32>,
@@ -782,10 +772,10 @@ fn chain_rule<T: Real>(ctx: &Ctx<'_, T>, s: usize, acc: &[EntryGrad<T>], o: &mut
             // SAFETY: `path` chooses a vector path only for T = f32 (so the
             // casts are to the same types) on a CPU with its feature.
             unsafe {
-                let ctx: &Ctx<'_, f32> = f32_ref(ctx);
+                let ctx: &Ctx<'_, f32> = as_f32_ref(ctx);
                 let acc: &[EntryGrad<f32>] =
                     std::slice::from_raw_parts(acc.as_ptr() as *const EntryGrad<f32>, acc.len());
-                let o: &mut Outputs<'_, f32> = super::rasterize::as_f32(o);
+                let o: &mut Outputs<'_, f32> = as_f32(o);
                 match p {
                     Path::Avx512 => avx512(ctx, s, acc, o),
                     _ => avx2(ctx, s, acc, o),
