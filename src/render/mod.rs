@@ -492,9 +492,12 @@ fn forward<T: Real>(
     // 2. Binning, and the splat data of every entry in list order.
     let binning = tiles::bin(&pre.proj, intr.grid);
     stages::mark("bin");
+    // (`with_min_len`: a short list is copied on this thread, where handing
+    // it out would cost more than the copy.)
     let splats: Vec<Splat<T>> = binning
         .list
         .par_iter()
+        .with_min_len(1 << 14)
         .map(|&g| pre.splats[g as usize])
         .collect();
     stages::mark("gather");

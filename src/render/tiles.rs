@@ -114,24 +114,36 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
     //    and their tile rectangles in that order.
     // (`with_min_len`: small scenes stay on one thread, where handing the
     // work out costs more than it saves.)
-    let mut keys: Vec<K> = proj
-        .par_iter()
-        .with_min_len(MIN_TASK)
+    // Each task collects the keys of one piece of `MIN_TASK` Gaussians into
+    // a vector of its own, sized for all of them; the pieces are then
+    // concatenated in order (a small scene is one piece, on this thread).
+    let pieces: Vec<Vec<K>> = proj
+        .par_chunks(MIN_TASK)
         .enumerate()
-        .filter(|(_, p)| {
-            p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1]
+        .map(|(c, piece)| {
+            let mut keys = Vec::with_capacity(piece.len());
+            for (i, p) in piece.iter().enumerate() {
+                if p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1] {
+                    keys.push(K::new(p.depth.bits(), (c * MIN_TASK + i) as u32));
+                }
+            }
+            keys
         })
-        .map(|(i, p)| K::new(p.depth.bits(), i as u32))
         .collect();
+    let mut keys: Vec<K> = match <[Vec<K>; 1]>::try_from(pieces) {
+        Ok([keys]) => keys,
+        Err(pieces) => pieces.concat(),
+    };
     radix_sort_by_depth(&mut keys);
-    let rects: Vec<[u32; 4]> = keys
-        .par_iter()
-        .with_min_len(MIN_TASK)
-        .map(|k| {
-            let p = &proj[k.index() as usize];
-            [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
-        })
-        .collect();
+    let rect = |k: &K| {
+        let p = &proj[k.index() as usize];
+        [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
+    };
+    let rects: Vec<[u32; 4]> = if keys.len() <= MIN_TASK {
+        keys.iter().map(rect).collect()
+    } else {
+        keys.par_iter().with_min_len(MIN_TASK).map(rect).collect()
+    };
     let chunk = chunk_len(keys.len());
     let n_chunks = keys.len().div_ceil(chunk);
 
@@ -214,23 +226,25 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
 
 /// Sort keys that are in ascending index order by depth bits, stably (so
 /// into `(depth bits, index)` order): a least-significant-digit radix sort,
-/// 11 bits a pass, all histograms from one read, passes whose digit is the
-/// same for every key skipped.
+/// 11 bits a pass (8 for fewer than 2¹⁴ keys, whose histograms would
+/// otherwise cost more than the passes), all histograms from one read,
+/// passes whose digit is the same for every key skipped. The digit width
+/// changes only the speed: every width gives the one stable order.
 fn radix_sort_by_depth<K: Key>(keys: &mut Vec<K>) {
-    const BITS: u32 = 11;
-    const BUCKETS: usize = 1 << BITS;
-    let passes = K::DEPTH_BITS.div_ceil(BITS) as usize;
     let n = keys.len();
-    let mut hist = vec![0u32; passes * BUCKETS];
+    let bits: u32 = if n < 1 << 14 { 8 } else { 11 };
+    let buckets = 1usize << bits;
+    let passes = K::DEPTH_BITS.div_ceil(bits) as usize;
+    let mut hist = vec![0u32; passes * buckets];
     for k in keys.iter() {
         let d = k.depth();
-        for (p, h) in hist.chunks_exact_mut(BUCKETS).enumerate() {
-            h[(d >> (p as u32 * BITS)) as usize & (BUCKETS - 1)] += 1;
+        for (p, h) in hist.chunks_exact_mut(buckets).enumerate() {
+            h[(d >> (p as u32 * bits)) as usize & (buckets - 1)] += 1;
         }
     }
     let mut from = std::mem::take(keys);
     let mut to = from.clone();
-    for (p, h) in hist.chunks_exact_mut(BUCKETS).enumerate() {
+    for (p, h) in hist.chunks_exact_mut(buckets).enumerate() {
         if h.iter().any(|&c| c as usize == n) {
             continue;
         }
@@ -240,9 +254,9 @@ fn radix_sort_by_depth<K: Key>(keys: &mut Vec<K>) {
             *c = sum;
             sum += k;
         }
-        let shift = p as u32 * BITS;
+        let shift = p as u32 * bits;
         for &k in from.iter() {
-            let b = &mut h[(k.depth() >> shift) as usize & (BUCKETS - 1)];
+            let b = &mut h[(k.depth() >> shift) as usize & (buckets - 1)];
             to[*b as usize] = k;
             *b += 1;
         }
