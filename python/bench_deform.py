@@ -42,7 +42,8 @@ def main():
     torch.manual_seed(0)
     g = torch.Generator().manual_seed(1)
     xyz = (torch.rand(a.n, 3, generator=g) * 2 - 1) * 1.3
-    t = torch.rand(a.n, 1, generator=g)
+    # One time for every Gaussian, as in training (and in `liquid-splat bench deform`).
+    t = torch.rand(1, 1, generator=g).expand(a.n, 1).contiguous()
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads, N = {a.n}, f32, "
           f"median of {a.reps} (fastest)")
     for name, net in [("mlp D8 W256", DeformNetwork(8, 256)), ("cfc D6 W128", CfCField(6, 128))]:

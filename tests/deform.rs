@@ -139,10 +139,25 @@ fn gradcheck_with(
     h: f64,
     prepare: impl Fn(&mut Field<f64>),
 ) {
+    gradcheck_times(cfg, seed, dense, h, prepare, None);
+}
+
+/// [`gradcheck_with`] on the five times `times` instead of random ones.
+fn gradcheck_times(
+    cfg: FieldConfig,
+    seed: u64,
+    dense: usize,
+    h: f64,
+    prepare: impl Fn(&mut Field<f64>),
+    times: Option<[f64; 5]>,
+) {
     let n = 5;
     let mut field = Field::<f64>::new(cfg, seed).unwrap();
     prepare(&mut field);
-    let (xyz, t) = inputs(seed + 100, n);
+    let (xyz, mut t) = inputs(seed + 100, n);
+    if let Some(times) = times {
+        t = times.to_vec();
+    }
     // Relative weight steps of 3 × 1e-2 move pre-activations by far less than this.
     clear_relu_kinks(&mut field, &xyz, &t, 0.2);
     let v = Deformation {
@@ -326,6 +341,32 @@ fn cfc_gradients_every_activation_and_depth() {
         6,
         256,
     );
+}
+
+/// The CfC field merges time_a and time_b for each τ (see `deform::cfc`):
+/// one τ for every row (the training case: time_a's weight gradient is then
+/// τ times time_b's), and runs of repeated times, some equal to the first
+/// row's and some not.
+#[test]
+fn cfc_gradients_with_shared_times() {
+    for times in [
+        [0.37; 5],
+        [0.2, 0.2, 0.7, 0.2, 0.7],
+        [0.6, 0.1, 0.1, 0.6, 0.6],
+    ] {
+        for cfg in [
+            config(FieldKind::Cfc, Variant::Real, 3, 8, Activation::Gelu),
+            config(
+                FieldKind::Cfc,
+                Variant::Synthetic,
+                2,
+                8,
+                Activation::LecunTanh,
+            ),
+        ] {
+            gradcheck_times(cfg, 21, 256, 1e-2, |_| {}, Some(times));
+        }
+    }
 }
 
 /// Backbones of one and of three layers (the paper's cells have two): the
@@ -626,24 +667,92 @@ fn fields_are_bit_identical_across_cpu_paths() {
             (0..k).map(|_| r.uniform_range(lo, hi) as f32).collect()
         };
         let xyz = draw(3 * n, -1.5, 1.5);
-        let t = draw(n, 0.0, 1.0);
+        let random = draw(n, 0.0, 1.0);
         let g = Deformation {
             d_xyz: draw(3 * n, -1.0, 1.0),
             d_rotation: draw(4 * n, -1.0, 1.0),
             d_scaling: draw(3 * n, -1.0, 1.0),
         };
-        let run = || forward_backward_bits(&field, &xyz, &t, &g);
-        assert!(force_isa(Some(Isa::Baseline)));
-        let base = run();
-        for isa in [Isa::Avx2, Isa::Avx512] {
-            if force_isa(Some(isa)) {
-                assert_eq!(base, run(), "{cfg:?} on {isa:?}");
-            } else {
-                eprintln!("{isa:?} not supported here: not compared");
+        // Random times, and one time for every row (as in training).
+        for t in [random, vec![0.45; n]] {
+            let run = || forward_backward_bits(&field, &xyz, &t, &g);
+            assert!(force_isa(Some(Isa::Baseline)));
+            let base = run();
+            for isa in [Isa::Avx2, Isa::Avx512] {
+                if force_isa(Some(isa)) {
+                    assert_eq!(base, run(), "{cfg:?} on {isa:?}");
+                } else {
+                    eprintln!("{isa:?} not supported here: not compared");
+                }
             }
+            force_isa(None);
+            assert_eq!(base, run(), "{cfg:?}");
         }
-        force_isa(None);
-        assert_eq!(base, run(), "{cfg:?}");
+    }
+}
+
+/// A Gaussian's deformation and its gradient with respect to its time are
+/// the same bits whatever the other rows of the batch: the CfC field merges
+/// its time heads per run of equal τ, with one merged layer per τ, so rows
+/// alone, rows in runs (crossing the forward's 48-row blocks and the
+/// backward's 512-row chunks), and rows whose τ equals or differs from the
+/// first row's all give the same values.
+#[test]
+fn cfc_rows_do_not_depend_on_the_batch() {
+    let n = 700;
+    let cfg = config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu);
+    let field = Field::<f32>::new(cfg, 4).unwrap();
+    let mut r = Rng::new(8);
+    let xyz: Vec<f32> = (0..3 * n)
+        .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+        .collect();
+    let g = Deformation {
+        d_xyz: (0..3 * n)
+            .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+            .collect(),
+        d_rotation: (0..4 * n)
+            .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+            .collect(),
+        d_scaling: (0..3 * n)
+            .map(|_| r.uniform_range(-1.0, 1.0) as f32)
+            .collect(),
+    };
+    let row = |d: &Deformation<f32>, i: usize| -> Vec<u32> {
+        d.d_xyz[3 * i..3 * i + 3]
+            .iter()
+            .chain(&d.d_rotation[4 * i..4 * i + 4])
+            .chain(&d.d_scaling[3 * i..3 * i + 3])
+            .map(|v| v.to_bits())
+            .collect()
+    };
+    let uniform = vec![0.3f32; n];
+    // Runs of 1 to 90 rows, times from a few values (0.3 is the first's).
+    let mut runs = Vec::with_capacity(n);
+    let values = [0.3f32, 0.55, 0.3, 0.8, 0.05, 0.55];
+    let mut k = 0;
+    while runs.len() < n {
+        let len = 1 + (k * 37) % 90;
+        runs.extend(std::iter::repeat_n(
+            values[k % values.len()],
+            len.min(n - runs.len()),
+        ));
+        k += 1;
+    }
+    for t in [uniform, runs] {
+        let (d, cache) = field.forward(&xyz, &t).unwrap();
+        let gt = field.backward(&cache, &g).unwrap().t;
+        for i in (0..n).step_by(23).chain([n - 1]) {
+            let one = |v: &[f32], w: usize| v[w * i..w * (i + 1)].to_vec();
+            let (d1, c1) = field.forward(&one(&xyz, 3), &[t[i]]).unwrap();
+            assert_eq!(row(&d, i), row(&d1, 0), "row {i}, τ {}", t[i]);
+            let g1 = Deformation {
+                d_xyz: one(&g.d_xyz, 3),
+                d_rotation: one(&g.d_rotation, 4),
+                d_scaling: one(&g.d_scaling, 3),
+            };
+            let gt1 = field.backward(&c1, &g1).unwrap().t;
+            assert_eq!(gt[i].to_bits(), gt1[0].to_bits(), "row {i}, τ {}", t[i]);
+        }
     }
 }
 
@@ -660,7 +769,7 @@ fn fields_are_bit_identical_across_thread_counts() {
         let xyz: Vec<f32> = (0..3 * n)
             .map(|_| r.uniform_range(-1.0, 1.0) as f32)
             .collect();
-        let t: Vec<f32> = (0..n).map(|_| r.uniform() as f32).collect();
+        let random: Vec<f32> = (0..n).map(|_| r.uniform() as f32).collect();
         let g = Deformation {
             d_xyz: (0..3 * n)
                 .map(|_| r.uniform_range(-1.0, 1.0) as f32)
@@ -672,12 +781,15 @@ fn fields_are_bit_identical_across_thread_counts() {
                 .map(|_| r.uniform_range(-1.0, 1.0) as f32)
                 .collect(),
         };
-        let run = |threads: usize| {
-            support::with_threads(threads, || forward_backward_bits(&field, &xyz, &t, &g))
-        };
-        let one = run(1);
-        assert_eq!(one, run(2), "{cfg:?}");
-        assert_eq!(one, run(3), "{cfg:?}");
+        // Random times, and one time for every row (as in training).
+        for t in [random, vec![0.45; n]] {
+            let run = |threads: usize| {
+                support::with_threads(threads, || forward_backward_bits(&field, &xyz, &t, &g))
+            };
+            let one = run(1);
+            assert_eq!(one, run(2), "{cfg:?}");
+            assert_eq!(one, run(3), "{cfg:?}");
+        }
     }
 }
 

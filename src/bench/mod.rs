@@ -301,13 +301,15 @@ fn train_as<T: crate::math::Real>(spec: &RunSpec) -> crate::Result<()> {
     Ok(())
 }
 
-/// Seeded inputs of the deform benchmark: positions in [-1.3, 1.3]³, times in [0, 1].
+/// Seeded inputs of the deform benchmark: positions in [-1.3, 1.3]³, and
+/// one time in [0, 1] for every Gaussian, as in training and rendering (a
+/// frame's Gaussians share its time).
 fn deform_inputs<T: Real>(n: usize) -> (Vec<T>, Vec<T>, Deformation<T>) {
     let mut r = Rng::new(11);
     let xyz = (0..3 * n)
         .map(|_| T::from_f64(r.uniform_range(-1.3, 1.3)))
         .collect();
-    let t = (0..n).map(|_| T::from_f64(r.uniform())).collect();
+    let t = vec![T::from_f64(r.uniform()); n];
     let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
     let g = Deformation {
         d_xyz: cast(cotangent(12, 3 * n)),

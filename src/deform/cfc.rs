@@ -8,15 +8,28 @@
 //! `h ← tanh(ff1(z))·(1 − σ) + σ·tanh(ff2(z))` (ncps CfCCell, mode "default").
 //! Output: `head(h)` = Linear(W, 10) split 3 | 4 | 3.
 //!
+//! **The time heads are merged.** `time_a(z)·τ + time_b(z)` is one linear
+//! layer of `z` for a given τ: weight `τ·W_a + W_b` and bias `τ·b_a + b_b`
+//! (each value rounded after the product and after the sum). The field
+//! evaluates it so, as one head W wide instead of two: every Gaussian of a
+//! frame has the same τ, and the heads are a quarter narrower (3W instead
+//! of 4W) forward and in the backward's products. Rows are taken in runs of
+//! equal τ (bit for bit), each with its own merged layer (built once per
+//! pass for the first row's τ, per run for any other), so a row's values
+//! depend on its own inputs only, never on the other rows of the batch. The
+//! backward recomputes `time_a(z)` for the gradient with respect to τ; the
+//! weight gradient of `time_a` is τ times that of `time_b` when every row has
+//! the same τ (one product fewer), else its own product.
+//!
 //! The computation is arranged around its shapes and the memory it moves:
 //! - The forward runs every cell on a block of rows (`FORWARD_ROWS`) after
 //!   the other while the block is in cache: per cell, the first backbone
 //!   layer's sums over `u`, continued over the state columns (the same bits
 //!   as one sum over `[u; h]` in order), the bias and activation, the later
-//!   backbone layers, the four heads as one stacked product `4W` wide, then
+//!   backbone layers, the three heads as one stacked product `3W` wide, then
 //!   the gate, both tanh's and the new state. Only what the backward needs
 //!   is written out: each backbone layer's pre-activation, the state entering
-//!   each cell, and per row tanh(ff1) | tanh(ff2) | time_a(z) | σ. The
+//!   each cell, and per row tanh(ff1) | tanh(ff2) | σ. The
 //!   activations' outputs are recomputed from the pre-activations in the
 //!   backward (the same function of the same values: the same bits).
 //! - The backward runs every cell, last first, on a chunk of
@@ -39,17 +52,17 @@
 
 use super::activation::Activation;
 use super::encoding::{encode, encoded_dim};
-use super::linear::{add_bias, InputGrad, OutputGrad, PackedLinear};
+use super::linear::{add_bias, InputGrad, Linear, OutputGrad, PackedLinear};
 use super::profile::{self, Tally};
 use super::{
-    CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, Stacked, TimeEmbedding,
-    TimeEmbeddingSaved, XYZ_LEVELS,
+    CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, TimeEmbedding, TimeEmbeddingSaved,
+    XYZ_LEVELS,
 };
 use crate::kernels::as_slots;
 use crate::kernels::fastmath::{self, multiversion};
 use crate::kernels::matmul::{
-    column_sums, matmul_block_into, matmul_block_resume, matmul_tn, pack, MatRef, Packed,
-    REDUCTION_CHUNK,
+    column_sums, matmul_block_into, matmul_block_resume, matmul_tn, pack, pack_axpy, pack_pair,
+    MatRef, Packed, REDUCTION_CHUNK,
 };
 use crate::math::Real;
 use rayon::prelude::*;
@@ -81,8 +94,10 @@ enum FwdOp {
 #[derive(Clone, Copy)]
 enum BwdOp {
     Act,
+    TimeA,
     Gate,
     HeadsWeight,
+    TimeAWeight,
     HeadsInput,
     ActVjp,
     LaterWeight,
@@ -126,7 +141,7 @@ struct CellCache<T> {
     h_in: Vec<T>,
     /// Pre-activation of each backbone layer, `[n, U]`.
     pres: Vec<Vec<T>>,
-    /// Per row, 4W values: tanh(ff1) | tanh(ff2) | time_a(z) | σ.
+    /// Per row, 3W values: tanh(ff1) | tanh(ff2) | σ.
     gate: Vec<T>,
 }
 
@@ -149,21 +164,70 @@ struct CellForward<'p, T> {
     bias0: &'p [T],
     /// The backbone layers after the first.
     later: Vec<PackedLinear<T>>,
-    /// ff1 | ff2 | time_a | time_b as one layer `4W` wide.
+    /// ff1 | ff2 | time(τ₀) as one layer `3W` wide ([`merged_heads`]).
     heads: PackedLinear<T>,
+    /// For runs of rows with another τ: time_a's and time_b's `Wᵀ`
+    /// `[U, W]`, packed, and their biases.
+    time: TimePair<'p, T>,
+}
+
+/// time_a and time_b packed apart, to merge them for a τ other than τ₀
+/// ([`pack_axpy`]: no packing again); the weights are `Wᵀ` in the forward
+/// (`z·Wᵀ`) and `W` in the backward (`G·W`).
+struct TimePair<'p, T> {
+    a: Packed<T>,
+    b: Packed<T>,
+    bias_a: &'p [T],
+    bias_b: &'p [T],
+}
+
+impl<'p, T: Real> TimePair<'p, T> {
+    /// From time_a's and time_b's weights packed together, and the biases
+    /// of the heads (ff1, ff2, time_a, time_b) in `p`.
+    fn new((a, b): (Packed<T>, Packed<T>), heads: &[LinearParams; 4], p: &'p [T]) -> Self {
+        TimePair {
+            a,
+            b,
+            bias_a: heads[2].bias(p),
+            bias_b: heads[3].bias(p),
+        }
+    }
+
+    /// The merged time head's weights for `tau`, packed.
+    fn weights(&self, tau: T) -> Packed<T> {
+        pack_axpy(tau, &self.a, &self.b)
+    }
+
+    /// The merged time head's bias for `tau`.
+    fn bias(&self, tau: T) -> Vec<T> {
+        self.bias_a
+            .iter()
+            .zip(self.bias_b)
+            .map(|(&a, &b)| tau * a + b)
+            .collect()
+    }
 }
 
 /// The field's weights packed for the forward.
 struct ForwardWeights<'p, T> {
     cells: Vec<CellForward<'p, T>>,
+    /// The τ the packed heads are merged for (the first row's).
+    tau0: T,
     skip: PackedLinear<T>,
     head: PackedLinear<T>,
 }
 
 /// One cell's weights packed for the backward's chunks.
-struct CellBackward<T> {
-    /// `W` of the stacked heads `[4W, U]`, for their input gradient.
+struct CellBackward<'p, T> {
+    /// `W` of the stacked heads merged for τ₀ `[3W, U]`, for their input
+    /// gradient.
     heads: Packed<T>,
+    /// time_a, to recompute `time_a(z)` for the τ gradient.
+    time_a: PackedLinear<T>,
+    /// For runs of rows with another τ: `W` of ff1 | ff2 `[2W, U]`, and
+    /// time_a and time_b packed apart.
+    ff: Packed<T>,
+    time: TimePair<'p, T>,
     /// `W` of each backbone layer after the first `[U, U]`.
     later: Vec<Packed<T>>,
     /// backbone.0's `t_feat` columns `[U, |t_feat|]` and state columns `[U, W]`.
@@ -172,8 +236,10 @@ struct CellBackward<T> {
 }
 
 /// The field's weights packed for the backward.
-struct BackwardWeights<T> {
-    cells: Vec<CellBackward<T>>,
+struct BackwardWeights<'p, T> {
+    cells: Vec<CellBackward<'p, T>>,
+    /// τ₀ (as in [`ForwardWeights`]).
+    tau0: T,
     /// The skip's `t_feat` columns `[W, |t_feat|]`.
     skip_t: Packed<T>,
 }
@@ -214,7 +280,11 @@ struct ChunkGradients<T> {
 }
 
 struct CellGradients<T> {
+    /// ff1 | ff2 | the merged time head (whose gradient is time_b's).
     heads: (Vec<T>, Vec<T>),
+    /// time_a's, where the rows' τ differ (empty otherwise: τ times
+    /// time_b's, formed after the sum over chunks).
+    time_a: (Vec<T>, Vec<T>),
     later: Vec<(Vec<T>, Vec<T>)>,
     h_part: Vec<T>,
 }
@@ -228,6 +298,8 @@ impl<T: Real> ChunkGradients<T> {
             .map(|c| {
                 c.heads.0.len()
                     + c.heads.1.len()
+                    + c.time_a.0.len()
+                    + c.time_a.1.len()
                     + c.later
                         .iter()
                         .map(|(w, b)| w.len() + b.len())
@@ -244,6 +316,8 @@ impl<T: Real> ChunkGradients<T> {
         for c in &mut self.cells {
             v.push(&mut c.heads.0);
             v.push(&mut c.heads.1);
+            v.push(&mut c.time_a.0);
+            v.push(&mut c.time_a.1);
             for (w, b) in &mut c.later {
                 v.push(w);
                 v.push(b);
@@ -272,8 +346,12 @@ struct Scratch<T> {
     /// Backward: the gradient of every cell's backbone.0 output and of the
     /// skip, side by side (`[rows, D·U + W]`).
     gu: Vec<T>,
-    /// Backward: the heads' output gradient (`[rows, 4W]`).
+    /// Backward: the heads' output gradient (`[rows, 3W]`).
     gate: Vec<T>,
+    /// Backward: `time_a(z)` (`[rows, W]`), and τ times the merged time
+    /// head's output gradient (where the rows' τ differ).
+    ta: Vec<T>,
+    ga: Vec<T>,
     /// Backward: a backbone layer's output gradient, and the next one's.
     dz: Vec<T>,
     dz_next: Vec<T>,
@@ -399,8 +477,11 @@ impl CfcNet {
         l > 0 || self.skip_at == 0
     }
 
-    fn forward_weights<'p, T: Real>(&self, p: &'p [T]) -> ForwardWeights<'p, T> {
+    fn forward_weights<'p, T: Real>(&'p self, p: &'p [T], tau0: T) -> ForwardWeights<'p, T> {
         let (w, ud) = (self.width, self.u_dim);
+        let wt = |lin: &LinearParams| {
+            MatRef::row_major(lin.weight(p), lin.shape.out_dim, lin.shape.in_dim).t()
+        };
         let cells = self
             .cells
             .iter()
@@ -415,12 +496,18 @@ impl CfcNet {
                         .iter()
                         .map(|l| l.linear(p).packed())
                         .collect(),
-                    heads: Stacked(&cell.heads).linear(p).packed(),
+                    heads: merged_heads(&cell.heads, p, tau0).packed(),
+                    time: TimePair::new(
+                        pack_pair(wt(&cell.heads[2]), wt(&cell.heads[3])),
+                        &cell.heads,
+                        p,
+                    ),
                 }
             })
             .collect();
         ForwardWeights {
             cells,
+            tau0,
             skip: self.skip.linear(p).packed(),
             head: self.head.linear(p).packed(),
         }
@@ -447,7 +534,7 @@ impl CfcNet {
             || concat_columns(&x_emb, xd, &t_feat, td, n),
         );
         drop((x_emb, t_feat));
-        let fw = self.forward_weights(p);
+        let fw = self.forward_weights(p, t.first().copied().unwrap_or(T::ZERO));
         // Every cell runs on a block of rows after the other while the block
         // is in cache; the saved arrays are written once, block by block.
         let tasks_n = n.div_ceil(FORWARD_ROWS);
@@ -490,7 +577,7 @@ impl CfcNet {
                 for (task, s) in
                     tasks
                         .iter_mut()
-                        .zip(blocks_of(v, n * 4 * w, FORWARD_ROWS * 4 * w, tasks_n))
+                        .zip(blocks_of(v, n * 3 * w, FORWARD_ROWS * 3 * w, tasks_n))
                 {
                     task.gates.push(s);
                 }
@@ -534,7 +621,7 @@ impl CfcNet {
                 assume_written(v, h_len(l));
             }
             for v in gates.iter_mut() {
-                assume_written(v, n * 4 * w);
+                assume_written(v, n * 3 * w);
             }
             assume_written(&mut head_in, n * w);
             assume_written(&mut out, n * 10);
@@ -583,7 +670,13 @@ impl CfcNet {
                 units,
                 d * self.layers(),
             ),
-            profile::TallyOp::product("heads ff1|ff2|time_a|time_b: z·Wᵀ + b", n, units, 4 * w, d),
+            profile::TallyOp::product(
+                "heads ff1|ff2|time (τ·time_a + time_b merged): z·Wᵀ + b",
+                n,
+                units,
+                3 * w,
+                d,
+            ),
             profile::TallyOp::elementwise("gate and update (2 tanh, sigmoid)", n, w, d),
             profile::TallyOp::product("head: h·Wᵀ + b", n, w, 10, 1),
         ]
@@ -683,15 +776,26 @@ impl CfcNet {
                         .apply_block_uninit(pre, slots(&mut s.xs[0][..rows * units]));
                 });
             }
-            // The heads as one product 4W wide, then the gate and the new
-            // state (the gate's values are saved).
+            // The heads as one product 3W wide (by runs of equal τ), then
+            // the gate and the new state (the gate's values are saved).
             let gate = Tally::time(tally, FwdOp::Heads as usize, || {
-                cw.heads
-                    .forward_block_into(&s.xs[0][..rows * units], rows, gate)
+                let z = &s.xs[0][..rows * units];
+                let gate = cw.heads.forward_block_into(z, rows, gate);
+                // Runs with another τ: their time head again, merged for
+                // their τ (the same sums, in the same order, with its
+                // weights), over the τ₀ one.
+                for (i, j) in equal_runs(tb).filter(|&(i, _)| !same(tb[i], fw.tau0)) {
+                    let zr = MatRef::row_major(&z[i * units..j * units], j - i, units);
+                    let time = &mut s.tmp[..(j - i) * w];
+                    matmul_block_into(zr, &cw.time.weights(tb[i]), slots(time));
+                    add_bias(time, &cw.time.bias(tb[i]), w);
+                    set_columns(&mut gate[i * 3 * w..j * 3 * w], 3 * w, 2 * w, time, w);
+                }
+                gate
             });
             let next = states.next().expect("a state slot per cell");
             Tally::time(tally, FwdOp::Gate as usize, || {
-                cell_forward_rows(gate, &mut *next, tb, w)
+                cell_forward_rows(gate, &mut *next, w)
             });
             // SAFETY: cell_forward_rows wrote every value of its rows.
             h = Some(unsafe { assume_init(next) });
@@ -702,7 +806,7 @@ impl CfcNet {
         });
     }
 
-    fn backward_weights<T: Real>(&self, p: &[T]) -> BackwardWeights<T> {
+    fn backward_weights<'p, T: Real>(&'p self, p: &'p [T], tau0: T) -> BackwardWeights<'p, T> {
         let (w, ud, units) = (self.width, self.u_dim, self.units());
         let xd = encoded_dim(3, XYZ_LEVELS);
         let td = ud - xd;
@@ -713,10 +817,21 @@ impl CfcNet {
             .cells
             .iter()
             .map(|cell| {
-                let heads = Stacked(&cell.heads).linear(p);
+                let heads = merged_heads(&cell.heads, p, tau0);
                 let b0 = wm(&cell.backbone[0]);
                 CellBackward {
-                    heads: pack(MatRef::row_major(heads.weight(), 4 * w, units)),
+                    heads: pack(MatRef::row_major(heads.weight(), 3 * w, units)),
+                    time_a: cell.heads[2].linear(p).packed(),
+                    ff: pack(MatRef::row_major(
+                        &heads.weight()[..2 * w * units],
+                        2 * w,
+                        units,
+                    )),
+                    time: TimePair::new(
+                        pack_pair(wm(&cell.heads[2]), wm(&cell.heads[3])),
+                        &cell.heads,
+                        p,
+                    ),
                     later: cell.backbone[1..].iter().map(|l| pack(wm(l))).collect(),
                     t_part: pack(b0.cols(xd, td)),
                     h_part: pack(b0.cols(ud, w)),
@@ -725,6 +840,7 @@ impl CfcNet {
             .collect();
         BackwardWeights {
             cells,
+            tau0,
             skip_t: pack(wm(&self.skip).cols(xd, td)),
         }
     }
@@ -755,7 +871,12 @@ impl CfcNet {
             },
         )
         .expect("input gradient requested");
-        let bw = self.backward_weights(p);
+        let tau0 = t.first().copied().unwrap_or(T::ZERO);
+        let bw = self.backward_weights(p, tau0);
+        // With one τ for every row, time_a's weight gradient is τ times
+        // time_b's (formed after the sum over chunks), else a product of its
+        // own per chunk.
+        let uniform = t.iter().all(|&v| same(v, tau0));
         // Every cell runs backwards on a chunk of rows after the other while
         // the chunk is in cache; the weight and bias gradients are partial
         // sums per chunk, added in chunk order at the end.
@@ -777,14 +898,14 @@ impl CfcNet {
                     dt,
                 })
                 .collect();
-            let tally = Tally::new(|| self.backward_ops(n));
+            let tally = Tally::new(|| self.backward_ops(n, uniform));
             let r = profile::layer(
                 || "cells (fused by chunks of rows)".into(),
                 || {
                     tasks
                         .into_par_iter()
                         .map_init(Scratch::default, |s, task| {
-                            self.backward_rows(&bw, s, c, &dh, t, task, tally.as_ref())
+                            self.backward_rows(&bw, s, c, &dh, t, uniform, task, tally.as_ref())
                         })
                         .collect()
                 },
@@ -804,7 +925,7 @@ impl CfcNet {
             || "weight and bias gradients: chunk partials added in order".into(),
             partials.len(),
             per_chunk,
-            || self.store_partials(partials, gp),
+            || self.store_partials(partials, uniform.then_some(tau0), gp),
         );
         let mut gt = profile::layer(
             || "timenet".into(),
@@ -817,8 +938,14 @@ impl CfcNet {
     }
 
     /// The chunks' partial gradients added in chunk order (the first taken
-    /// as is) and written into `gp`.
-    fn store_partials<T: Real>(&self, partials: Vec<ChunkGradients<T>>, gp: &mut [T]) {
+    /// as is) and written into `gp`; `uniform`: the τ of every row, when
+    /// they share one (time_a's gradients are then τ times time_b's).
+    fn store_partials<T: Real>(
+        &self,
+        partials: Vec<ChunkGradients<T>>,
+        uniform: Option<T>,
+        gp: &mut [T],
+    ) {
         let (w, ud, units) = (self.width, self.u_dim, self.units());
         let mut chunks = partials.into_iter();
         let Some(mut total) = chunks.next() else {
@@ -832,12 +959,24 @@ impl CfcNet {
             }
         }
         for (l, (cell, cg)) in self.cells.iter().zip(&total.cells).enumerate() {
-            for (k, head) in cell.heads.iter().enumerate() {
+            // ff1, ff2 and time_b from the merged heads' rows 0, 1 and 2.
+            for (k, head) in [0, 1, 3].map(|k| (k.min(2), &cell.heads[k])) {
                 head.store_grads(
                     gp,
                     &cg.heads.0[k * w * units..(k + 1) * w * units],
                     &cg.heads.1[k * w..(k + 1) * w],
                 );
+            }
+            match uniform {
+                Some(tau) => {
+                    let scaled = |g: &[T]| -> Vec<T> { g.iter().map(|&v| tau * v).collect() };
+                    cell.heads[2].store_grads(
+                        gp,
+                        &scaled(&cg.heads.0[2 * w * units..3 * w * units]),
+                        &scaled(&cg.heads.1[2 * w..3 * w]),
+                    );
+                }
+                None => cell.heads[2].store_grads(gp, &cg.time_a.0, &cg.time_a.1),
             }
             for (lin, (wg, bg)) in cell.backbone[1..].iter().zip(&cg.later) {
                 lin.store_grads(gp, wg, bg);
@@ -862,7 +1001,7 @@ impl CfcNet {
 
     /// The operations of the fused backward, in [`BwdOp`] order, for the
     /// profile.
-    fn backward_ops(&self, n: usize) -> Vec<profile::TallyOp> {
+    fn backward_ops(&self, n: usize, uniform: bool) -> Vec<profile::TallyOp> {
         let (w, ud, units, d) = (self.width, self.u_dim, self.units(), self.cells.len());
         let td = ud - encoded_dim(3, XYZ_LEVELS);
         let layers = self.layers();
@@ -878,9 +1017,29 @@ impl CfcNet {
                 units,
                 d * layers,
             ),
+            profile::TallyOp::product(
+                "time_a(z) recomputed for the τ gradient: z·Wᵀ + b",
+                n,
+                units,
+                w,
+                d,
+            ),
             profile::TallyOp::elementwise("gate and update vjp", n, w, d),
-            profile::TallyOp::product("heads weight grad Gᵀ·z, bias grad", 4 * w, n, units, d),
-            profile::TallyOp::product("heads input grad G·W", n, 4 * w, units, d),
+            profile::TallyOp::product(
+                "heads weight grad Gᵀ·z, bias grad (ff1|ff2|time)",
+                3 * w,
+                n,
+                units,
+                d,
+            ),
+            profile::TallyOp::product(
+                "time_a weight grad (τ·G)ᵀ·z, bias grad (rows' τ differ)",
+                w,
+                n,
+                units,
+                if uniform { 0 } else { d },
+            ),
+            profile::TallyOp::product("heads input grad G·W", n, 3 * w, units, d),
             profile::TallyOp::elementwise(
                 &format!("{} vjp: G·f′ (every backbone layer)", self.act),
                 n,
@@ -943,6 +1102,7 @@ impl CfcNet {
         c: &CfcCache<T>,
         dh_all: &[T],
         t: &[T],
+        uniform: bool,
         task: BackwardTask<'_, T>,
         tally: Option<&profile::Tally>,
     ) -> ChunkGradients<T> {
@@ -967,7 +1127,11 @@ impl CfcNet {
         sized(&mut s.tmp, rows * td);
         sized(&mut s.dt, rows).fill(T::ZERO);
         sized(&mut s.prod, w);
-        sized(&mut s.gate, rows * 4 * w);
+        sized(&mut s.gate, rows * 3 * w);
+        sized(&mut s.ta, rows * w);
+        if !uniform {
+            sized(&mut s.ga, rows * w);
+        }
         sized(&mut s.dz, rows * units);
         sized(&mut s.dz_next, rows * units);
         s.xs.resize_with(layers, Vec::new);
@@ -992,25 +1156,62 @@ impl CfcNet {
                 }
             });
             let zm = MatRef::row_major(&s.xs[layers - 1][..rows * units], rows, units);
-            // The gate and update vjp: the heads' output gradient G.
-            let gate = &mut s.gate[..rows * 4 * w];
+            // time_a(z) for the τ gradient, then the gate and update vjp:
+            // the heads' output gradient G.
+            let ta = Tally::time(tally, BwdOp::TimeA as usize, || {
+                cw.time_a.forward_block_into(
+                    &s.xs[layers - 1][..rows * units],
+                    rows,
+                    slots(&mut s.ta[..rows * w]),
+                )
+            });
+            let gate = &mut s.gate[..rows * 3 * w];
             Tally::time(tally, BwdOp::Gate as usize, || {
                 cell_backward_rows(
                     gate,
-                    &cc.gate[r0 * 4 * w..(r0 + rows) * 4 * w],
+                    &cc.gate[r0 * 3 * w..(r0 + rows) * 3 * w],
+                    ta,
                     &s.h[..rows * w],
-                    tb,
                     &mut s.dt[..rows],
                     &mut s.prod,
                     w,
                 )
             });
-            let gm = MatRef::row_major(&*gate, rows, 4 * w);
+            let gm = MatRef::row_major(&*gate, rows, 3 * w);
             let heads = Tally::time(tally, BwdOp::HeadsWeight as usize, || {
-                (matmul_tn(gm, zm), column_sums(gate, rows, 4 * w))
+                (matmul_tn(gm, zm), column_sums(gate, rows, 3 * w))
             });
+            let time_a = if uniform {
+                (Vec::new(), Vec::new())
+            } else {
+                Tally::time(tally, BwdOp::TimeAWeight as usize, || {
+                    let ga = &mut s.ga[..rows * w];
+                    for ((o, g), &tau) in
+                        ga.chunks_exact_mut(w).zip(gate.chunks_exact(3 * w)).zip(tb)
+                    {
+                        for (o, &v) in o.iter_mut().zip(&g[2 * w..]) {
+                            *o = tau * v;
+                        }
+                    }
+                    let gam = MatRef::row_major(&*ga, rows, w);
+                    (matmul_tn(gam, zm), column_sums(ga, rows, w))
+                })
+            };
             let mut dz = Tally::time(tally, BwdOp::HeadsInput as usize, || {
-                matmul_block_into(gm, &cw.heads, slots(&mut s.dz[..rows * units]))
+                let dz = &mut s.dz[..rows * units];
+                for (i, j) in equal_runs(tb) {
+                    let g = MatRef::row_major(&gate[i * 3 * w..j * 3 * w], j - i, 3 * w);
+                    let out = slots(&mut dz[i * units..j * units]);
+                    if same(tb[i], bw.tau0) {
+                        matmul_block_into(g, &cw.heads, out);
+                    } else {
+                        // The sums over ff1 | ff2, continued over the time
+                        // head merged for this τ: one sum over 3W in order.
+                        let out = matmul_block_into(g.cols(0, 2 * w), &cw.ff, out);
+                        matmul_block_resume(g.cols(2 * w, w), &cw.time.weights(tb[i]), out);
+                    }
+                }
+                dz
             });
             let mut later = Vec::with_capacity(layers - 1);
             for j in (1..layers).rev() {
@@ -1074,6 +1275,7 @@ impl CfcNet {
             }
             cells.push(CellGradients {
                 heads,
+                time_a,
                 later,
                 h_part,
             });
@@ -1094,6 +1296,39 @@ impl CfcNet {
         write_all(dt, &s.dt[..rows]);
         ChunkGradients { cells, wide }
     }
+}
+
+/// ff1 | ff2 | time(τ) as one layer `3W` wide over `z`, where time(τ) is
+/// `time_a(z)·τ + time_b(z)` merged into one layer: weight `τ·W_a + W_b`,
+/// bias `τ·b_a + b_b` (see the module docs).
+fn merged_heads<T: Real>(heads: &[LinearParams; 4], p: &[T], tau: T) -> Linear<'static, T> {
+    let merge =
+        |a: &[T], b: &[T]| -> Vec<T> { a.iter().zip(b).map(|(&a, &b)| tau * a + b).collect() };
+    let weight = merge(heads[2].weight(p), heads[3].weight(p));
+    let bias = merge(heads[2].bias(p), heads[3].bias(p));
+    let time = Linear::new(&weight, &bias, heads[2].shape);
+    Linear::stacked(&[heads[0].linear(p), heads[1].linear(p), time])
+}
+
+/// Whether `a` and `b` are the same value bit for bit.
+fn same<T: Real>(a: T, b: T) -> bool {
+    a.bits() == b.bits()
+}
+
+/// The runs `[i, j)` of rows with the same τ (bit for bit), in order.
+fn equal_runs<T: Real>(t: &[T]) -> impl Iterator<Item = (usize, usize)> + '_ {
+    let mut i = 0;
+    std::iter::from_fn(move || {
+        if i == t.len() {
+            return None;
+        }
+        let start = i;
+        i += 1;
+        while i < t.len() && same(t[i], t[start]) {
+            i += 1;
+        }
+        Some((start, i))
+    })
 }
 
 /// Columns `c0..c0 + d` of the row-major `dst` (`ld` wide) set to `src`
@@ -1125,45 +1360,41 @@ fn concat_columns<T: Real>(a: &[T], da: usize, b: &[T], db: usize, n: usize) -> 
 }
 
 // The fused element-wise pass of a cell on a block of rows. `g` holds the
-// four head outputs per row (ff1 | ff2 | time_a | time_b, each W wide) on
-// entry and tanh(ff1) | tanh(ff2) | time_a | σ on exit; `h` receives the new
-// state; `t` is τ per row.
-multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], t: &[T], w: usize) => cell_forward_rows_body);
+// three head outputs per row (ff1 | ff2 | time, each W wide; time is
+// time_a(z)·τ + time_b(z), merged) on entry and tanh(ff1) | tanh(ff2) | σ on
+// exit; `h` receives the new state.
+multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], w: usize) => cell_forward_rows_body);
 
 #[inline(always)]
-fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], t: &[T], w: usize) {
-    // Four simple loops per row (each a zip of at most four slices, which
-    // the compiler vectorises; one loop with five streams it would not).
-    // The row stays in L1 between them; the arithmetic per element is the
-    // same as one fused loop.
-    for ((g, h), &tau) in g.chunks_exact_mut(4 * w).zip(h.chunks_exact_mut(w)).zip(t) {
+fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], w: usize) {
+    // Simple loops per row (each a zip of at most four slices, which the
+    // compiler vectorises; one loop with five streams it would not). The
+    // row stays in L1 between them; the arithmetic per element is the same
+    // as one fused loop.
+    for (g, h) in g.chunks_exact_mut(3 * w).zip(h.chunks_exact_mut(w)) {
         let (f1, rest) = g.split_at_mut(w);
-        let (f2, rest) = rest.split_at_mut(w);
-        let (ta, tb) = rest.split_at_mut(w);
+        let (f2, ts) = rest.split_at_mut(w);
         for v in f1.iter_mut() {
             *v = fastmath::tanh(*v);
         }
         for v in f2.iter_mut() {
             *v = fastmath::tanh(*v);
         }
-        for (s, &a) in tb.iter_mut().zip(ta.iter()) {
-            *s = a * tau + *s;
-        }
-        for s in tb.iter_mut() {
+        for s in ts.iter_mut() {
             *s = fastmath::sigmoid(*s);
         }
-        for (((h, &a), &b), &s) in h.iter_mut().zip(f1.iter()).zip(f2.iter()).zip(tb.iter()) {
+        for (((h, &a), &b), &s) in h.iter_mut().zip(f1.iter()).zip(f2.iter()).zip(ts.iter()) {
             h.write(a * (T::ONE - s) + s * b);
         }
     }
 }
 
-// vjp of `cell_forward_rows` on a block of rows: the gradient of the four
-// head outputs `o` (`[rows, 4W]`) given the cell pass's saved values `g`
-// (tanh(ff1) | tanh(ff2) | time_a | σ) and the state gradient `dh`
-// `[rows, W]`; adds each row's gradient with respect to τ (summed over j in
-// order) to `dt`. `prod` is scratch, W long.
-multiversion!(fn cell_backward_rows<T: Real>(o: &mut [T], g: &[T], dh: &[T], t: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
+// vjp of `cell_forward_rows` on a block of rows: the gradient of the three
+// head outputs `o` (`[rows, 3W]`) given the cell pass's saved values `g`
+// (tanh(ff1) | tanh(ff2) | σ), `time_a(z)` `ta` (`[rows, W]`) and the state
+// gradient `dh` `[rows, W]`; adds each row's gradient with respect to τ
+// (summed over j in order) to `dt`. `prod` is scratch, W long.
+multiversion!(fn cell_backward_rows<T: Real>(o: &mut [T], g: &[T], ta: &[T], dh: &[T], dt: &mut [T], prod: &mut [T], w: usize) => cell_backward_rows_body);
 
 // The per-row sum for τ runs in its own loop over `prod` (j ascending), so
 // the element-wise loop vectorises.
@@ -1171,35 +1402,32 @@ multiversion!(fn cell_backward_rows<T: Real>(o: &mut [T], g: &[T], dh: &[T], t: 
 fn cell_backward_rows_body<T: Real>(
     o: &mut [T],
     g: &[T],
+    ta: &[T],
     dh: &[T],
-    t: &[T],
     dt: &mut [T],
     prod: &mut [T],
     w: usize,
 ) {
-    for ((((o, g), dh), &tau), dt) in o
-        .chunks_exact_mut(4 * w)
-        .zip(g.chunks_exact(4 * w))
+    for ((((o, g), ta), dh), dt) in o
+        .chunks_exact_mut(3 * w)
+        .zip(g.chunks_exact(3 * w))
+        .zip(ta.chunks_exact(w))
         .zip(dh.chunks_exact(w))
-        .zip(t)
         .zip(dt.iter_mut())
     {
         let (o1, rest) = o.split_at_mut(w);
-        let (o2, rest) = rest.split_at_mut(w);
-        let (o3, o4) = rest.split_at_mut(w);
+        let (o2, o3) = rest.split_at_mut(w);
         let (ga, rest) = g.split_at(w);
-        let (gb, rest) = rest.split_at(w);
-        let (gta, gs) = rest.split_at(w);
-        for (((((((((o1, o2), o3), o4), &a), &b), &ta), &s), &gh), pr) in o1
+        let (gb, gs) = rest.split_at(w);
+        for ((((((((o1, o2), o3), &a), &b), &s), &gh), &ta), pr) in o1
             .iter_mut()
             .zip(o2.iter_mut())
             .zip(o3.iter_mut())
-            .zip(o4.iter_mut())
             .zip(ga)
             .zip(gb)
-            .zip(gta)
             .zip(gs)
             .zip(dh)
+            .zip(ta)
             .zip(prod.iter_mut())
         {
             let da = gh * (T::ONE - s);
@@ -1208,8 +1436,7 @@ fn cell_backward_rows_body<T: Real>(
             let dpre = ds * (s * (T::ONE - s));
             *o1 = da * (T::ONE - a * a);
             *o2 = db * (T::ONE - b * b);
-            *o3 = dpre * tau;
-            *o4 = dpre;
+            *o3 = dpre;
             *pr = dpre * ta;
         }
         let mut sum = T::ZERO;

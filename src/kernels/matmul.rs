@@ -239,6 +239,47 @@ pub fn pack<T: Real>(b: MatRef<'_, T>) -> Packed<T> {
     }
 }
 
+/// `A` and `B` (of the same shape) packed for the same kernel, for
+/// [`pack_axpy`] (the kernel is read once: a test that pins the instruction
+/// set in between cannot make them differ).
+pub fn pack_pair<T: Real>(a: MatRef<'_, T>, b: MatRef<'_, T>) -> (Packed<T>, Packed<T>) {
+    let path = kernel_path();
+    let packed = |m: MatRef<'_, T>| Packed {
+        b: pack_b_for(m, path),
+        k: m.rows,
+        n: m.cols,
+    };
+    (packed(a), packed(b))
+}
+
+/// The packing of `τ·A + B` (each value rounded after the product and after
+/// the sum) from the packings of `A` and `B` ([`pack_pair`]), which must have
+/// the same shape:
+/// one pass over the packed values, in their packed order, instead of
+/// packing again (the padding stays zero for finite `τ`, and padded values
+/// are never stored).
+pub fn pack_axpy<T: Real>(tau: T, a: &Packed<T>, b: &Packed<T>) -> Packed<T> {
+    assert!(
+        a.k == b.k && a.n == b.n && a.b.width == b.b.width && a.b.path == b.b.path,
+        "pack_axpy: the packings differ in shape"
+    );
+    let data =
+        a.b.data
+            .iter()
+            .zip(&b.b.data)
+            .map(|(&x, &y)| tau * x + y)
+            .collect();
+    Packed {
+        b: PackedB {
+            data,
+            width: a.b.width,
+            path: a.b.path,
+        },
+        k: a.k,
+        n: a.n,
+    }
+}
+
 /// `c = A · B` for a block of rows of `A` (`[rows, k]`, any strides) and a
 /// packed `B`, on the calling thread (for example inside another product's
 /// epilogue, on a block of rows while it is in cache): the same bits as
@@ -593,7 +634,11 @@ struct Panels<'a, T> {
 
 /// Pack `B` for the kernel that runs now ([`kernel_path`]).
 fn pack_b<T: Real>(b: MatRef<'_, T>) -> PackedB<T> {
-    let path = kernel_path();
+    pack_b_for(b, kernel_path())
+}
+
+/// [`pack_b`] for the kernel `path`.
+fn pack_b_for<T: Real>(b: MatRef<'_, T>, path: KernelPath) -> PackedB<T> {
     let width = tile_shape::<T>(path).1;
     let len = b.cols.div_ceil(width) * b.rows * width;
     let data = vec_written_by(len, |buf| {
