@@ -477,12 +477,13 @@ fn kernel_shapes<T: Real>(n: usize, reps: usize) {
         ),
         ("x·W", 128, 64, "CfC backbone.0 state part"),
         ("x·W", 64, 64, "CfC backbone.1"),
-        ("x·W", 64, 512, "CfC heads (4W)"),
-        ("x·W", 512, 64, "CfC heads' input gradient"),
+        ("x·W", 64, 384, "CfC heads (3W)"),
+        ("x·W", 384, 64, "CfC heads' input gradient"),
         ("Gᵀ·X", 256, 256, "MLP trunk weight gradients"),
-        ("Gᵀ·X", 512, 64, "CfC heads' weight gradient"),
+        ("Gᵀ·X", 384, 64, "CfC heads' weight gradient"),
     ];
-    let more: [(&str, usize, usize, &str); 3] = [
+    let more: [(&str, usize, usize, &str); 4] = [
+        ("x·W", 64, 128, "CfC time_a(z) in the backward"),
         ("Gᵀ·X", 64, 128, "CfC backbone.0 state weight gradient"),
         ("Gᵀ·X", 64, 64, "CfC backbone.1 weight gradient"),
         ("Gᵀ·X", 512, 93, "CfC u part weight gradients"),
