@@ -691,6 +691,17 @@ fn fields_are_bit_identical_across_cpu_paths() {
     }
 }
 
+/// An output gradient for `n` Gaussians, uniform in [-1, 1], drawn from `r`.
+fn random_cotangent(r: &mut Rng, n: usize) -> Deformation<f32> {
+    let mut draw =
+        |k: usize| -> Vec<f32> { (0..k).map(|_| r.uniform_range(-1.0, 1.0) as f32).collect() };
+    Deformation {
+        d_xyz: draw(3 * n),
+        d_rotation: draw(4 * n),
+        d_scaling: draw(3 * n),
+    }
+}
+
 /// A Gaussian's deformation and its gradient with respect to its time are
 /// the same bits whatever the other rows of the batch: the CfC field merges
 /// its time heads per run of equal τ, with one merged layer per τ, so rows
@@ -706,17 +717,7 @@ fn cfc_rows_do_not_depend_on_the_batch() {
     let xyz: Vec<f32> = (0..3 * n)
         .map(|_| r.uniform_range(-1.0, 1.0) as f32)
         .collect();
-    let g = Deformation {
-        d_xyz: (0..3 * n)
-            .map(|_| r.uniform_range(-1.0, 1.0) as f32)
-            .collect(),
-        d_rotation: (0..4 * n)
-            .map(|_| r.uniform_range(-1.0, 1.0) as f32)
-            .collect(),
-        d_scaling: (0..3 * n)
-            .map(|_| r.uniform_range(-1.0, 1.0) as f32)
-            .collect(),
-    };
+    let g = random_cotangent(&mut r, n);
     let row = |d: &Deformation<f32>, i: usize| -> Vec<u32> {
         d.d_xyz[3 * i..3 * i + 3]
             .iter()
@@ -770,17 +771,7 @@ fn fields_are_bit_identical_across_thread_counts() {
             .map(|_| r.uniform_range(-1.0, 1.0) as f32)
             .collect();
         let random: Vec<f32> = (0..n).map(|_| r.uniform() as f32).collect();
-        let g = Deformation {
-            d_xyz: (0..3 * n)
-                .map(|_| r.uniform_range(-1.0, 1.0) as f32)
-                .collect(),
-            d_rotation: (0..4 * n)
-                .map(|_| r.uniform_range(-1.0, 1.0) as f32)
-                .collect(),
-            d_scaling: (0..3 * n)
-                .map(|_| r.uniform_range(-1.0, 1.0) as f32)
-                .collect(),
-        };
+        let g = random_cotangent(&mut r, n);
         // Random times, and one time for every row (as in training).
         for t in [random, vec![0.45; n]] {
             let run = |threads: usize| {
