@@ -166,9 +166,9 @@ struct CellForward<'p, T> {
     later: Vec<PackedLinear<T>>,
     /// ff1 | ff2 | time(τ₀) as one layer `3W` wide ([`merged_heads`]).
     heads: PackedLinear<T>,
-    /// For runs of rows with another τ: time_a's and time_b's `Wᵀ`
-    /// `[U, W]`, packed, and their biases.
-    time: TimePair<'p, T>,
+    /// For runs of rows with another τ (`None` when every row has τ₀):
+    /// time_a's and time_b's `Wᵀ` `[U, W]`, packed, and their biases.
+    time: Option<TimePair<'p, T>>,
 }
 
 /// time_a and time_b packed apart, to merge them for a τ other than τ₀
@@ -224,10 +224,9 @@ struct CellBackward<'p, T> {
     heads: Packed<T>,
     /// time_a, to recompute `time_a(z)` for the τ gradient.
     time_a: PackedLinear<T>,
-    /// For runs of rows with another τ: `W` of ff1 | ff2 `[2W, U]`, and
-    /// time_a and time_b packed apart.
-    ff: Packed<T>,
-    time: TimePair<'p, T>,
+    /// For runs of rows with another τ (`None` when every row has τ₀): `W`
+    /// of ff1 | ff2 `[2W, U]`, and time_a and time_b packed apart.
+    other_tau: Option<(Packed<T>, TimePair<'p, T>)>,
     /// `W` of each backbone layer after the first `[U, U]`.
     later: Vec<Packed<T>>,
     /// backbone.0's `t_feat` columns `[U, |t_feat|]` and state columns `[U, W]`.
@@ -477,7 +476,11 @@ impl CfcNet {
         l > 0 || self.skip_at == 0
     }
 
-    fn forward_weights<'p, T: Real>(&'p self, p: &'p [T], tau0: T) -> ForwardWeights<'p, T> {
+    fn forward_weights<'p, T: Real>(
+        &'p self,
+        p: &'p [T],
+        (tau0, uniform): (T, bool),
+    ) -> ForwardWeights<'p, T> {
         let (w, ud) = (self.width, self.u_dim);
         let wt = |lin: &LinearParams| {
             MatRef::row_major(lin.weight(p), lin.shape.out_dim, lin.shape.in_dim).t()
@@ -497,11 +500,13 @@ impl CfcNet {
                         .map(|l| l.linear(p).packed())
                         .collect(),
                     heads: merged_heads(&cell.heads, p, tau0).packed(),
-                    time: TimePair::new(
-                        pack_pair(wt(&cell.heads[2]), wt(&cell.heads[3])),
-                        &cell.heads,
-                        p,
-                    ),
+                    time: (!uniform).then(|| {
+                        TimePair::new(
+                            pack_pair(wt(&cell.heads[2]), wt(&cell.heads[3])),
+                            &cell.heads,
+                            p,
+                        )
+                    }),
                 }
             })
             .collect();
@@ -534,7 +539,7 @@ impl CfcNet {
             || concat_columns(&x_emb, xd, &t_feat, td, n),
         );
         drop((x_emb, t_feat));
-        let fw = self.forward_weights(p, t.first().copied().unwrap_or(T::ZERO));
+        let fw = self.forward_weights(p, first_tau(t));
         // Every cell runs on a block of rows after the other while the block
         // is in cache; the saved arrays are written once, block by block.
         let tasks_n = n.div_ceil(FORWARD_ROWS);
@@ -785,10 +790,11 @@ impl CfcNet {
                 // their τ (the same sums, in the same order, with its
                 // weights), over the τ₀ one.
                 for (i, j) in equal_runs(tb).filter(|&(i, _)| !same(tb[i], fw.tau0)) {
+                    let time_pair = cw.time.as_ref().expect("packed where the rows' τ differ");
                     let zr = MatRef::row_major(&z[i * units..j * units], j - i, units);
                     let time = &mut s.tmp[..(j - i) * w];
-                    matmul_block_into(zr, &cw.time.weights(tb[i]), slots(time));
-                    add_bias(time, &cw.time.bias(tb[i]), w);
+                    matmul_block_into(zr, &time_pair.weights(tb[i]), slots(time));
+                    add_bias(time, &time_pair.bias(tb[i]), w);
                     set_columns(&mut gate[i * 3 * w..j * 3 * w], 3 * w, 2 * w, time, w);
                 }
                 gate
@@ -806,7 +812,11 @@ impl CfcNet {
         });
     }
 
-    fn backward_weights<'p, T: Real>(&'p self, p: &'p [T], tau0: T) -> BackwardWeights<'p, T> {
+    fn backward_weights<'p, T: Real>(
+        &'p self,
+        p: &'p [T],
+        (tau0, uniform): (T, bool),
+    ) -> BackwardWeights<'p, T> {
         let (w, ud, units) = (self.width, self.u_dim, self.units());
         let xd = encoded_dim(3, XYZ_LEVELS);
         let td = ud - xd;
@@ -822,16 +832,20 @@ impl CfcNet {
                 CellBackward {
                     heads: pack(MatRef::row_major(heads.weight(), 3 * w, units)),
                     time_a: cell.heads[2].linear(p).packed(),
-                    ff: pack(MatRef::row_major(
-                        &heads.weight()[..2 * w * units],
-                        2 * w,
-                        units,
-                    )),
-                    time: TimePair::new(
-                        pack_pair(wm(&cell.heads[2]), wm(&cell.heads[3])),
-                        &cell.heads,
-                        p,
-                    ),
+                    other_tau: (!uniform).then(|| {
+                        (
+                            pack(MatRef::row_major(
+                                &heads.weight()[..2 * w * units],
+                                2 * w,
+                                units,
+                            )),
+                            TimePair::new(
+                                pack_pair(wm(&cell.heads[2]), wm(&cell.heads[3])),
+                                &cell.heads,
+                                p,
+                            ),
+                        )
+                    }),
                     later: cell.backbone[1..].iter().map(|l| pack(wm(l))).collect(),
                     t_part: pack(b0.cols(xd, td)),
                     h_part: pack(b0.cols(ud, w)),
@@ -871,12 +885,11 @@ impl CfcNet {
             },
         )
         .expect("input gradient requested");
-        let tau0 = t.first().copied().unwrap_or(T::ZERO);
-        let bw = self.backward_weights(p, tau0);
         // With one τ for every row, time_a's weight gradient is τ times
         // time_b's (formed after the sum over chunks), else a product of its
         // own per chunk.
-        let uniform = t.iter().all(|&v| same(v, tau0));
+        let (tau0, uniform) = first_tau(t);
+        let bw = self.backward_weights(p, (tau0, uniform));
         // Every cell runs backwards on a chunk of rows after the other while
         // the chunk is in cache; the weight and bias gradients are partial
         // sums per chunk, added in chunk order at the end.
@@ -1207,8 +1220,12 @@ impl CfcNet {
                     } else {
                         // The sums over ff1 | ff2, continued over the time
                         // head merged for this τ: one sum over 3W in order.
-                        let out = matmul_block_into(g.cols(0, 2 * w), &cw.ff, out);
-                        matmul_block_resume(g.cols(2 * w, w), &cw.time.weights(tb[i]), out);
+                        let (ff, time_pair) = cw
+                            .other_tau
+                            .as_ref()
+                            .expect("packed where the rows' τ differ");
+                        let out = matmul_block_into(g.cols(0, 2 * w), ff, out);
+                        matmul_block_resume(g.cols(2 * w, w), &time_pair.weights(tb[i]), out);
                     }
                 }
                 dz
@@ -1308,6 +1325,12 @@ fn merged_heads<T: Real>(heads: &[LinearParams; 4], p: &[T], tau: T) -> Linear<'
     let bias = merge(heads[2].bias(p), heads[3].bias(p));
     let time = Linear::new(&weight, &bias, heads[2].shape);
     Linear::stacked(&[heads[0].linear(p), heads[1].linear(p), time])
+}
+
+/// τ₀, the first row's τ (+0 for no rows), and whether every row has it.
+fn first_tau<T: Real>(t: &[T]) -> (T, bool) {
+    let tau0 = t.first().copied().unwrap_or(T::ZERO);
+    (tau0, t.iter().all(|&v| same(v, tau0)))
 }
 
 /// Whether `a` and `b` are the same value bit for bit.
