@@ -51,7 +51,7 @@
 //! summed over the threads ([`Tally`]).
 
 use super::activation::Activation;
-use super::encoding::{encode, encoded_dim};
+use super::encoding::{encode_then, encoded_dim};
 use super::linear::{add_bias, InputGrad, Linear, OutputGrad, PackedLinear};
 use super::profile::{self, Tally};
 use super::{
@@ -68,12 +68,9 @@ use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
 
-/// Rows per parallel task of element-wise passes (does not affect results).
-const ROWS_PER_TASK: usize = 64;
-
 /// Rows per block of the forward, which runs every cell on a block of rows
 /// after the other (does not affect results).
-const FORWARD_ROWS: usize = 48;
+const FORWARD_ROWS: usize = 96;
 
 /// The operations of the forward timed by the profile, in the order of
 /// [`CfcNet::forward_ops`].
@@ -524,21 +521,16 @@ impl CfcNet {
         let d = self.cells.len();
         let xd = encoded_dim(3, XYZ_LEVELS);
         let td = ud - xd;
-        let x_emb = profile::elementwise(
-            || "γ(x) encoding".into(),
-            n,
-            xd,
-            || encode(xyz, 3, XYZ_LEVELS),
-        );
         let (t_feat, time) = profile::layer(|| "timenet".into(), || self.time.forward(p, t));
-        // u = [γ(x) | t_feat], one row per Gaussian.
+        // u = [γ(x) | t_feat], one row per Gaussian, the encoding written
+        // straight into it.
         let u = profile::elementwise(
-            || "u = [γ(x) | t_feat] (copy)".into(),
+            || "u = [γ(x) | t_feat] (γ(x) encoded into u)".into(),
             n,
             ud,
-            || concat_columns(&x_emb, xd, &t_feat, td, n),
+            || encode_then(xyz, 3, XYZ_LEVELS, &t_feat, td),
         );
-        drop((x_emb, t_feat));
+        drop(t_feat);
         let fw = self.forward_weights(p, first_tau(t));
         // Every cell runs on a block of rows after the other while the block
         // is in cache; the saved arrays are written once, block by block.
@@ -1363,23 +1355,6 @@ fn set_columns<T: Copy>(dst: &mut [T], ld: usize, c0: usize, src: &[T], d: usize
     for (orow, srow) in dst.chunks_exact_mut(ld).zip(src.chunks_exact(d)) {
         orow[c0..c0 + d].copy_from_slice(srow);
     }
-}
-
-/// `[a | b]` row by row (`a` `[n, da]`, `b` `[n, db]`).
-fn concat_columns<T: Real>(a: &[T], da: usize, b: &[T], db: usize, n: usize) -> Vec<T> {
-    let d = da + db;
-    let mut out = vec![T::ZERO; n * d];
-    out.par_chunks_mut((ROWS_PER_TASK * d).max(1))
-        .enumerate()
-        .for_each(|(blk, o)| {
-            let r0 = blk * ROWS_PER_TASK;
-            for (r, row) in o.chunks_exact_mut(d).enumerate() {
-                let i = r0 + r;
-                row[..da].copy_from_slice(&a[i * da..(i + 1) * da]);
-                row[da..].copy_from_slice(&b[i * db..(i + 1) * db]);
-            }
-        });
-    out
 }
 
 // The fused element-wise pass of a cell on a block of rows. `g` holds the

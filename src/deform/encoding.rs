@@ -40,11 +40,24 @@ fn sin_cos_of_arguments<T: Real>(x: &[T], d: usize, levels: usize) -> (Vec<T>, V
 
 /// Encode `x` `[n, d]` row-major into `[n, d + 2dL]`.
 pub fn encode<T: Real>(x: &[T], d: usize, levels: usize) -> Vec<T> {
-    let w = encoded_dim(d, levels);
+    encode_then(x, d, levels, &[], 0)
+}
+
+/// `[encode(x) | tail]` row by row, `[n, d + 2dL + tail_w]` (`tail`
+/// `[n, tail_w]`): the encoding written straight into the wider rows, with
+/// no separate copy.
+pub fn encode_then<T: Real>(x: &[T], d: usize, levels: usize, tail: &[T], tail_w: usize) -> Vec<T> {
+    let e = encoded_dim(d, levels);
+    let w = e + tail_w;
     let n = x.len().checked_div(d).unwrap_or(0);
     if n == 0 || w == 0 {
         return Vec::new();
     }
+    assert_eq!(
+        tail.len(),
+        n * tail_w,
+        "encode_then: tail has the wrong size"
+    );
     // Every value of every row is written once (never zeroed first). Per
     // block of rows, the arguments 2^k·p first, then all their sines and
     // cosines in one vector loop (libm's bits, see `sin_cos_slices`).
@@ -54,6 +67,11 @@ pub fn encode<T: Real>(x: &[T], d: usize, levels: usize) -> Vec<T> {
             let m = d * levels;
             let (sin, cos) = sin_cos_of_arguments(xi, d, levels);
             for (i, (row, p)) in o.chunks_exact_mut(w).zip(xi.chunks_exact(d)).enumerate() {
+                let (row, row_tail) = row.split_at_mut(e);
+                let r = blk * 256 + i;
+                for (dst, &v) in row_tail.iter_mut().zip(&tail[r * tail_w..(r + 1) * tail_w]) {
+                    dst.write(v);
+                }
                 let (row_p, row_sc) = row.split_at_mut(d);
                 for (r, &v) in row_p.iter_mut().zip(p) {
                     r.write(v);
@@ -71,8 +89,9 @@ pub fn encode<T: Real>(x: &[T], d: usize, levels: usize) -> Vec<T> {
                     }
                 }
             }
-            // SAFETY: the loop above wrote the d inputs and the 2·d·levels
-            // sines and cosines of each row of the block, i.e. all its values.
+            // SAFETY: the loop above wrote the d inputs, the 2·d·levels
+            // sines and cosines and the tail of each row of the block, i.e.
+            // all its values.
             unsafe { &mut *(o as *mut [MaybeUninit<T>] as *mut [T]) }
         })
     })

@@ -23,38 +23,47 @@
 //! exact, so a lane of an AVX-512, AVX2 or SSE2 loop and a scalar call give
 //! the same bits. Rust never fuses `a*b + c` into an FMA.
 //!
-//! Algorithms (the Cephes `expf`/`tanhf`/`erff` coefficients):
-//! - `exp`: `x` clamped to [−104, 89] (outside, the result is 0 or +∞
-//!   anyway), `k = round(x·log₂e)` (by adding and subtracting 1.5·2²³),
-//!   `r = (x − k·ln2_hi) − k·ln2_lo` (Cody–Waite, `k·ln2_hi` exact),
-//!   `e^r ≈ 1 + r + r²·P₅(r)`, scaled by `2^⌊k/2⌋·2^(k−⌊k/2⌋)` (two exact
-//!   powers of two, so results in the subnormal range round once). NaN in,
-//!   NaN out.
-//! - `tanh`: `|x| < 0.625`: `x + x·x²·P₄(x²)`; otherwise
-//!   `sign(x)·(1 − 2/(e^{2|x|} + 1))`.
+//! Algorithms:
+//! - `exp` (the Cephes `expf` coefficients): `x` clamped to [−104, 89]
+//!   (outside, the result is 0 or +∞ anyway), `k = round(x·log₂e)` (by
+//!   adding and subtracting 1.5·2²³), `r = (x − k·ln2_hi) − k·ln2_lo`
+//!   (Cody–Waite, `k·ln2_hi` exact), `e^r ≈ 1 + r + r²·P₅(r)`, scaled by
+//!   `2^⌊k/2⌋·2^(k−⌊k/2⌋)` (two exact powers of two, so results in the
+//!   subnormal range round once). NaN in, NaN out.
+//! - `tanh`: `c·P₄(c²)/Q₄(c²)`, `c = x` clamped to [−9.1, 9.1];
+//!   `erf`: `c·P₇(c²)/Q₄(c²)`, `c` clamped to [−4, 4]. One rational
+//!   function over the whole range, no branch: about a third of the cost of
+//!   the two-branch (polynomial near zero, `exp` beyond) Cephes forms they
+//!   replaced, the CfC field's gate and GELUs being most of its element-wise
+//!   work. The coefficients are minimax fits of the relative error made by
+//!   `python/fit_fastmath.py` (2.3e-8 and 1.2e-8 before rounding); both
+//!   functions are odd to the bit.
 //! - `sigmoid(x) = 1/(1 + exp(−x))`.
-//! - `erf`: `|x| < 1`: `x·T₆(x²)`; otherwise `sign(x)·(1 − erfc|x|)` with
-//!   `erfc a = e^{−a²}·(1/a)·P₈(1/a²)` (`R₇` for `a ≥ 2`), `a` capped at 10.
 //!
-//! Accuracy against the correctly rounded value (tested on a dense sweep
-//! against libm in f64, in the tests of `kernels::fastmath`): `exp` ≤ 1 ulp, `tanh` ≤ 1 ulp,
-//! `sigmoid` ≤ 2 ulp, `erf` ≤ 2 ulp for normal results (libm's own f32
-//! functions are ≤ 1 ulp). A rounding difference of this size is far below
-//! the f32 tolerance of the oracle comparisons with PyTorch.
+//! Accuracy against the correctly rounded value, measured against libm in
+//! f64 on every f32 input (the ignored test `tanh_erf_every_f32`; every
+//! test run checks a dense sweep and the worst inputs): `exp` ≤ 1 ulp,
+//! `sigmoid` ≤ 2 ulp, `tanh` ≤ 6 ulp and `erf` ≤ 6 ulp (the rounding of
+//! the f32 numerator and denominator, not the fit, sets these: 94% of
+//! `tanh` values and 36% of `erf` values are correctly rounded, 99.9% of
+//! both within 2 ulp). libm's own f32 functions are ≤ 1 ulp. Errors of this
+//! size, a few parts in 10⁷, are far below the f32 tolerance of the oracle
+//! comparisons with PyTorch.
 
-// The polynomial coefficients are written as published (Cephes), with more
-// digits than f32 holds; the compiler rounds each to the nearest f32.
+// The coefficients are written with more digits than f32 holds (as
+// published, or as the fitting script prints them); the compiler rounds each
+// to the nearest f32.
 #![allow(clippy::excessive_precision)]
 
 /// Maximum error of [`exp_f32`] in ulp, asserted by the tests (see the
 /// module docs).
 pub const EXP_MAX_ULP: u32 = 1;
 /// Maximum error of [`tanh_f32`] in ulp.
-pub const TANH_MAX_ULP: u32 = 1;
+pub const TANH_MAX_ULP: u32 = 6;
 /// Maximum error of [`sigmoid_f32`] in ulp.
 pub const SIGMOID_MAX_ULP: u32 = 2;
-/// Maximum error of [`erf_f32`] in ulp (normal results).
-pub const ERF_MAX_ULP: u32 = 2;
+/// Maximum error of [`erf_f32`] in ulp.
+pub const ERF_MAX_ULP: u32 = 6;
 
 /// `e^x` in f32.
 #[inline(always)]
@@ -88,25 +97,32 @@ pub fn exp_f32(x: f32) -> f32 {
     p * s1 * s2
 }
 
-/// `tanh x` in f32.
+/// `tanh x` in f32: `c·P(c²)/Q(c²)` with `c = x` clamped to [−9.1, 9.1]
+/// (beyond, tanh x rounds to ±1).
 #[inline(always)]
 pub fn tanh_f32(x: f32) -> f32 {
-    let a = x.abs();
-    let z = x * x;
-    let small =
-        ((((-5.704_988_7e-3 * z + 2.063_908_9e-2) * z - 5.373_971_6e-2) * z + 1.333_144_2e-1) * z
-            - 3.333_328_2e-1)
-            * z
-            * x
-            + x;
-    let e = exp_f32(a + a);
-    let large = 1.0 - 2.0 / (e + 1.0);
-    // Both have the sign of x (copysign also makes tanh(−0) = −0).
-    if a < 0.625 {
-        small.copysign(x)
-    } else {
-        large.copysign(x)
-    }
+    // python/fit_fastmath.py: P and Q of degree 4 in z = x², minimax
+    // relative error 2.3e-8 before rounding.
+    const P: [f32; 5] = [
+        1.317_596_7e-8,
+        2.048_006_7e-5,
+        3.487_744_4e-3,
+        1.337_442e-1,
+        1.0,
+    ];
+    const Q: [f32; 5] = [
+        7.703_409e-7,
+        3.272_809_8e-4,
+        2.584_713_7e-2,
+        4.670_773_4e-1,
+        1.0,
+    ];
+    // clamp keeps NaN; c·P/Q is odd in c, so tanh(−x) = −tanh(x) exactly
+    // and tanh(±0) = ±0. Near ±1 the rounded quotient can exceed 1 by an
+    // ulp: the last clamp keeps |tanh| ≤ 1.
+    let c = x.clamp(-9.1, 9.1);
+    let z = c * c;
+    (c * horner(z, &P) / horner(z, &Q)).clamp(-1.0, 1.0)
 }
 
 /// Evaluate `c[0]·x^(n−1) + … + c[n−1]` by Horner's rule, left to right.
@@ -119,58 +135,35 @@ fn horner(x: f32, c: &[f32]) -> f32 {
     y
 }
 
-/// `erf x` in f32.
+/// `erf x` in f32: `c·P(c²)/Q(c²)` with `c = x` clamped to [−4, 4]
+/// (beyond, erf x rounds to ±1).
 #[inline(always)]
 pub fn erf_f32(x: f32) -> f32 {
-    const T: [f32; 7] = [
-        7.853_861_4e-5,
-        -8.010_193_6e-4,
-        5.188_327_7e-3,
-        -2.685_381_2e-2,
-        1.128_358_5e-1,
-        -3.761_262_6e-1,
-        std::f32::consts::FRAC_2_SQRT_PI,
+    // python/fit_fastmath.py: P of degree 7 and Q of degree 4 in z = x²,
+    // minimax relative error 1.2e-8 before rounding.
+    // The constant term is the fit's, close to 2/√π (erf′(0)) as it must be.
+    #[allow(clippy::approx_constant)]
+    const P: [f32; 8] = [
+        -7.736_622_5e-10,
+        7.669_391e-8,
+        -3.558_293_2e-6,
+        1.354_449e-4,
+        1.703_451_7e-3,
+        4.461_606_2e-2,
+        1.444_96e-1,
+        1.128_379_1,
     ];
-    const P: [f32; 9] = [
-        2.326_82e-2,
-        -1.387_039_4e-1,
-        3.687_424_7e-1,
-        -5.824_733e-1,
-        6.210_004_6e-1,
-        -4.944_515_3e-1,
-        3.404_879_9e-1,
-        -2.741_127e-1,
-        5.638_259_4e-1,
+    const Q: [f32; 5] = [
+        5.773_71e-4,
+        1.028_798_5e-2,
+        9.333_867e-2,
+        4.613_891_5e-1,
+        1.0,
     ];
-    const R: [f32; 8] = [
-        -1.047_766_4e1,
-        1.297_72e1,
-        -7.495_518_7,
-        2.921_019,
-        -1.015_265_3,
-        4.218_463_4e-1,
-        -2.820_767_4e-1,
-        5.641_895e-1,
-    ];
-    let a = x.abs();
-    // |x| < 1: x·T(x²).
-    let small = x * horner(x * x, &T);
-    // |x| ≥ 1: 1 − erfc|x|, erfc a = e^{−a²}·(1/a)·P(1/a²) (R for a ≥ 2).
-    let ac = if a > 10.0 { 10.0 } else { a };
-    let q = 1.0 / ac;
-    let y = q * q;
-    let p = if ac < 2.0 {
-        horner(y, &P)
-    } else {
-        horner(y, &R)
-    };
-    let erfc = exp_f32(-(ac * ac)) * q * p;
-    let large = 1.0 - erfc;
-    if a < 1.0 {
-        small
-    } else {
-        large.copysign(x)
-    }
+    // As in tanh_f32: odd to the bit, |erf| ≤ 1 kept by the last clamp.
+    let c = x.clamp(-4.0, 4.0);
+    let z = c * c;
+    (c * horner(z, &P) / horner(z, &Q)).clamp(-1.0, 1.0)
 }
 
 /// `1/(1 + e^{−x})` in f32.
