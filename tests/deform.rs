@@ -369,6 +369,27 @@ fn cfc_gradients_with_shared_times() {
     }
 }
 
+/// The MLP's timenet runs once per run of equal times and its backward once
+/// per run, with each row's t gradient from the run's Jacobian: every pattern
+/// of shared times, against central differences.
+#[test]
+fn mlp_gradients_with_shared_times() {
+    for times in [
+        [0.37; 5],
+        [0.2, 0.2, 0.7, 0.2, 0.7],
+        [0.6, 0.1, 0.1, 0.6, 0.6],
+    ] {
+        gradcheck_times(
+            config(FieldKind::Mlp, Variant::Synthetic, 3, 8, Activation::Relu),
+            23,
+            256,
+            1e-2,
+            |_| {},
+            Some(times),
+        );
+    }
+}
+
 /// Backbones of one and of three layers (the paper's cells have two): the
 /// backward's loop over the layers after the first, and a backbone whose
 /// first layer feeds the heads directly.
@@ -704,14 +725,23 @@ fn random_cotangent(r: &mut Rng, n: usize) -> Deformation<f32> {
 
 /// A Gaussian's deformation and its gradient with respect to its time are
 /// the same bits whatever the other rows of the batch: the CfC field merges
-/// its time heads per run of equal τ, with one merged layer per τ, so rows
-/// alone, rows in runs (crossing the forward's 48-row blocks and the
-/// backward's 512-row chunks), and rows whose τ equals or differs from the
-/// first row's all give the same values.
+/// its time heads per run of equal τ, with one merged layer per τ, and both
+/// fields' timenet runs once per run of equal t, so rows alone, rows in runs
+/// (crossing the CfC forward's 96-row blocks and the backward's 512-row
+/// chunks), and rows whose τ equals or differs from the first row's all give
+/// the same values, for the CfC and the MLP field.
 #[test]
-fn cfc_rows_do_not_depend_on_the_batch() {
+fn rows_do_not_depend_on_the_batch() {
+    for cfg in [
+        config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu),
+        config(FieldKind::Mlp, Variant::Synthetic, 4, 16, Activation::Relu),
+    ] {
+        rows_do_not_depend_on_the_batch_for(cfg);
+    }
+}
+
+fn rows_do_not_depend_on_the_batch_for(cfg: FieldConfig) {
     let n = 700;
-    let cfg = config(FieldKind::Cfc, Variant::Synthetic, 3, 16, Activation::Gelu);
     let field = Field::<f32>::new(cfg, 4).unwrap();
     let mut r = Rng::new(8);
     let xyz: Vec<f32> = (0..3 * n)

@@ -195,6 +195,24 @@ impl Activation {
         }
     }
 
+    /// `pre += bias` row by row (`bias.len()` wide) and `out = f(pre)`, in
+    /// one sequential pass writing every value of `out` (which may start
+    /// uninitialised): the bits of adding the bias, then
+    /// [`apply_block_uninit`](Self::apply_block_uninit).
+    pub fn add_bias_apply_block_uninit<T: Real>(
+        self,
+        pre: &mut [T],
+        bias: &[T],
+        out: &mut [MaybeUninit<T>],
+    ) {
+        assert_eq!(pre.len(), out.len(), "activation: sizes differ");
+        assert!(
+            !bias.is_empty() && pre.len().is_multiple_of(bias.len()),
+            "activation: bias width"
+        );
+        add_bias_apply_uninit(self, pre, bias, out);
+    }
+
     /// `out = f(pre)` on a block of values, writing every value of `out`
     /// (which may start uninitialised; sequential, as
     /// [`add_bias_apply_block`](Self::add_bias_apply_block)).
@@ -308,6 +326,7 @@ macro_rules! per_activation {
 
 multiversion!(fn add_bias_apply<T: Real>(act: Activation, row: &mut [T], bias: &[T]) => add_bias_apply_body);
 multiversion!(fn apply_uninit<T: Real>(act: Activation, pre: &[T], out: &mut [MaybeUninit<T>]) => apply_uninit_body);
+multiversion!(fn add_bias_apply_uninit<T: Real>(act: Activation, pre: &mut [T], bias: &[T], out: &mut [MaybeUninit<T>]) => add_bias_apply_uninit_body);
 multiversion!(fn scale_by_derivative<T: Real>(act: Activation, pre: &[T], g: &mut [T]) => scale_by_derivative_body);
 
 multiversion!(fn apply_and_derivative_uninit<T: Real>(act: Activation, pre: &[T], out: &mut [MaybeUninit<T>], deriv: &mut [MaybeUninit<T>]) => apply_and_derivative_uninit_body);
@@ -341,6 +360,24 @@ fn add_bias_apply_body<T: Real>(act: Activation, row: &mut [T], bias: &[T]) {
     per_activation!(act, |a| {
         for (v, &b) in row.iter_mut().zip(bias) {
             *v = a.apply(*v + b);
+        }
+    })
+}
+
+#[inline(always)]
+fn add_bias_apply_uninit_body<T: Real>(
+    act: Activation,
+    pre: &mut [T],
+    bias: &[T],
+    out: &mut [MaybeUninit<T>],
+) {
+    let w = bias.len();
+    per_activation!(act, |a| {
+        for (pr, or) in pre.chunks_exact_mut(w).zip(out.chunks_exact_mut(w)) {
+            for ((p, o), &b) in pr.iter_mut().zip(or.iter_mut()).zip(bias) {
+                *p += b;
+                o.write(a.apply(*p));
+            }
         }
     })
 }

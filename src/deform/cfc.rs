@@ -52,8 +52,9 @@
 
 use super::activation::Activation;
 use super::encoding::{encode_then, encoded_dim};
-use super::linear::{add_bias, InputGrad, Linear, OutputGrad, PackedLinear};
+use super::linear::{InputGrad, Linear, OutputGrad, PackedLinear};
 use super::profile::{self, Tally};
+use super::time::{equal_runs, same};
 use super::{
     CfcConfig, Deformation, Init, LayoutBuilder, LinearParams, TimeEmbedding, TimeEmbeddingSaved,
     XYZ_LEVELS,
@@ -668,13 +669,18 @@ impl CfcNet {
                 d * self.layers(),
             ),
             profile::TallyOp::product(
-                "heads ff1|ff2|time (τ·time_a + time_b merged): z·Wᵀ + b",
+                "heads ff1|ff2|time (τ·time_a + time_b merged): z·Wᵀ",
                 n,
                 units,
                 3 * w,
                 d,
             ),
-            profile::TallyOp::elementwise("gate and update (2 tanh, sigmoid)", n, w, d),
+            profile::TallyOp::elementwise(
+                "heads' bias, gate and update (2 tanh, sigmoid)",
+                n,
+                w,
+                d,
+            ),
             profile::TallyOp::product("head: h·Wᵀ + b", n, w, 10, 1),
         ]
     }
@@ -759,41 +765,67 @@ impl CfcNet {
                             matmul_block_resume(MatRef::row_major(h, rows, w), &cw.h_part, pre)
                         });
                     }
-                    Tally::time(tally, FwdOp::Act as usize, || {
-                        add_bias(pre, cw.bias0, units)
-                    });
                     pre
                 } else {
                     Tally::time(tally, FwdOp::Later as usize, || {
-                        cw.later[j - 1].forward_block_into(&s.xs[0][..rows * units], rows, slot)
+                        cw.later[j - 1].product_block_into(&s.xs[0][..rows * units], rows, slot)
                     })
                 };
+                let bias = if j == 0 {
+                    cw.bias0
+                } else {
+                    cw.later[j - 1].bias()
+                };
+                // The bias, added after the sums, and the activation in one
+                // pass (the same bits as one after the other).
                 Tally::time(tally, FwdOp::Act as usize, || {
-                    self.act
-                        .apply_block_uninit(pre, slots(&mut s.xs[0][..rows * units]));
+                    self.act.add_bias_apply_block_uninit(
+                        pre,
+                        bias,
+                        slots(&mut s.xs[0][..rows * units]),
+                    );
                 });
             }
-            // The heads as one product 3W wide (by runs of equal τ), then
-            // the gate and the new state (the gate's values are saved).
+            // The heads' sums as one product 3W wide (by runs of equal τ),
+            // then their bias (added after the sums), the gate and the new
+            // state in one pass (the gate's values are saved).
             let gate = Tally::time(tally, FwdOp::Heads as usize, || {
                 let z = &s.xs[0][..rows * units];
-                let gate = cw.heads.forward_block_into(z, rows, gate);
-                // Runs with another τ: their time head again, merged for
-                // their τ (the same sums, in the same order, with its
-                // weights), over the τ₀ one.
+                let gate = cw.heads.product_block_into(z, rows, gate);
+                // Runs with another τ: their time head's sums again, with
+                // the weights merged for their τ (the same sums, in the same
+                // order), over the τ₀ ones.
                 for (i, j) in equal_runs(tb).filter(|&(i, _)| !same(tb[i], fw.tau0)) {
                     let time_pair = cw.time.as_ref().expect("packed where the rows' τ differ");
                     let zr = MatRef::row_major(&z[i * units..j * units], j - i, units);
                     let time = &mut s.tmp[..(j - i) * w];
                     matmul_block_into(zr, &time_pair.weights(tb[i]), slots(time));
-                    add_bias(time, &time_pair.bias(tb[i]), w);
                     set_columns(&mut gate[i * 3 * w..j * 3 * w], 3 * w, 2 * w, time, w);
                 }
                 gate
             });
             let next = states.next().expect("a state slot per cell");
             Tally::time(tally, FwdOp::Gate as usize, || {
-                cell_forward_rows(gate, &mut *next, w)
+                // Each run of rows with the bias of its τ: the heads' for τ₀,
+                // ff1 | ff2 with the time head merged for another τ.
+                let mut b = Vec::new();
+                for (i, j) in equal_runs(tb) {
+                    let bias = if same(tb[i], fw.tau0) {
+                        cw.heads.bias()
+                    } else {
+                        let time_pair = cw.time.as_ref().expect("packed where the rows' τ differ");
+                        b.clear();
+                        b.extend_from_slice(&cw.heads.bias()[..2 * w]);
+                        b.extend_from_slice(&time_pair.bias(tb[i]));
+                        &b
+                    };
+                    cell_forward_rows(
+                        &mut gate[i * 3 * w..j * 3 * w],
+                        &mut next[i * w..j * w],
+                        bias,
+                        w,
+                    );
+                }
             });
             // SAFETY: cell_forward_rows wrote every value of its rows.
             h = Some(unsafe { assume_init(next) });
@@ -1325,27 +1357,6 @@ fn first_tau<T: Real>(t: &[T]) -> (T, bool) {
     (tau0, t.iter().all(|&v| same(v, tau0)))
 }
 
-/// Whether `a` and `b` are the same value bit for bit.
-fn same<T: Real>(a: T, b: T) -> bool {
-    a.bits() == b.bits()
-}
-
-/// The runs `[i, j)` of rows with the same τ (bit for bit), in order.
-fn equal_runs<T: Real>(t: &[T]) -> impl Iterator<Item = (usize, usize)> + '_ {
-    let mut i = 0;
-    std::iter::from_fn(move || {
-        if i == t.len() {
-            return None;
-        }
-        let start = i;
-        i += 1;
-        while i < t.len() && same(t[i], t[start]) {
-            i += 1;
-        }
-        Some((start, i))
-    })
-}
-
 /// Columns `c0..c0 + d` of the row-major `dst` (`ld` wide) set to `src`
 /// `[rows, d]`.
 fn set_columns<T: Copy>(dst: &mut [T], ld: usize, c0: usize, src: &[T], d: usize) {
@@ -1358,13 +1369,16 @@ fn set_columns<T: Copy>(dst: &mut [T], ld: usize, c0: usize, src: &[T], d: usize
 }
 
 // The fused element-wise pass of a cell on a block of rows. `g` holds the
-// three head outputs per row (ff1 | ff2 | time, each W wide; time is
-// time_a(z)·τ + time_b(z), merged) on entry and tanh(ff1) | tanh(ff2) | σ on
-// exit; `h` receives the new state.
-multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], w: usize) => cell_forward_rows_body);
+// three heads' sums per row (ff1 | ff2 | time, each W wide; time is
+// time_a(z)·τ + time_b(z), merged) on entry, `bias` their biases (3W), and
+// tanh(ff1) | tanh(ff2) | σ of the sums plus the biases on exit; `h`
+// receives the new state.
+multiversion!(fn cell_forward_rows<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], bias: &[T], w: usize) => cell_forward_rows_body);
 
 #[inline(always)]
-fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], w: usize) {
+fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], bias: &[T], w: usize) {
+    let (b1, rest) = bias.split_at(w);
+    let (b2, bt) = rest.split_at(w);
     // Simple loops per row (each a zip of at most four slices, which the
     // compiler vectorises; one loop with five streams it would not). The
     // row stays in L1 between them; the arithmetic per element is the same
@@ -1372,14 +1386,14 @@ fn cell_forward_rows_body<T: Real>(g: &mut [T], h: &mut [MaybeUninit<T>], w: usi
     for (g, h) in g.chunks_exact_mut(3 * w).zip(h.chunks_exact_mut(w)) {
         let (f1, rest) = g.split_at_mut(w);
         let (f2, ts) = rest.split_at_mut(w);
-        for v in f1.iter_mut() {
-            *v = fastmath::tanh(*v);
+        for (v, &b) in f1.iter_mut().zip(b1) {
+            *v = fastmath::tanh(*v + b);
         }
-        for v in f2.iter_mut() {
-            *v = fastmath::tanh(*v);
+        for (v, &b) in f2.iter_mut().zip(b2) {
+            *v = fastmath::tanh(*v + b);
         }
-        for s in ts.iter_mut() {
-            *s = fastmath::sigmoid(*s);
+        for (s, &b) in ts.iter_mut().zip(bt) {
+            *s = fastmath::sigmoid(*s + b);
         }
         for (((h, &a), &b), &s) in h.iter_mut().zip(f1.iter()).zip(f2.iter()).zip(ts.iter()) {
             h.write(a * (T::ONE - s) + s * b);

@@ -97,6 +97,24 @@ pub fn encode_then<T: Real>(x: &[T], d: usize, levels: usize, tail: &[T], tail_w
     })
 }
 
+/// The derivative of [`encode`] for scalar inputs (`d = 1`): per row of `x`
+/// `[n]`, the derivative of each output with respect to `x`, `[n, 1 + 2L]`:
+/// `1`, then for k = 0, 1, …: `2^k cos(2^k x)`, `−2^k sin(2^k x)` (the
+/// factors of [`encode_vjp`]).
+pub fn encode_derivative<T: Real>(x: &[T], levels: usize) -> Vec<T> {
+    let (sin, cos) = sin_cos_of_arguments(x, 1, levels);
+    let mut out = Vec::with_capacity(x.len() * encoded_dim(1, levels));
+    for i in 0..x.len() {
+        out.push(T::ONE);
+        for k in 0..levels {
+            let f = freq::<T>(k);
+            out.push(f * cos[i * levels + k]);
+            out.push(-(f * sin[i * levels + k]));
+        }
+    }
+    out
+}
+
 /// Vector-Jacobian product of [`encode`]: the gradient with respect to `x`
 /// `[n, d]` given the gradient `g` `[n, d + 2dL]` of the encoding.
 ///

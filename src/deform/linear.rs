@@ -332,6 +332,22 @@ impl<T: Real> PackedLinear<T> {
         self.shape.out_dim
     }
 
+    /// The bias `b` `[out]`.
+    pub fn bias(&self) -> &[T] {
+        &self.b
+    }
+
+    /// `y = x·Wᵀ` without the bias, as [`forward_block_into`](Self::forward_block_into)
+    /// computes it before adding the bias.
+    pub fn product_block_into<'o>(
+        &self,
+        x: &[T],
+        rows: usize,
+        out: &'o mut [MaybeUninit<T>],
+    ) -> &'o mut [T] {
+        matmul_block_into(MatRef::row_major(x, rows, self.shape.in_dim), &self.wt, out)
+    }
+
     /// `y = x·Wᵀ + b` for the `rows` rows of `x` (`[rows, in]`), written into
     /// `out` (`[rows, out]`, may start uninitialised); returns `out`, written.
     pub fn forward_block_into<'o>(
