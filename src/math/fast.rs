@@ -117,12 +117,18 @@ pub fn tanh_f32(x: f32) -> f32 {
         4.670_773_4e-1,
         1.0,
     ];
-    // clamp keeps NaN; c·P/Q is odd in c, so tanh(−x) = −tanh(x) exactly
-    // and tanh(±0) = ±0. Near ±1 the rounded quotient can exceed 1 by an
-    // ulp: the last clamp keeps |tanh| ≤ 1.
-    let c = x.clamp(-9.1, 9.1);
+    odd_rational(x, 9.1, &P, &Q)
+}
+
+/// `c·P(c²)/Q(c²)` with `c = x` clamped to [−limit, limit], kept in [−1, 1].
+/// The clamp keeps NaN; the quotient is odd in `c`, so `f(−x) = −f(x)`
+/// exactly and `f(±0) = ±0`. Near ±1 the rounded quotient can exceed 1 by an
+/// ulp: the last clamp keeps `|f| ≤ 1`.
+#[inline(always)]
+fn odd_rational(x: f32, limit: f32, p: &[f32], q: &[f32]) -> f32 {
+    let c = x.clamp(-limit, limit);
     let z = c * c;
-    (c * horner(z, &P) / horner(z, &Q)).clamp(-1.0, 1.0)
+    (c * horner(z, p) / horner(z, q)).clamp(-1.0, 1.0)
 }
 
 /// Evaluate `c[0]·x^(n−1) + … + c[n−1]` by Horner's rule, left to right.
@@ -160,10 +166,7 @@ pub fn erf_f32(x: f32) -> f32 {
         4.613_891_5e-1,
         1.0,
     ];
-    // As in tanh_f32: odd to the bit, |erf| ≤ 1 kept by the last clamp.
-    let c = x.clamp(-4.0, 4.0);
-    let z = c * c;
-    (c * horner(z, &P) / horner(z, &Q)).clamp(-1.0, 1.0)
+    odd_rational(x, 4.0, &P, &Q)
 }
 
 /// `1/(1 + e^{−x})` in f32.
