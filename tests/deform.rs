@@ -343,12 +343,13 @@ fn cfc_gradients_every_activation_and_depth() {
     );
 }
 
-/// The CfC field merges time_a and time_b for each τ (see `deform::cfc`):
-/// one τ for every row (the training case: time_a's weight gradient is then
-/// τ times time_b's), and runs of repeated times, some equal to the first
-/// row's and some not.
+/// Shared times: the CfC field merges time_a and time_b for each τ (see
+/// `deform::cfc`), and both fields run the timenet once per run of equal
+/// times. One τ for every row (the training case: time_a's weight gradient
+/// is then τ times time_b's), and runs of repeated times, some equal to the
+/// first row's and some not.
 #[test]
-fn cfc_gradients_with_shared_times() {
+fn gradients_with_shared_times() {
     for times in [
         [0.37; 5],
         [0.2, 0.2, 0.7, 0.2, 0.7],
@@ -363,30 +364,13 @@ fn cfc_gradients_with_shared_times() {
                 8,
                 Activation::LecunTanh,
             ),
+            // Both fields' timenet runs once per run of equal times, its
+            // backward once per run (each row's t gradient from the run's
+            // Jacobian).
+            config(FieldKind::Mlp, Variant::Synthetic, 3, 8, Activation::Relu),
         ] {
             gradcheck_times(cfg, 21, 256, 1e-2, |_| {}, Some(times));
         }
-    }
-}
-
-/// The MLP's timenet runs once per run of equal times and its backward once
-/// per run, with each row's t gradient from the run's Jacobian: every pattern
-/// of shared times, against central differences.
-#[test]
-fn mlp_gradients_with_shared_times() {
-    for times in [
-        [0.37; 5],
-        [0.2, 0.2, 0.7, 0.2, 0.7],
-        [0.6, 0.1, 0.1, 0.6, 0.6],
-    ] {
-        gradcheck_times(
-            config(FieldKind::Mlp, Variant::Synthetic, 3, 8, Activation::Relu),
-            23,
-            256,
-            1e-2,
-            |_| {},
-            Some(times),
-        );
     }
 }
 

@@ -356,7 +356,7 @@ impl<T: Real> PackedLinear<T> {
         rows: usize,
         out: &'o mut [MaybeUninit<T>],
     ) -> &'o mut [T] {
-        let y = matmul_block_into(MatRef::row_major(x, rows, self.shape.in_dim), &self.wt, out);
+        let y = self.product_block_into(x, rows, out);
         add_bias(y, &self.b, self.shape.out_dim);
         y
     }

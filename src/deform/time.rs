@@ -15,9 +15,9 @@ use super::activation::{self, Activation};
 use super::config::{Variant, TIMENET_HIDDEN, TIMENET_OUT, T_LEVELS_REAL, T_LEVELS_SYNTHETIC};
 use super::encoding;
 use super::layers::{Init, LayoutBuilder, LinearParams};
-use super::linear::{Epilogue, Input, InputGrad, Linear, OutputGrad};
+use super::linear::{Epilogue, Input, InputGrad, OutputGrad};
 use super::profile;
-use crate::kernels::matmul::column_sums;
+use crate::kernels::matmul::{column_sums, matmul, MatRef};
 use crate::kernels::vec_written_by;
 use crate::math::Real;
 use std::mem::MaybeUninit;
@@ -214,23 +214,13 @@ fn timenet_jacobian<T: Real>(
     reps: &[T],
     hidden: &[T],
 ) -> Vec<T> {
-    let m = reps.len();
     let denc = encoding::encode_derivative(reps, T_LEVELS_SYNTHETIC);
-    // The layers' weights with a zero bias: x·Wᵀ (+0).
-    let zeros = vec![T::ZERO; TIMENET_HIDDEN.max(TIMENET_OUT)];
-    let w0 = Linear::new(l0.weight(p), &zeros[..l0.shape.out_dim], l0.shape);
-    let mut dh = w0.forward(
-        Input::blocks(&[(&denc, l0.shape.in_dim)]),
-        m,
-        Epilogue::none(),
-    );
-    for (d, &h) in dh.iter_mut().zip(hidden) {
-        if h <= T::ZERO {
-            *d = T::ZERO;
-        }
-    }
-    let w1 = Linear::new(l1.weight(p), &zeros[..l1.shape.out_dim], l1.shape);
-    w1.forward(Input::blocks(&[(&dh, TIMENET_HIDDEN)]), m, Epilogue::none())
+    let (l0s, l1s) = (l0.shape, l1.shape);
+    let w0 = MatRef::row_major(l0.weight(p), l0s.out_dim, l0s.in_dim).t();
+    let mut dh = matmul(MatRef::row_major(&denc, reps.len(), l0s.in_dim), w0);
+    activation::relu_backward_from_output(hidden, &mut dh);
+    let w1 = MatRef::row_major(l1.weight(p), l1s.out_dim, l1s.in_dim).t();
+    matmul(MatRef::row_major(&dh, reps.len(), l1s.in_dim), w1)
 }
 
 /// Whether two times are the same value, bit for bit.
