@@ -133,8 +133,82 @@ static int64_t to_unit_quaternions(torch::Tensor &scales, torch::Tensor &quats) 
 struct Outputs {
     torch::Tensor image;  // [H, W, 3]
     torch::Tensor means, scales, quats, opacities, sh;  // gradients
+    // OpenSplat's projected Gaussians: centres [N, 2], conics [N, 3], 2D
+    // covariances [N, 2, 2] (for the rule check of flipped pixels).
+    torch::Tensor xys, conics, cov2d, rgbs;
     double fwd_ms, bwd_ms;
 };
+
+// Pixels where one renderer blends a Gaussian and the other does not, by a
+// rule in which the two differ (benches/README.md): the pixel's max channel
+// difference exceeds `flag`, and some Gaussian, evaluated at the pixel as
+// OpenSplat's forward evaluates it (its centre, conic and opacity, f32,
+// libm exp), has
+// - alpha within a relative 1e-4 of the 1/255 cut-off (`threshold`: the two
+//   exps round differently, liquid-splat's within 1 ulp of libm's, and the
+//   two projections' f32 centres and conics differ by rounding, which moves
+//   alpha there by a few 1e-5), or
+// - alpha >= 1/255 at a pixel outside OpenSplat's box of 3 sigma + 2 pixels
+//   (`box`: liquid-splat bounds a Gaussian by its tiles), or
+// - o * exp(-sigma) > 0.99 (`cap`: OpenSplat caps alpha at 0.999,
+//   liquid-splat at 0.99).
+// A threshold or box flip changes the pixel by that one Gaussian's
+// contribution, alpha * T times the difference of its colour and what it
+// covers; a pixel is explained by one only if it differs by at most
+// (1/255)(1 + 1e-4) times the largest colour value or background channel.
+// Returns a [H, W] mask of the pixels explained, and counts per rule.
+struct Flips {
+    torch::Tensor explained;
+    int64_t flagged = 0, threshold = 0, box = 0, cap = 0;
+};
+static Flips rule_flips(const torch::Tensor &diff, const Outputs &o, const torch::Tensor &opac,
+                        const torch::Tensor &background, int64_t w, double flag) {
+    Flips f;
+    int64_t h = diff.size(0);
+    f.explained = torch::zeros({h, w}, torch::kBool);
+    auto xys = o.xys.contiguous(), conics = o.conics.contiguous(), op = opac.reshape({-1}).contiguous();
+    auto sqx = (3.0f * torch::sqrt(o.cov2d.index({"...", 0, 0}))).contiguous();
+    auto sqy = (3.0f * torch::sqrt(o.cov2d.index({"...", 1, 1}))).contiguous();
+    const float *c = xys.data_ptr<float>(), *k = conics.data_ptr<float>(), *a = op.data_ptr<float>();
+    const float *bx = sqx.data_ptr<float>(), *by = sqy.data_ptr<float>();
+    auto d = diff.contiguous();
+    const float *dp = d.data_ptr<float>();
+    bool *ex = f.explained.data_ptr<bool>();
+    int64_t n = xys.size(0);
+    const float thresh = 1.0f / 255.0f;
+    double cmax = std::max(o.rgbs.max().item<double>(), background.max().item<double>());
+    double one_gaussian = (1.0 / 255.0) * (1.0 + 1e-4) * cmax;
+    for (int64_t i = 0; i < h; i++)
+        for (int64_t j = 0; j < w; j++) {
+            if (!(dp[i * w + j] > flag)) continue;
+            f.flagged++;
+            bool t = false, b = false, cp = false;
+            for (int64_t g = 0; g < n; g++) {
+                float A = k[3 * g], B = k[3 * g + 1], C = k[3 * g + 2];
+                float gx = c[2 * g], gy = c[2 * g + 1];
+                float xc = gx - j, yc = gy - i;
+                float sigma = 0.5f * (A * xc * xc + C * yc * yc) + B * xc * yc;
+                if (!(sigma >= 0.0f)) continue;
+                float raw = a[g] * std::exp(-sigma);
+                if (std::fabs(raw / thresh - 1.0f) <= 1e-4f) t = true;
+                int minx = std::max(0, static_cast<int>(std::floor(gy - by[g])) - 2);
+                int maxx = std::min(static_cast<int>(h), static_cast<int>(std::ceil(gy + by[g])) + 2);
+                int miny = std::max(0, static_cast<int>(std::floor(gx - bx[g])) - 2);
+                int maxy = std::min(static_cast<int>(w), static_cast<int>(std::ceil(gx + bx[g])) + 2);
+                bool inside = i >= minx && i < maxx && j >= miny && j < maxy;
+                if (raw >= thresh && !inside) b = true;
+                if (raw > 0.99f) cp = true;
+            }
+            bool small = dp[i * w + j] <= one_gaussian;
+            t = t && small;
+            b = b && small;
+            f.threshold += t;
+            f.box += b;
+            f.cap += cp;
+            ex[i * w + j] = t || b || cp;
+        }
+    return f;
+}
 
 int main(int argc, char **argv) {
     if (argc < 2) {
@@ -160,7 +234,9 @@ int main(int argc, char **argv) {
     // renderers differ by design in a few rules (OpenSplat caps alpha at
     // 0.999 in its forward, bounds each Gaussian by a 3-sigma box instead of
     // tiles, stops a pixel at T <= 1e-4, uses libm's exp), so the images
-    // agree to rounding plus those rules' rare effects. Two more differences
+    // agree to rounding plus those rules' rare effects: pixels where a rule
+    // makes one renderer blend a Gaussian the other skips, which the image
+    // check leaves out once rule_flips has found that Gaussian. Two more differences
     // are corrected in one extra, untimed run per camera (rows "fixed"),
     // which is the one checked; the timed runs ("as is") are printed:
     // - OpenSplat sorts by the f32 NDC depth, whose rounding near 1 ties or
@@ -174,6 +250,13 @@ int main(int argc, char **argv) {
     // the scales and rotations (of other parameters where a quaternion was
     // rewritten) and the SH coefficients.
     const double tol_image_max = 2e-3, tol_image_rel = 1e-4, tol_grad_rel = 1e-2;
+    // Rule flips (rule_flips): pixels whose max channel differs by more than
+    // `flag` are checked for a Gaussian that one renderer's rules blend and
+    // the other's skip; at most `max_flips` per camera may be left out of the
+    // image check.
+    const double flag = 1e-4;
+    const int64_t max_flips = 16;
+    int64_t flips_total = 0;
     bool ok = true;
     int64_t rewritten_min = n, rewritten_max = 0;
     std::printf("relative L2 difference of OpenSplat's outputs from liquid-splat's, per camera:\n");
@@ -235,6 +318,10 @@ int main(int argc, char **argv) {
             rgbs = torch::clamp_min(rgbs + 0.5f, 0.0f);
             auto f = rasterize_forward_tensor_cpu(w, h, xys, conics, rgbs, opac, background, cov2d,
                                                   cam_depths);
+            out.xys = xys.detach();
+            out.conics = conics.detach();
+            out.cov2d = cov2d.detach();
+            out.rgbs = rgbs.detach();
             double c1 = cpu_ms(), t1 = now_ms();
             auto rb = rasterize_backward_tensor_cpu(h, w, xys, conics, rgbs, opac, background, cov2d,
                                                     cam_depths, std::get<1>(f), std::get<2>(f),
@@ -285,7 +372,21 @@ int main(int argc, char **argv) {
             std::printf("%-3lld %-6s %12.3e %12.3e %10.2e %10.2e %10.2e %10.2e %10.2e\n", (long long)k, label,
                         img_max, img_rel, e[0], e[1], e[2], e[3], e[4]);
             if (o == &fixed) {
-                if (!(img_max <= tol_image_max && img_rel <= tol_image_rel)) row_ok = false;
+                // The image check leaves out the pixels a renderer rule
+                // explains (rule_flips), at most max_flips of them.
+                auto diff = (o->image - ls_image).abs().amax(-1);
+                Flips fl = rule_flips(diff, *o, opac0, background, w, flag);
+                auto keep = fl.explained.logical_not().unsqueeze(-1).to(torch::kFloat32);
+                double rest_max = ((o->image - ls_image).abs() * keep).max().item<double>();
+                double rest_rel = rel_l2(o->image * keep, ls_image * keep);
+                int64_t explained = fl.explained.sum().item<int64_t>();
+                std::printf("%-3lld %-6s %12.3e %12.3e   pixels over %.0e: %lld, explained %lld (threshold %lld, "
+                            "box %lld, cap %lld)\n",
+                            (long long)k, "rest", rest_max, rest_rel, flag, (long long)fl.flagged,
+                            (long long)explained, (long long)fl.threshold, (long long)fl.box, (long long)fl.cap);
+                if (!(rest_max <= tol_image_max && rest_rel <= tol_image_rel)) row_ok = false;
+                if (explained > max_flips) row_ok = false;
+                flips_total += explained;
                 if (!(e[0] <= tol_grad_rel && e[3] <= tol_grad_rel)) row_ok = false;
             }
         }
@@ -295,9 +396,10 @@ int main(int argc, char **argv) {
         std::printf("quaternions not unit, rewritten for OpenSplat with the same covariance: %lld to %lld "
                     "of %lld per camera (scales and quats gradients of those are of other parameters)\n",
                     (long long)rewritten_min, (long long)rewritten_max, (long long)n);
-    std::printf("checked (rows \"fixed\"): image max |diff| <= %.0e and relative L2 <= %.0e; means and "
-                "opacity gradients relative L2 <= %.0e (scales, quats, sh: printed only)\n",
-                tol_image_max, tol_image_rel, tol_grad_rel);
+    std::printf("checked (rows \"fixed\"): the image without the pixels a rule difference explains (rows "
+                "\"rest\"; at most %lld per camera, %lld in all) to max |diff| <= %.0e and relative L2 <= %.0e; "
+                "means and opacity gradients relative L2 <= %.0e (scales, quats, sh: printed only)\n",
+                (long long)max_flips, (long long)flips_total, tol_image_max, tol_image_rel, tol_grad_rel);
     std::printf("agreement: %s\n", ok ? "ok" : "FAILED");
     std::printf("opensplat threads=1 fwd_ms=%.1f bwd_ms=%.1f fwd_cpu_ms=%.1f bwd_cpu_ms=%.1f\n",
                 fwd_total, bwd_total, fwd_cpu, bwd_cpu);
