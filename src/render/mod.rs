@@ -505,12 +505,16 @@ fn forward<T: Real>(
     // 3. Per-row blending.
     let grid_x = intr.grid[0] as usize;
     let hw = w * h;
+    // The per-pixel outputs are written once each by the rows (every row
+    // covers every tile it crosses, every pixel of each), so they are not
+    // zeroed first: their pages are first touched by the row tasks, in
+    // parallel.
     let mut out = RasterOutput {
-        color: vec![T::ZERO; 3 * hw],
-        depth: vec![T::ZERO; hw],
+        color: Vec::with_capacity(3 * hw),
+        depth: Vec::with_capacity(hw),
         radii: pre.radii,
-        final_t: vec![T::ZERO; hw],
-        n_contrib: vec![0; hw],
+        final_t: Vec::with_capacity(hw),
+        n_contrib: Vec::with_capacity(hw),
         means2d: pre.means2d,
     };
     let frame = rasterize::Frame {
@@ -521,19 +525,19 @@ fn forward<T: Real>(
         bg: input.background,
     };
     let mut blended: Vec<Vec<Blended>> = vec![Vec::new(); h];
-    let mut blended_end = vec![0u32; h * grid_x];
+    let mut blended_end: Vec<u32> = Vec::with_capacity(h * grid_x);
     stages::mark("allocate");
-    let (c0, rest) = out.color.split_at_mut(hw);
+    let (c0, rest) = out.color.spare_capacity_mut()[..3 * hw].split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
     let evaluated: u64 = (
         c0.par_chunks_mut(w),
         c1.par_chunks_mut(w),
         c2.par_chunks_mut(w),
-        out.depth.par_chunks_mut(w),
-        out.final_t.par_chunks_mut(w),
-        out.n_contrib.par_chunks_mut(w),
+        out.depth.spare_capacity_mut()[..hw].par_chunks_mut(w),
+        out.final_t.spare_capacity_mut()[..hw].par_chunks_mut(w),
+        out.n_contrib.spare_capacity_mut()[..hw].par_chunks_mut(w),
         blended.par_iter_mut(),
-        blended_end.par_chunks_mut(grid_x),
+        blended_end.spare_capacity_mut()[..h * grid_x].par_chunks_mut(grid_x),
     )
         .into_par_iter()
         // Stealable pieces of at most half a tile row: the rows' costs are
@@ -557,6 +561,18 @@ fn forward<T: Real>(
             },
         )
         .sum();
+    // SAFETY: the rows are the consecutive `w`-long (`grid_x`-long) pieces
+    // of each buffer's first `hw` (`h·grid_x`) spare slots, and every row
+    // wrote every slot of its pieces (`forward_row`: each tile of the row,
+    // each pixel of each tile); a panic in a row propagates before these
+    // lines, leaving the buffers empty.
+    unsafe {
+        out.color.set_len(3 * hw);
+        out.depth.set_len(hw);
+        out.final_t.set_len(hw);
+        out.n_contrib.set_len(hw);
+        blended_end.set_len(h * grid_x);
+    }
     stages::mark("blend");
     let state = RasterizeSaved {
         intr,

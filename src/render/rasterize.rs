@@ -46,6 +46,7 @@ use super::lanes::{Lanes, Scalar};
 use super::BLOCK;
 use crate::kernels::fastmath;
 use crate::math::Real;
+use std::mem::MaybeUninit;
 
 /// Pixels per row group (one tile row).
 pub(crate) const LANES: usize = BLOCK;
@@ -446,15 +447,16 @@ pub(crate) fn replay_row<V: Lanes>(
 
 /// Output slices of one image row (channel-major image, so each channel's
 /// row is contiguous).
+/// The pixel slices are not yet written; the row writes each slot once.
 pub(crate) struct RowOut<'a, T> {
-    pub color: [&'a mut [T]; 3],
-    pub depth: &'a mut [T],
-    pub final_t: &'a mut [T],
-    pub n_contrib: &'a mut [u32],
+    pub color: [&'a mut [MaybeUninit<T>]; 3],
+    pub depth: &'a mut [MaybeUninit<T>],
+    pub final_t: &'a mut [MaybeUninit<T>],
+    pub n_contrib: &'a mut [MaybeUninit<u32>],
     /// The row's [`Blended`] entries, tile after tile (cleared first).
     pub blended: &'a mut Vec<Blended>,
     /// Per tile the row crosses: the end of its entries in `blended`.
-    pub blended_end: &'a mut [u32],
+    pub blended_end: &'a mut [MaybeUninit<u32>],
 }
 
 /// What every row of a frame reads.
@@ -500,13 +502,13 @@ fn forward_row_body<V: Lanes>(
         for l in 0..nx {
             let t = st.t[l];
             for ch in 0..3 {
-                out.color[ch][x0 + l] = st.c[ch][l] + t * f.bg[ch];
+                out.color[ch][x0 + l].write(st.c[ch][l] + t * f.bg[ch]);
             }
-            out.depth[x0 + l] = st.d[l];
-            out.final_t[x0 + l] = t;
-            out.n_contrib[x0 + l] = st.last[l];
+            out.depth[x0 + l].write(st.d[l]);
+            out.final_t[x0 + l].write(t);
+            out.n_contrib[x0 + l].write(st.last[l]);
         }
-        out.blended_end[tx] = out.blended.len() as u32;
+        out.blended_end[tx].write(out.blended.len() as u32);
         *evaluated += st.evaluated;
     }
     out.blended.shrink_to_fit();
