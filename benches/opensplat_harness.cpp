@@ -156,16 +156,21 @@ struct Outputs {
 // contribution, alpha * T times the difference of its colour and what it
 // covers; a pixel is explained by one only if it differs by at most
 // (1/255)(1 + 1e-4) times the largest colour value or background channel.
-// Returns a [H, W] mask of the pixels explained, and counts per rule.
+// Returns a [H, W] mask of the pixels explained, and counts per rule; when
+// more than `limit` pixels are flagged, none is looked at (the check fails
+// anyway, and each look costs a pass over every Gaussian).
 struct Flips {
     torch::Tensor explained;
     int64_t flagged = 0, threshold = 0, box = 0, cap = 0;
 };
 static Flips rule_flips(const torch::Tensor &diff, const Outputs &o, const torch::Tensor &opac,
-                        const torch::Tensor &background, int64_t w, double flag) {
+                        const torch::Tensor &background, int64_t w, double flag, int64_t limit) {
     Flips f;
     int64_t h = diff.size(0);
     f.explained = torch::zeros({h, w}, torch::kBool);
+    f.flagged = (diff > flag).sum().item<int64_t>();
+    if (f.flagged > limit) return f;
+    f.flagged = 0;
     auto xys = o.xys.contiguous(), conics = o.conics.contiguous(), op = opac.reshape({-1}).contiguous();
     auto sqx = (3.0f * torch::sqrt(o.cov2d.index({"...", 0, 0}))).contiguous();
     auto sqy = (3.0f * torch::sqrt(o.cov2d.index({"...", 1, 1}))).contiguous();
@@ -375,7 +380,7 @@ int main(int argc, char **argv) {
                 // The image check leaves out the pixels a renderer rule
                 // explains (rule_flips), at most max_flips of them.
                 auto diff = (o->image - ls_image).abs().amax(-1);
-                Flips fl = rule_flips(diff, *o, opac0, background, w, flag);
+                Flips fl = rule_flips(diff, *o, opac0, background, w, flag, max_flips);
                 auto keep = fl.explained.logical_not().unsqueeze(-1).to(torch::kFloat32);
                 double rest_max = ((o->image - ls_image).abs() * keep).max().item<double>();
                 double rest_rel = rel_l2(o->image * keep, ls_image * keep);
