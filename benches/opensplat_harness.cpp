@@ -134,7 +134,8 @@ struct Outputs {
     torch::Tensor image;  // [H, W, 3]
     torch::Tensor means, scales, quats, opacities, sh;  // gradients
     // OpenSplat's projected Gaussians: centres [N, 2], conics [N, 3], 2D
-    // covariances [N, 2, 2] (for the rule check of flipped pixels).
+    // covariances [N, 2, 2] and colours [N, 3] (for the rule check of
+    // flipped pixels).
     torch::Tensor xys, conics, cov2d, rgbs;
     double fwd_ms, bwd_ms;
 };
@@ -170,7 +171,6 @@ static Flips rule_flips(const torch::Tensor &diff, const Outputs &o, const torch
     f.explained = torch::zeros({h, w}, torch::kBool);
     f.flagged = (diff > flag).sum().item<int64_t>();
     if (f.flagged > limit) return f;
-    f.flagged = 0;
     auto xys = o.xys.contiguous(), conics = o.conics.contiguous(), op = opac.reshape({-1}).contiguous();
     auto sqx = (3.0f * torch::sqrt(o.cov2d.index({"...", 0, 0}))).contiguous();
     auto sqy = (3.0f * torch::sqrt(o.cov2d.index({"...", 1, 1}))).contiguous();
@@ -186,7 +186,6 @@ static Flips rule_flips(const torch::Tensor &diff, const Outputs &o, const torch
     for (int64_t i = 0; i < h; i++)
         for (int64_t j = 0; j < w; j++) {
             if (!(dp[i * w + j] > flag)) continue;
-            f.flagged++;
             bool t = false, b = false, cp = false;
             for (int64_t g = 0; g < n; g++) {
                 float A = k[3 * g], B = k[3 * g + 1], C = k[3 * g + 2];

@@ -508,7 +508,8 @@ fn forward<T: Real>(
     // The per-pixel outputs are written once each by the rows (every row
     // covers every tile it crosses, every pixel of each), so they are not
     // zeroed first: their pages are first touched by the row tasks, in
-    // parallel.
+    // parallel. The rows' tiles cover the width exactly:
+    assert_eq!(grid_x, w.div_ceil(BLOCK), "tile grid of the image width");
     let mut out = RasterOutput {
         color: Vec::with_capacity(3 * hw),
         depth: Vec::with_capacity(hw),
@@ -563,9 +564,10 @@ fn forward<T: Real>(
         .sum();
     // SAFETY: the rows are the consecutive `w`-long (`grid_x`-long) pieces
     // of each buffer's first `hw` (`h·grid_x`) spare slots, and every row
-    // wrote every slot of its pieces (`forward_row`: each tile of the row,
-    // each pixel of each tile); a panic in a row propagates before these
-    // lines, leaving the buffers empty.
+    // wrote every slot of its pieces (`forward_row`: each of the `grid_x`
+    // tiles of the row, which cover `0..w` (asserted above), each pixel of
+    // each tile); a panic in a row propagates before these lines, leaving
+    // the buffers empty.
     unsafe {
         out.color.set_len(3 * hw);
         out.depth.set_len(hw);

@@ -447,7 +447,9 @@ pub(crate) fn replay_row<V: Lanes>(
 
 /// Output slices of one image row (channel-major image, so each channel's
 /// row is contiguous).
-/// The pixel slices are not yet written; the row writes each slot once.
+///
+/// The pixel slices and `blended_end` start unwritten; the row writes each
+/// slot once.
 pub(crate) struct RowOut<'a, T> {
     pub color: [&'a mut [MaybeUninit<T>]; 3],
     pub depth: &'a mut [MaybeUninit<T>],
