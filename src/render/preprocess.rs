@@ -384,20 +384,24 @@ impl<T: Real> ShBatch<'_, T> {
 }
 
 /// Ask the CPU to bring `len` values of `v` from `start` into its caches
-/// (the batch after next reads them); only a hint, clipped to `v`.
+/// (one hint per 64-byte line they span); only a hint, clipped to `v`.
 #[inline(always)]
 pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let end = (start + len).min(v.len());
-        let line = 64 / std::mem::size_of::<T>().max(1);
-        let mut i = start;
-        while i < end {
-            // SAFETY: `i < v.len()`, so the address is inside `v`; a
-            // prefetch never faults and changes no value.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(v.as_ptr().add(i) as *const i8) };
-            i += line;
+        let end = (start.saturating_add(len)).min(v.len());
+        if start >= end {
+            return;
+        }
+        let size = std::mem::size_of::<T>();
+        let base = v.as_ptr() as *const i8;
+        let mut b = start * size;
+        while b < end * size {
+            // SAFETY: `b < end·size`, a byte inside `v` (`end <= v.len()`);
+            // a prefetch never faults and changes no value.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(b)) };
+            b += 64;
         }
     }
     #[cfg(not(target_arch = "x86_64"))]

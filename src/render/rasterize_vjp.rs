@@ -533,6 +533,10 @@ fn entry_gradients<T: Real>(
             };
             scratch.clear();
             scratch.resize(out.len(), EntryGrad::ZERO);
+            // The rows replay only the entries they blended, a sparse walk
+            // the hardware prefetcher does not follow: ask for the tile's
+            // whole gathered list first.
+            prefetch(job.splats, 0, job.splats.len());
             tile_vjp(&job, scratch, rec);
             for (o, g) in out.iter_mut().zip(scratch.iter()) {
                 o.write(*g);
@@ -908,6 +912,19 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
         let live: [bool; L] = std::array::from_fn(|l| l < cnt && proj[jl[l]].radius > 0);
         let b = j0;
         j0 += cnt;
+        // Ask for the next block's inputs while this one computes (the SH
+        // coefficients below): read once per frame, they are far from the
+        // caches, and the hardware prefetcher, with a dozen streams in
+        // flight, leaves part of their latency exposed.
+        let next = L.min(len - j0);
+        prefetch(proj, j0, next);
+        prefetch(cov3d, j0, next);
+        prefetch(means, 3 * j0, 3 * next);
+        prefetch(&saved.colors[s..s + len], j0, next);
+        if let Some((scales, rotations, _)) = ctx.scale_rot {
+            prefetch(scales, 3 * (s + j0), 3 * next);
+            prefetch(rotations, 4 * (s + j0), 4 * next);
+        }
         if !live.contains(&true) {
             continue;
         }
