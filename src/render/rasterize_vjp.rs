@@ -928,14 +928,27 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
         if !live.contains(&true) {
             continue;
         }
-        // Each lane's rows of the inputs, moved into packs.
-        let rows = |w: usize| -> [usize; L] { std::array::from_fn(|l| w * jl[l]) };
+        // Each lane's rows of the inputs, moved into packs: lane `l`'s row
+        // of a `w`-wide array whose row 0 is the chunk's first Gaussian
+        // (`origin` 0) or the frame's (`origin` `s`). In a full block the
+        // rows are evenly spaced.
+        let full = cnt == L;
+        let rows = |origin: usize, w: usize| -> [usize; L] {
+            std::array::from_fn(|l| w * (origin + jl[l]))
+        };
+        let load = |src: &[T], origin: usize, w: usize, out: &mut [Pack<T, L>]| {
+            if full {
+                mover.load_strided(src, w * (origin + b), w, out)
+            } else {
+                mover.load(src, &rows(origin, w), out)
+            }
+        };
         let mut mean = [zero_pack; 3];
-        mover.load(means, &rows(3), &mut mean);
+        load(means, 0, 3, &mut mean);
         let mut e = [zero_pack; ENTRY_VALUES];
-        mover.load(EntryGrad::values(acc), &rows(ENTRY_VALUES), &mut e);
+        load(EntryGrad::values(acc), 0, ENTRY_VALUES, &mut e);
         let mut c3 = [zero_pack; 6];
-        mover.load(cov3d.as_flattened(), &rows(6), &mut c3);
+        load(cov3d.as_flattened(), 0, 6, &mut c3);
         let cov2d: [Pack<T, L>; 3] = std::array::from_fn(|a| Pack(jl.map(|j| proj[j].cov2d[a])));
         let mean_n: [N; 3] = from_packs(&mean);
         let e_n: [N; ENTRY_VALUES] = from_packs(&e);
@@ -963,8 +976,7 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
                 // caches: ask for the next block's while this one computes.
                 prefetch(coeffs, (s + j0) * cstride, L * cstride);
                 let mut coef = [zero_pack; MAX_COLOR_VALUES];
-                let at: [usize; L] = std::array::from_fn(|l| (s + jl[l]) * cstride);
-                mover.load(coeffs, &at, &mut coef[..ncol]);
+                load(coeffs, s, cstride, &mut coef[..ncol]);
                 let colors = &saved.colors[s..s + len];
                 let clamped: [[bool; L]; 3] =
                     std::array::from_fn(|ch| jl.map(|j| colors[j].clamped[ch]));
@@ -993,9 +1005,8 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
             Some((scales, rotations, modifier)) => {
                 let mut scale = [zero_pack; 3];
                 let mut q = [zero_pack; 4];
-                let at = |w: usize| -> [usize; L] { std::array::from_fn(|l| w * (s + jl[l])) };
-                mover.load(scales, &at(3), &mut scale);
-                mover.load(rotations, &at(4), &mut q);
+                load(scales, s, 3, &mut scale);
+                load(rotations, s, 4, &mut q);
                 let modifier = N::splat(modifier);
                 let (gs, gq) = match ctx.mode {
                     GradientMode::Exact => {
@@ -1013,7 +1024,7 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
         let gmean = to_packs(&gmean);
         let gndc = to_packs(&gndc);
         // The live lanes' rows of the outputs (the others stay zero); the
-        // rows of the chunk's outputs are those of `acc` (`rows`).
+        // chunk's outputs start at its first Gaussian (`origin` 0).
         let lanes = live
             .iter()
             .enumerate()
@@ -1024,12 +1035,19 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
             o.means2d[3 * j] = gndc[0].0[l];
             o.means2d[3 * j + 1] = gndc[1].0[l];
         }
-        mover.store(o.means3d, &rows(3), lanes, &gmean);
-        mover.store(o.scales_or_cov, &rows(cov_w), lanes, &cov[..cov_w]);
+        let store = |dst: &mut [T], w: usize, vals: &[Pack<T, L>]| {
+            if full {
+                mover.store_strided(dst, w * b, w, lanes, vals)
+            } else {
+                mover.store(dst, &rows(0, w), lanes, vals)
+            }
+        };
+        store(o.means3d, 3, &gmean);
+        store(o.scales_or_cov, cov_w, &cov[..cov_w]);
         if ctx.scale_rot.is_some() {
-            mover.store(o.rotations, &rows(4), lanes, &rot);
+            store(o.rotations, 4, &rot);
         }
-        mover.store(o.colors, &rows(cstride), lanes, &col[..ncol]);
+        store(o.colors, cstride, &col[..ncol]);
     }
 }
 

@@ -1,13 +1,16 @@
 //! Moving a block of Gaussians' values between their rows (one Gaussian's
 //! values side by side, as the arrays store them) and value-major
 //! [`Pack`]s (one value of every Gaussian side by side, as the lane-parallel
-//! code computes with them): [`RowMover::load`] and [`RowMover::store`].
+//! code computes with them).
 //!
 //! In f32 with AVX-512 and 16 lanes, or AVX2 and a multiple of 8 lanes (in
 //! groups of 8), rows of any length move in column blocks of 16 (or 8)
 //! values, each by masked loads, a transpose in registers and masked
 //! stores; otherwise (f64, other lane counts, the portable path) value by
-//! value. Both only move bits, so every path gives the same values.
+//! value. Both only move bits, so every path gives the same values. Rows
+//! may be anywhere ([`RowMover::load`], [`RowMover::store`]: a bounds check
+//! per lane) or evenly spaced ([`RowMover::load_strided`],
+//! [`RowMover::store_strided`]: one check per block).
 
 use super::rasterize::{path, Path};
 use crate::math::pack::Pack;
@@ -61,6 +64,43 @@ impl RowMover {
                 "RowMover::load: a row runs past the values"
             );
         }
+        // SAFETY: every row is inside `src` (asserted above).
+        unsafe { self.load_unchecked(src, |l| at[l], out) }
+    }
+
+    /// [`RowMover::load`] with lane `l`'s row at `first + l·stride` (one
+    /// bounds check for the block, no per-lane offsets to form).
+    ///
+    /// Panics when the last lane's row runs past `src`.
+    #[inline(always)]
+    pub(crate) fn load_strided<T: Real, const L: usize>(
+        self,
+        src: &[T],
+        first: usize,
+        stride: usize,
+        out: &mut [Pack<T, L>],
+    ) {
+        assert!(
+            last_row_end::<L>(first, stride, out.len()).is_some_and(|e| e <= src.len()),
+            "RowMover::load_strided: a row runs past the values"
+        );
+        // SAFETY: the rows start at `first + l·stride`, ascending in `l`,
+        // and the last one ends inside `src` (asserted above).
+        unsafe { self.load_unchecked(src, |l| first + l * stride, out) }
+    }
+
+    /// `out[a]`, lane `l`, is `src[at(l) + a]`.
+    ///
+    /// # Safety
+    /// `at(l) + out.len() <= src.len()` for every lane `l < L`.
+    #[inline(always)]
+    unsafe fn load_unchecked<T: Real, const L: usize>(
+        self,
+        src: &[T],
+        at: impl Fn(usize) -> usize,
+        out: &mut [Pack<T, L>],
+    ) {
+        let w = out.len();
         #[cfg(target_arch = "x86_64")]
         {
             let p = self.p;
@@ -76,18 +116,14 @@ impl RowMover {
                         // this CPU (`RowMover::new`); `Pack` is a transparent
                         // `[T; L]`, so `out` is `w` rows of `L` f32 values and
                         // value `c + j`, lane `g + l` is at `o + L·(c + j) + g + l`;
-                        // row `at[g + l]` holds values `c .. c + n` (asserted
-                        // above); `g + l < L` (L is 16 with AVX-512, a multiple
-                        // of 8 with AVX2).
+                        // row `at(g + l)` holds values `c .. c + n` (the
+                        // caller's guarantee); `g + l < L` (L is 16 with
+                        // AVX-512, a multiple of 8 with AVX2).
                         unsafe {
                             if p == Path::Avx512 {
-                                let rows: [*const f32; 16] =
-                                    std::array::from_fn(|l| s.add(at[l] + c));
-                                x86::load16(&rows, n, o.add(L * c), L);
+                                x86::load16(|l| s.add(at(l) + c), n, o.add(L * c), L);
                             } else {
-                                let rows: [*const f32; 8] =
-                                    std::array::from_fn(|l| s.add(at[g + l] + c));
-                                x86::load8(&rows, n, o.add(L * c + g), L);
+                                x86::load8(|l| s.add(at(g + l) + c), n, o.add(L * c + g), L);
                             }
                         }
                     }
@@ -96,7 +132,7 @@ impl RowMover {
             }
         }
         for (a, o) in out.iter_mut().enumerate() {
-            *o = Pack(std::array::from_fn(|l| src[at[l] + a]));
+            *o = Pack(std::array::from_fn(|l| src[at(l) + a]));
         }
     }
 
@@ -121,6 +157,46 @@ impl RowMover {
                 "RowMover::store: a row runs past the values"
             );
         }
+        // SAFETY: the row of every written lane is inside `dst` (asserted
+        // above).
+        unsafe { self.store_unchecked(dst, |l| at[l], lanes, vals) }
+    }
+
+    /// [`RowMover::store`] with lane `l`'s row at `first + l·stride` (one
+    /// bounds check for the block, no per-lane offsets to form).
+    ///
+    /// Panics when the last lane's row runs past `dst`, written or not.
+    #[inline(always)]
+    pub(crate) fn store_strided<T: Real, const L: usize>(
+        self,
+        dst: &mut [T],
+        first: usize,
+        stride: usize,
+        lanes: u32,
+        vals: &[Pack<T, L>],
+    ) {
+        assert!(
+            last_row_end::<L>(first, stride, vals.len()).is_some_and(|e| e <= dst.len()),
+            "RowMover::store_strided: a row runs past the values"
+        );
+        // SAFETY: the rows start at `first + l·stride`, ascending in `l`,
+        // and the last one ends inside `dst` (asserted above).
+        unsafe { self.store_unchecked(dst, |l| first + l * stride, lanes, vals) }
+    }
+
+    /// `dst[at(l) + a] = vals[a]`, lane `l`, for the lanes set in `lanes`.
+    ///
+    /// # Safety
+    /// `at(l) + vals.len() <= dst.len()` for every lane `l` set in `lanes`.
+    #[inline(always)]
+    unsafe fn store_unchecked<T: Real, const L: usize>(
+        self,
+        dst: &mut [T],
+        at: impl Fn(usize) -> usize,
+        lanes: u32,
+        vals: &[Pack<T, L>],
+    ) {
+        let w = vals.len();
         #[cfg(target_arch = "x86_64")]
         {
             let p = self.p;
@@ -136,28 +212,15 @@ impl RowMover {
                         if live == 0 {
                             continue;
                         }
-                        // SAFETY: as in `load_rows`; the rows of the lanes
-                        // written hold values `c .. c + n` (asserted above), and
-                        // a lane not written is never addressed.
+                        // SAFETY: as in `load_unchecked`; the rows of the
+                        // lanes written hold values `c .. c + n` (the
+                        // caller's guarantee), and the kernels address only
+                        // the lanes written.
                         unsafe {
                             if p == Path::Avx512 {
-                                let rows: [*mut f32; 16] = std::array::from_fn(|l| {
-                                    if live >> l & 1 != 0 {
-                                        d.add(at[l] + c)
-                                    } else {
-                                        std::ptr::null_mut()
-                                    }
-                                });
-                                x86::store16(&rows, live, n, v.add(L * c), L);
+                                x86::store16(|l| d.add(at(l) + c), live, n, v.add(L * c), L);
                             } else {
-                                let rows: [*mut f32; 8] = std::array::from_fn(|l| {
-                                    if live >> l & 1 != 0 {
-                                        d.add(at[g + l] + c)
-                                    } else {
-                                        std::ptr::null_mut()
-                                    }
-                                });
-                                x86::store8(&rows, live, n, v.add(L * c + g), L);
+                                x86::store8(|l| d.add(at(g + l) + c), live, n, v.add(L * c + g), L);
                             }
                         }
                     }
@@ -167,10 +230,20 @@ impl RowMover {
         }
         for (a, v) in vals.iter().enumerate() {
             for l in (0..L).filter(|&l| lanes >> l & 1 != 0) {
-                dst[at[l] + a] = v.0[l];
+                dst[at(l) + a] = v.0[l];
             }
         }
     }
+}
+
+/// The end of the last of `L` rows of `w` values starting at `first`,
+/// `first + stride`, …; `None` on overflow.
+#[inline(always)]
+fn last_row_end<const L: usize>(first: usize, stride: usize, w: usize) -> Option<usize> {
+    (L.checked_sub(1)?)
+        .checked_mul(stride)?
+        .checked_add(first)?
+        .checked_add(w)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -212,36 +285,41 @@ mod x86 {
         r
     }
 
-    /// `out[stride·j + l] = rows[l][j]` for `l < 16`, `j < n ≤ 16`.
+    /// `out[stride·j + l] = row(l)[j]` for `l < 16`, `j < n ≤ 16`.
     ///
     /// # Safety
-    /// AVX-512F is present; `rows[l]` can be read for `n` values and `out`
+    /// AVX-512F is present; `row(l)` can be read for `n` values and `out`
     /// written at `stride·j + l` for `l < 16`, `j < n`, `stride ≥ 16`.
     #[target_feature(enable = "avx512f")]
     #[inline]
-    pub(super) unsafe fn load16(rows: &[*const f32; 16], n: usize, out: *mut f32, stride: usize) {
+    pub(super) unsafe fn load16(
+        row: impl Fn(usize) -> *const f32,
+        n: usize,
+        out: *mut f32,
+        stride: usize,
+    ) {
         let m = ((1u32 << n) - 1) as __mmask16;
         // SAFETY: the caller guarantees the extents; masked-off values are
         // not read.
         unsafe {
-            let t = t16(std::array::from_fn(|l| _mm512_maskz_loadu_ps(m, rows[l])));
+            let t = t16(std::array::from_fn(|l| _mm512_maskz_loadu_ps(m, row(l))));
             for (j, v) in t.iter().enumerate().take(n) {
                 _mm512_storeu_ps(out.add(stride * j), *v);
             }
         }
     }
 
-    /// `rows[l][j] = vals[stride·j + l]` for `j < n ≤ 16` and the lanes `l`
+    /// `row(l)[j] = vals[stride·j + l]` for `j < n ≤ 16` and the lanes `l`
     /// whose bit is set in `lanes`.
     ///
     /// # Safety
     /// AVX-512F is present; `vals` can be read at `stride·j + l` for
-    /// `l < 16`, `j < n`, and `rows[l]` written for `n` values for every
+    /// `l < 16`, `j < n`, and `row(l)` written for `n` values for every
     /// lane set in `lanes`.
     #[target_feature(enable = "avx512f")]
     #[inline]
     pub(super) unsafe fn store16(
-        rows: &[*mut f32; 16],
+        row: impl Fn(usize) -> *mut f32,
         lanes: u32,
         n: usize,
         vals: *const f32,
@@ -260,7 +338,7 @@ mod x86 {
             }));
             for (l, v) in t.iter().enumerate() {
                 if lanes >> l & 1 != 0 {
-                    _mm512_mask_storeu_ps(rows[l], m, *v);
+                    _mm512_mask_storeu_ps(row(l), m, *v);
                 }
             }
         }
@@ -299,36 +377,41 @@ mod x86 {
         _mm256_cmpgt_epi32(_mm256_set1_epi32(n as i32), i)
     }
 
-    /// `out[stride·j + l] = rows[l][j]` for `l < 8`, `j < n ≤ 8`.
+    /// `out[stride·j + l] = row(l)[j]` for `l < 8`, `j < n ≤ 8`.
     ///
     /// # Safety
-    /// AVX2 is present; `rows[l]` can be read for `n` values and `out`
+    /// AVX2 is present; `row(l)` can be read for `n` values and `out`
     /// written at `stride·j + l` for `l < 8`, `j < n`, `stride ≥ 8`.
     #[target_feature(enable = "avx2")]
     #[inline]
-    pub(super) unsafe fn load8(rows: &[*const f32; 8], n: usize, out: *mut f32, stride: usize) {
+    pub(super) unsafe fn load8(
+        row: impl Fn(usize) -> *const f32,
+        n: usize,
+        out: *mut f32,
+        stride: usize,
+    ) {
         let m = first(n);
         // SAFETY: the caller guarantees the extents; masked-off values are
         // not read.
         unsafe {
-            let t = t8(std::array::from_fn(|l| _mm256_maskload_ps(rows[l], m)));
+            let t = t8(std::array::from_fn(|l| _mm256_maskload_ps(row(l), m)));
             for (j, v) in t.iter().enumerate().take(n) {
                 _mm256_storeu_ps(out.add(stride * j), *v);
             }
         }
     }
 
-    /// `rows[l][j] = vals[stride·j + l]` for `j < n ≤ 8` and the lanes `l`
+    /// `row(l)[j] = vals[stride·j + l]` for `j < n ≤ 8` and the lanes `l`
     /// whose bit is set in `lanes`.
     ///
     /// # Safety
     /// AVX2 is present; `vals` can be read at `stride·j + l` for `l < 8`,
-    /// `j < n`, and `rows[l]` written for `n` values for every lane set in
+    /// `j < n`, and `row(l)` written for `n` values for every lane set in
     /// `lanes`.
     #[target_feature(enable = "avx2")]
     #[inline]
     pub(super) unsafe fn store8(
-        rows: &[*mut f32; 8],
+        row: impl Fn(usize) -> *mut f32,
         lanes: u32,
         n: usize,
         vals: *const f32,
@@ -347,7 +430,7 @@ mod x86 {
             }));
             for (l, v) in t.iter().enumerate() {
                 if lanes >> l & 1 != 0 {
-                    _mm256_maskstore_ps(rows[l], m, *v);
+                    _mm256_maskstore_ps(row(l), m, *v);
                 }
             }
         }
@@ -362,7 +445,8 @@ mod tests {
     /// Every path moves the same values as the definition, for widths across
     /// the vector blocks, scattered and overlapping rows, and partial lanes.
     fn round_trip<T: Real, const L: usize>() {
-        let src: Vec<T> = (0..700)
+        // Long enough for the widest evenly spaced rows below.
+        let src: Vec<T> = (0..1200)
             .map(|i| T::from_f64(i as f64 * 0.5 - 3.0))
             .collect();
         for w in [1usize, 3, 7, 8, 9, 10, 15, 16, 17, 24, 33, 48] {
@@ -373,6 +457,17 @@ mod tests {
                 for l in 0..L {
                     assert_eq!(p.0[l], src[at[l] + a], "load w {w} value {a} lane {l}");
                 }
+            }
+            // Evenly spaced rows, overlapping (stride below w), touching or
+            // apart, against the same rows given lane by lane.
+            for stride in [0usize, 1, w, w + 3] {
+                let first = (w * 7) % 50;
+                let at: [usize; L] = std::array::from_fn(|l| first + l * stride);
+                let mut by_lane = vec![Pack([T::ZERO; L]); w];
+                RowMover::new::<T>().load(&src, &at, &mut by_lane);
+                let mut strided = vec![Pack([T::ONE; L]); w];
+                RowMover::new::<T>().load_strided(&src, first, stride, &mut strided);
+                assert!(strided == by_lane, "load_strided w {w} stride {stride}");
             }
             for lanes in [
                 0u32,
@@ -391,6 +486,9 @@ mod tests {
                     }
                 }
                 assert_eq!(dst, want, "store w {w} lanes {lanes:b}");
+                let mut strided = vec![T::from_f64(-1.0); dst.len()];
+                RowMover::new::<T>().store_strided(&mut strided, 3, w + 2, lanes, &packs);
+                assert_eq!(strided, want, "store_strided w {w} lanes {lanes:b}");
             }
         }
     }
@@ -409,6 +507,13 @@ mod tests {
             let mut dst = vec![T::ZERO; len];
             mover.store(&mut dst, &at, u32::MAX >> (32 - L), &packs);
             assert_eq!(dst, src, "w {w}");
+            // The same rows evenly spaced: the last lane reads and writes
+            // the last row.
+            let mut strided = vec![Pack([T::ZERO; L]); w];
+            mover.load_strided(&src, 0, w, &mut strided);
+            let mut dst = vec![T::ZERO; len];
+            mover.store_strided(&mut dst, 0, w, u32::MAX >> (32 - L), &strided);
+            assert_eq!(dst, src, "strided w {w}");
         }
     }
 
@@ -443,6 +548,32 @@ mod tests {
         let mut at = [0usize; 16];
         at[3] = 16;
         RowMover::new::<f32>().store(&mut dst, &at, 1 << 3, &vals);
+    }
+
+    #[test]
+    #[should_panic(expected = "a row runs past the values")]
+    fn an_evenly_spaced_row_past_the_end_is_refused_on_load() {
+        let src = [0.0f32; 16 * 3];
+        let mut out = [Pack([0.0f32; 16]); 3];
+        // Rows 1..4, 4..7, …: the last ends at 48, one past the values.
+        RowMover::new::<f32>().load_strided(&src, 1, 3, &mut out);
+    }
+
+    #[test]
+    #[should_panic(expected = "a row runs past the values")]
+    fn an_evenly_spaced_row_past_the_end_is_refused_on_store() {
+        let mut dst = [0.0f32; 16 * 3];
+        let vals = [Pack([1.0f32; 16]); 3];
+        // Checked for every lane, written or not.
+        RowMover::new::<f32>().store_strided(&mut dst, 1, 3, 1, &vals);
+    }
+
+    #[test]
+    #[should_panic(expected = "a row runs past the values")]
+    fn an_overflowing_stride_is_refused() {
+        let src = [0.0f32; 4];
+        let mut out = [Pack([0.0f32; 4]); 1];
+        RowMover::new::<f32>().load_strided(&src, 0, usize::MAX / 2, &mut out);
     }
 
     #[test]
