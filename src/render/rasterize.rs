@@ -30,8 +30,7 @@
 //! ulp, under 1e-4 for any finite `o` whose ratio does not overflow, where
 //! it is `+∞`), so `o·exp(power) < alpha_min·e^{−0.0099}`, well inside the
 //! alpha-skip rule whatever the rounding of `exp` (≤ 1 ulp) and of the
-//! product. A row whose
-//! lanes all skip an entry does no further work for it.
+//! product. A row whose lanes all skip an entry does no further work for it.
 //!
 //! Rows that cannot reach `power_min` are not looked at: each splat carries
 //! the image rows where its computed power can reach `power_min` at some
@@ -779,6 +778,44 @@ mod tests {
                 assert_eq!(b1, b2, "case {case} row {py}");
             }
         }
+    }
+
+    /// The f32 threshold (`logf`) stays within 1e-4 of `ln(alpha_min / o) −
+    /// 0.01` evaluated in f64, so below `ln(alpha_min / o) − 0.0099`, over
+    /// opacities from the smallest subnormal to the largest finite f32, and
+    /// keeps the special values.
+    #[test]
+    fn f32_power_min_is_close_to_the_f64_one() {
+        let amin = (1.0f32 / 255.0) as f64;
+        let mut rng = Rng::new(5);
+        let mut checked = 0;
+        for i in 0..200_000 {
+            // Log-uniform over the positive finite f32 values, plus 1 and
+            // the ends.
+            let o = match i {
+                0 => f32::from_bits(1),
+                1 => f32::MAX,
+                2 => 1.0,
+                _ => f32::from_bits(1 + rng.below(0x7f7f_ffff) as u32),
+            };
+            let got = power_min(o) as f64;
+            let ratio = amin / o as f64;
+            if ratio > f32::MAX as f64 {
+                // The f32 ratio overflows: every pair is skipped, as the
+                // alpha rule would (o < alpha_min).
+                assert_eq!(got, f64::INFINITY, "o {o:e}");
+                continue;
+            }
+            let exact = libm::log(ratio) - 0.01;
+            assert!((got - exact).abs() < 1e-4, "o {o:e}: {got} against {exact}");
+            assert!(got < libm::log(ratio) - 0.0099, "o {o:e}");
+            checked += 1;
+        }
+        assert!(checked > 190_000, "{checked}");
+        assert_eq!(power_min(0.0f32), f32::INFINITY);
+        assert_eq!(power_min(-1.0f32), f32::INFINITY);
+        assert_eq!(power_min(f32::NAN), f32::NEG_INFINITY);
+        assert_eq!(power_min(f32::INFINITY), f32::NEG_INFINITY);
     }
 
     #[test]

@@ -912,9 +912,9 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
         let live: [bool; L] = std::array::from_fn(|l| l < cnt && proj[jl[l]].radius > 0);
         let b = j0;
         j0 += cnt;
-        // Ask for the next block's inputs while this one computes (the SH
-        // coefficients below): read once per frame, they are far from the
-        // caches, and the hardware prefetcher, with a dozen streams in
+        // Ask for the next block's inputs while this one computes, as for
+        // the SH coefficients below: read once per frame, they are far from
+        // the caches, and the hardware prefetcher, with a dozen streams in
         // flight, leaves part of their latency exposed.
         let next = L.min(len - j0);
         prefetch(proj, j0, next);
