@@ -33,7 +33,7 @@
 use super::project::{
     assemble, footprint, project_core, Footprint, Intrinsics, ProjectCore, Projected,
 };
-use super::rasterize::{candidate_rows, power_min, Splat};
+use super::rasterize::{candidate_rows_lanes, power_min, Splat};
 use super::transpose::RowMover;
 use super::{Colors, Covariances, RasterInput};
 use crate::kernels::fastmath::multiversion;
@@ -279,6 +279,11 @@ fn batch_body<T: Real>(
         }
     }
 
+    // Every lane's opacity threshold and candidate rows at once (kept for
+    // the visible ones).
+    let pm: [T; BATCH] = std::array::from_fn(|l| power_min(input.opacities[g(l)]));
+    let rows = candidate_rows_lanes(xy, conic, pm, k.height);
+
     for l in 0..len {
         let i = first + l;
         let p = assemble(
@@ -303,16 +308,14 @@ fn batch_body<T: Real>(
                 },
                 Colors::Precomputed(_) => input.color(i),
             };
-            let o = input.opacities[i];
-            let pm = power_min(o);
             let s = Splat {
                 xy: p.xy,
                 conic: p.conic,
-                opacity: o,
+                opacity: input.opacities[i],
                 color: c.color,
                 depth: p.depth,
-                power_min: pm,
-                rows: candidate_rows(p.xy, p.conic, pm, k.height),
+                power_min: pm[l],
+                rows: rows[l],
             };
             (c, s)
         } else {
@@ -410,6 +413,7 @@ pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
 
 #[cfg(test)]
 mod tests {
+    use super::super::rasterize::candidate_rows;
     use super::*;
     use crate::camera::RasterCamera;
     use crate::kernels::fastmath::{force_isa, Isa};

@@ -34,7 +34,7 @@
 //!
 //! Rows that cannot reach `power_min` are not looked at: each splat carries
 //! the image rows where its computed power can reach `power_min` at some
-//! pixel ([`candidate_rows`], a bound on the row's largest power with every
+//! pixel ([`candidate_rows_lanes`], a bound on the row's largest power with every
 //! rounding of [`power_lanes`] accounted for, tested against it). A row walk
 //! first picks, without branches, the entries whose candidate rows hold it
 //! and walks only those; every other entry would have been skipped at
@@ -71,7 +71,7 @@ pub(crate) struct Splat<T> {
     /// module docs); `+∞` for `o ≤ 0`, `−∞` when `o` is not finite.
     pub power_min: T,
     /// Image rows `[first, end)` outside which every pixel's computed
-    /// `power` is below `power_min` ([`candidate_rows`]).
+    /// `power` is below `power_min` ([`candidate_rows_lanes`]).
     pub rows: [u32; 2],
 }
 
@@ -99,7 +99,19 @@ pub(crate) fn power_min<T: Real>(o: T) -> T {
     })
 }
 
-/// The image rows `[first, end)` (within `0..height`) at which a splat
+/// One splat's [`candidate_rows_lanes`].
+#[cfg(test)]
+pub(crate) fn candidate_rows<T: Real>(
+    xy: [T; 2],
+    conic: [T; 3],
+    power_min: T,
+    height: usize,
+) -> [u32; 2] {
+    candidate_rows_lanes(xy.map(|v| [v]), conic.map(|v| [v]), [power_min], height)[0]
+}
+
+/// Per lane `l` (`xy[·][l]`, `conic[·][l]`, `power_min[l]`), the image rows
+/// `[first, end)` (within `0..height`) at which a splat
 /// centred at row coordinate `xy[1]` with conic `conic` and
 /// [`Splat::power_min`] `power_min` can pass the power test at some pixel:
 /// at every other row, the `power` that [`power_lanes`] computes, rounding
@@ -122,49 +134,67 @@ pub(crate) fn power_min<T: Real>(o: T) -> T {
 /// definite conic with `κ ≤ 10⁶`, and `power_min < 0`; otherwise every row
 /// is a candidate (or none, for `power_min > 0`: no power is both `≤ 0` and
 /// above it).
-#[inline]
-pub(crate) fn candidate_rows<T: Real>(
-    xy: [T; 2],
-    conic: [T; 3],
-    power_min: T,
+///
+/// Written without branches (every quantity computed, the cases chosen by
+/// selects) so that the loop over the `N` lanes runs in vector registers;
+/// the tests hold it to the definition written with early returns.
+#[inline(always)]
+pub(crate) fn candidate_rows_lanes<T: Real, const N: usize>(
+    xy: [[T; N]; 2],
+    conic: [[T; N]; 3],
+    power_min: [T; N],
     height: usize,
-) -> [u32; 2] {
-    let all = [0, height.min(u32::MAX as usize) as u32];
-    let [a, b, c] = conic.map(|v| v.to_f64());
-    let (x, y, pm) = (xy[0].to_f64(), xy[1].to_f64(), power_min.to_f64());
-    // Moderate finite values only (a NaN fails every comparison here).
-    let usable = a > 1e-20
-        && a < 1e20
-        && c > 1e-20
-        && c < 1e20
-        && b.abs() < 1e20
-        && x.abs() < 1e7
-        && y.abs() < 1e7;
-    if !usable {
-        return all;
-    }
-    if pm > 0.0 {
-        return [0, 0];
-    }
-    let det = a * c - b * b;
-    // κ ≤ (λmax + λmin)²/(λmax·λmin) = (A + C)²/det.
-    let trace2 = (a + c) * (a + c);
-    if !(pm < 0.0 && pm > f64::NEG_INFINITY && det > 0.0 && trace2 <= 1e6 * det) {
-        return all;
-    }
+) -> [[u32; 2]; N] {
+    let all = height.min(u32::MAX as usize) as u32;
+    let h = all as f64;
     let eps = match T::PRECISION {
         crate::math::Precision::F32 => f32::EPSILON as f64 / 2.0,
         crate::math::Precision::F64 => f64::EPSILON / 2.0,
     };
-    // det·(1 − m) with m = 6εκ + 2ε, κ = (A + C)²/det (at least 0.64·det).
-    let shrunk = det * (1.0 - 2.0 * eps) - 6.0 * eps * trace2;
     // The f64 evaluation and `|dy| ≥ |y − row|·(1 − ε)`, generously.
     let slack = 1.0 + 1e-5;
-    let r = (-2.0 * pm * a / shrunk * slack).sqrt() * slack;
-    let h = all[1] as f64;
-    let lo = (y - r).ceil().clamp(0.0, h);
-    let hi = ((y + r).floor() + 1.0).clamp(0.0, h);
-    [lo as u32, hi as u32]
+    // `v.clamp(0, h)`, NaN kept (as `f64::clamp`), without its assertion.
+    let clamp = |v: f64| {
+        if v < 0.0 {
+            0.0
+        } else if v > h {
+            h
+        } else {
+            v
+        }
+    };
+    let mut out = [[0u32; 2]; N];
+    for (l, o) in out.iter_mut().enumerate() {
+        let [a, b, c] = [conic[0][l], conic[1][l], conic[2][l]].map(|v| v.to_f64());
+        let (x, y, pm) = (xy[0][l].to_f64(), xy[1][l].to_f64(), power_min[l].to_f64());
+        // Moderate finite values only (a NaN fails every comparison here).
+        let usable = (a > 1e-20)
+            & (a < 1e20)
+            & (c > 1e-20)
+            & (c < 1e20)
+            & (b.abs() < 1e20)
+            & (x.abs() < 1e7)
+            & (y.abs() < 1e7);
+        let det = a * c - b * b;
+        // κ ≤ (λmax + λmin)²/(λmax·λmin) = (A + C)²/det.
+        let trace2 = (a + c) * (a + c);
+        let bounded = (pm < 0.0) & (pm > f64::NEG_INFINITY) & (det > 0.0) & (trace2 <= 1e6 * det);
+        // det·(1 − m) with m = 6εκ + 2ε, κ = (A + C)²/det (at least 0.64·det).
+        let shrunk = det * (1.0 - 2.0 * eps) - 6.0 * eps * trace2;
+        let r = (-2.0 * pm * a / shrunk * slack).sqrt() * slack;
+        let lo = clamp((y - r).ceil()) as u32;
+        let hi = clamp((y + r).floor() + 1.0) as u32;
+        *o = if !usable {
+            [0, all]
+        } else if pm > 0.0 {
+            [0, 0]
+        } else if !bounded {
+            [0, all]
+        } else {
+            [lo, hi]
+        };
+    }
+    out
 }
 
 /// Constants of the blending rule in `T`.
@@ -778,6 +808,121 @@ mod tests {
                 assert_eq!(b1, b2, "case {case} row {py}");
             }
         }
+    }
+
+    /// The definition of [`candidate_rows_lanes`] as first written, with early
+    /// returns.
+    fn candidate_rows_reference<T: Real>(
+        xy: [T; 2],
+        conic: [T; 3],
+        power_min: T,
+        height: usize,
+    ) -> [u32; 2] {
+        let all = [0, height.min(u32::MAX as usize) as u32];
+        let [a, b, c] = conic.map(|v| v.to_f64());
+        let (x, y, pm) = (xy[0].to_f64(), xy[1].to_f64(), power_min.to_f64());
+        let usable = a > 1e-20
+            && a < 1e20
+            && c > 1e-20
+            && c < 1e20
+            && b.abs() < 1e20
+            && x.abs() < 1e7
+            && y.abs() < 1e7;
+        if !usable {
+            return all;
+        }
+        if pm > 0.0 {
+            return [0, 0];
+        }
+        let det = a * c - b * b;
+        let trace2 = (a + c) * (a + c);
+        if !(pm < 0.0 && pm > f64::NEG_INFINITY && det > 0.0 && trace2 <= 1e6 * det) {
+            return all;
+        }
+        let eps = match T::PRECISION {
+            crate::math::Precision::F32 => f32::EPSILON as f64 / 2.0,
+            crate::math::Precision::F64 => f64::EPSILON / 2.0,
+        };
+        let shrunk = det * (1.0 - 2.0 * eps) - 6.0 * eps * trace2;
+        let slack = 1.0 + 1e-5;
+        let r = (-2.0 * pm * a / shrunk * slack).sqrt() * slack;
+        let h = all[1] as f64;
+        let lo = (y - r).ceil().clamp(0.0, h);
+        let hi = ((y + r).floor() + 1.0).clamp(0.0, h);
+        [lo as u32, hi as u32]
+    }
+
+    /// The branch-free lanes give the rows of the definition, 16 at a time,
+    /// on random splats and on every special case (unusable, non-finite or
+    /// extreme values, positive or infinite thresholds, indefinite or
+    /// ill-conditioned conics, heights 0 and huge).
+    fn lanes_match_the_definition<T: Real>() {
+        let mut rng = Rng::new(21);
+        let specials = [
+            0.0,
+            -0.0,
+            1e-21,
+            1e-20,
+            1e20,
+            2e20,
+            -1.0,
+            1e7,
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            1e300,
+        ];
+        // A special value one time in six, else a typical one of `kind`.
+        let pick = |rng: &mut Rng, kind: u8| -> T {
+            let typical = match kind {
+                0 => rng.uniform_range(-30.0, 450.0),
+                1 => 10f64.powf(rng.uniform_range(-4.0, 2.0)),
+                2 => rng.uniform_range(-0.5, 0.5),
+                _ if rng.below(8) == 0 => 0.5,
+                _ => rng.uniform_range(-9.0, 0.0),
+            };
+            T::from_f64(if rng.below(6) == 0 {
+                specials[rng.below(specials.len() as u64) as usize]
+            } else {
+                typical
+            })
+        };
+        let mut bounded = 0;
+        for case in 0..4000 {
+            let height = [0usize, 1, 16, 64, 400, usize::MAX][case % 6];
+            let mut lanes = |kind: u8| -> [T; 16] { std::array::from_fn(|_| pick(&mut rng, kind)) };
+            let xy = [lanes(0), lanes(0)];
+            let conic = [lanes(1), lanes(2), lanes(1)];
+            let pm = lanes(3);
+            let got = candidate_rows_lanes(xy, conic, pm, height);
+            for l in 0..16 {
+                let want = candidate_rows_reference(
+                    [xy[0][l], xy[1][l]],
+                    [conic[0][l], conic[1][l], conic[2][l]],
+                    pm[l],
+                    height,
+                );
+                assert_eq!(got[l], want, "case {case} lane {l}");
+                assert_eq!(
+                    candidate_rows(
+                        [xy[0][l], xy[1][l]],
+                        [conic[0][l], conic[1][l], conic[2][l]],
+                        pm[l],
+                        height
+                    ),
+                    want
+                );
+                bounded +=
+                    (want != [0, 0] && want[1] < height.min(u32::MAX as usize) as u32) as usize;
+            }
+        }
+        assert!(bounded > 2500, "{bounded}");
+    }
+
+    #[test]
+    fn candidate_rows_lanes_match_the_definition() {
+        lanes_match_the_definition::<f32>();
+        lanes_match_the_definition::<f64>();
     }
 
     /// The f32 threshold (`logf`) stays within 1e-4 of `ln(alpha_min / o) −
