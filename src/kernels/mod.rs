@@ -12,7 +12,8 @@
 //!
 //! [`vec_written_by`] and [`par_blocks_written`] build output vectors that
 //! are written once, in place, without being zeroed first (zeroing cost as
-//! much as a tenth of a matrix product).
+//! much as a tenth of a matrix product). `prefetch` asks for values a
+//! stage will read soon (a hint; it changes no value).
 
 pub mod fastmath;
 pub mod matmul;
@@ -98,6 +99,31 @@ where
     // visited once above) was returned as an initialised `&mut [T]` over
     // its own memory (checked), so every value of `buf` is initialised.
     unsafe { &mut *(buf as *mut [MaybeUninit<T>] as *mut [T]) }
+}
+
+/// Ask the CPU to bring `len` values of `v` from `start` into its caches
+/// (one hint per 64-byte line they span); only a hint, clipped to `v`.
+#[inline(always)]
+pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        let end = (start.saturating_add(len)).min(v.len());
+        if start >= end {
+            return;
+        }
+        let size = std::mem::size_of::<T>();
+        let base = v.as_ptr() as *const i8;
+        let mut b = start * size;
+        while b < end * size {
+            // SAFETY: `b < end·size`, a byte inside `v` (`end <= v.len()`);
+            // a prefetch never faults and changes no value.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(b)) };
+            b += 64;
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (v, start, len);
 }
 
 /// `s` with every slot set to `v`, as the initialised slice of the same

@@ -37,6 +37,7 @@ use super::rasterize::{candidate_rows_lanes, power_min, Splat};
 use super::transpose::RowMover;
 use super::{Colors, Covariances, RasterInput};
 use crate::kernels::fastmath::multiversion;
+use crate::kernels::prefetch;
 use crate::math::covariance::cov3d;
 use crate::math::pack::Pack;
 use crate::math::sh::{sh_to_color_with, ShColorSaved};
@@ -279,9 +280,15 @@ fn batch_body<T: Real>(
         }
     }
 
-    // Every lane's opacity threshold and candidate rows at once (kept for
-    // the visible ones).
-    let pm: [T; BATCH] = std::array::from_fn(|l| power_min(input.opacities[g(l)]));
+    // The visible lanes' opacity thresholds, and every lane's candidate
+    // rows at once (kept for the visible ones).
+    let pm: [T; BATCH] = std::array::from_fn(|l| {
+        if visible[l] {
+            power_min(input.opacities[g(l)])
+        } else {
+            T::ZERO
+        }
+    });
     let rows = candidate_rows_lanes(xy, conic, pm, k.height);
 
     for l in 0..len {
@@ -384,31 +391,6 @@ impl<T: Real> ShBatch<'_, T> {
             }
         }
     }
-}
-
-/// Ask the CPU to bring `len` values of `v` from `start` into its caches
-/// (one hint per 64-byte line they span); only a hint, clipped to `v`.
-#[inline(always)]
-pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let end = (start.saturating_add(len)).min(v.len());
-        if start >= end {
-            return;
-        }
-        let size = std::mem::size_of::<T>();
-        let base = v.as_ptr() as *const i8;
-        let mut b = start * size;
-        while b < end * size {
-            // SAFETY: `b < end·size`, a byte inside `v` (`end <= v.len()`);
-            // a prefetch never faults and changes no value.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(b)) };
-            b += 64;
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (v, start, len);
 }
 
 #[cfg(test)]

@@ -44,7 +44,6 @@
 //! depends on the number of threads or the vector width.
 
 use super::lanes::{Lanes, Scalar};
-use super::preprocess::prefetch;
 use super::project::{self, ProjectedGrad};
 use super::rasterize::{
     self as raster, lane_x, replay_row, Blend, Blended, Record, Row, Splat, LANES,
@@ -52,7 +51,7 @@ use super::rasterize::{
 use super::transpose::RowMover;
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
 use crate::error::{Error, Result};
-use crate::kernels::filled;
+use crate::kernels::{filled, prefetch};
 use crate::math::covariance::{cov3d_vjp, cov3d_vjp_scaled};
 use crate::math::pack::Pack;
 use crate::math::sh::{coeffs_for_degree, color_vjp};
@@ -895,6 +894,7 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
     let (cstride, cov_w) = (ctx.cstride, ctx.cov_w);
     let len = acc.len();
     let proj = &saved.proj[s..s + len];
+    let colors = &saved.colors[s..s + len];
     let cov3d = &saved.cov3d[s..s + len];
     let means = &input.means3d[3 * s..3 * (s + len)];
     // Colour values used per Gaussian (the rest of its `cstride` stay zero).
@@ -920,7 +920,7 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
         prefetch(proj, j0, next);
         prefetch(cov3d, j0, next);
         prefetch(means, 3 * j0, 3 * next);
-        prefetch(&saved.colors[s..s + len], j0, next);
+        prefetch(colors, j0, next);
         if let Some((scales, rotations, _)) = ctx.scale_rot {
             prefetch(scales, 3 * (s + j0), 3 * next);
             prefetch(rotations, 4 * (s + j0), 4 * next);
@@ -977,7 +977,6 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
                 prefetch(coeffs, (s + j0) * cstride, L * cstride);
                 let mut coef = [zero_pack; MAX_COLOR_VALUES];
                 load(coeffs, s, cstride, &mut coef[..ncol]);
-                let colors = &saved.colors[s..s + len];
                 let clamped: [[bool; L]; 3] =
                     std::array::from_fn(|ch| jl.map(|j| colors[j].clamped[ch]));
                 let gd = color_vjp(
