@@ -45,6 +45,7 @@ use crate::error::{Error, Result};
 use crate::kernels::matmul::{matmul_block_into, pack, MatRef, Packed};
 use crate::kernels::{par_blocks_written, vec_written_by};
 use crate::loss::check_image_pair;
+use crate::math::sum::pairwise_sum;
 use crate::math::Real;
 use rayon::prelude::*;
 
@@ -453,20 +454,6 @@ fn layer_distance<T: Real>(a: &FeatureMap<T>, b: &FeatureMap<T>, lin: &[T]) -> T
             }
         });
     pairwise_sum(&per_pixel) / T::from_usize(n)
-}
-
-/// `Σ v` by a fixed pairwise tree (blocks of 8 summed in order at the
-/// leaves): rounding error grows with log n instead of n.
-fn pairwise_sum<T: Real>(v: &[T]) -> T {
-    if v.len() <= 8 {
-        let mut s = T::ZERO;
-        for &x in v {
-            s += x;
-        }
-        return s;
-    }
-    let mid = v.len() / 2;
-    pairwise_sum(&v[..mid]) + pairwise_sum(&v[mid..])
 }
 
 #[cfg(test)]

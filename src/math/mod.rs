@@ -8,6 +8,7 @@
 //! - [`sh`], [`covariance`]: spherical-harmonics colour and 3D covariance, each with its vjp.
 //! - [`pack`]: the arithmetic the per-Gaussian vjps are written in, on one
 //!   number or on several lanes with the same bits.
+//! - [`sum`]: pairwise sums in a fixed order (error growing with log n).
 //! - [`gradcheck`]: central finite differences in f64 for every hand-written backward.
 
 pub mod covariance;
@@ -18,6 +19,7 @@ pub mod quat;
 pub mod real;
 pub mod rng;
 pub mod sh;
+pub mod sum;
 pub mod vec;
 
 pub use real::{Precision, Real, MATH_LIBRARY};
