@@ -18,7 +18,7 @@
 //! during every computation.
 
 use liquid_splat::deform::count::{macs_per_gaussian, param_count, MacConvention};
-use liquid_splat::deform::{Field, FieldConfig};
+use liquid_splat::deform::Field;
 use liquid_splat::io::{Tensor, TensorFile};
 use liquid_splat::oracle::{self, Tolerances};
 use numpy::ndarray::ArrayD;
