@@ -151,7 +151,7 @@ def fmt(e):
     return f"{e['max']:.1e} / {e['rel_l2']:.1e}"
 
 
-def summarise(name, cuda, cuda2, ls32, ls64, exact64, tol_report):
+def summarise(cuda, cuda2, ls32, ls64, exact64, tol_report):
     """Rows for the tensors present in all results (floats: error pairs; ints: counts)."""
     rows, record = [], {}
     status = {t["name"]: t for t in tol_report.tensors}
@@ -243,7 +243,7 @@ def check_inria(scene, standin, seed):
     exact64 = {k: v for k, v in exact64.items() if k.startswith("grad_")}
     rep = compare(ls32, {k: v for k, v in cuda.items() if k in ls32},
                   tolerances=recommended_tolerances("float32"))
-    return summarise(scene["name"], cuda, cuda2, ls32, ls64, exact64, rep)
+    return summarise(cuda, cuda2, ls32, ls64, exact64, rep)
 
 
 # ---------------------------------------------------------------------------
@@ -251,11 +251,19 @@ def check_inria(scene, standin, seed):
 # ---------------------------------------------------------------------------
 
 
-def gsplat_backend(standin):
+def gsplat_backend(standin, version):
     if standin:
         import liquid_splat.torch as m
         return m.rasterization, "cpu"
     import gsplat
+    if not gsplat.__version__.startswith(version):
+        raise SystemExit(f"--version {version}, but the gsplat imported is {gsplat.__version__}")
+    try:
+        # The extension built beforehand (python/cuda_peers.sh); without it gsplat would
+        # compile one on first use, with fast math unless FAST_MATH=0 is set.
+        import gsplat.csrc  # noqa: F401
+    except ImportError as e:
+        raise SystemExit(f"gsplat.csrc is not built next to {gsplat.__file__}: {e}")
     return gsplat.rasterization, "cuda"
 
 
@@ -263,8 +271,19 @@ GS_META = ("radii", "means2d", "depths", "conics", "tiles_per_gauss", "isect_ids
            "flatten_ids", "isect_offsets")
 
 
+def zero_culled(d):
+    """Set to 0 the dense `means2d`, `depths` and `conics` rows of Gaussians whose radii (in
+    `d` itself) are 0: gsplat leaves them uninitialised (`at::empty`), the oracle writes 0."""
+    culled = np.all(d["meta.radii"].reshape(-1, 2) == 0, axis=1)
+    for k in ("meta.means2d", "meta.depths", "meta.conics"):
+        if k in d:
+            v = d[k].reshape(culled.size, -1).copy()
+            v[culled] = 0
+            d[k] = v.reshape(d[k].shape)
+
+
 def gs_args(scene, packed, mode):
-    g, cam = scene["gaussians"], scene["cam"]
+    cam = scene["cam"]
     return dict(width=cam["width"], height=cam["height"], sh_degree=3, packed=packed,
                 rasterize_mode=mode)
 
@@ -320,7 +339,7 @@ def run_gsplat_oracle(scene, cot, dtype, version, gradient, packed, mode, with_b
 
 
 def check_gsplat(scene, standin, seed, version, packed, mode):
-    fn, dev = gsplat_backend(standin)
+    fn, dev = gsplat_backend(standin, version)
     cam = scene["cam"]
     rng = np.random.default_rng(seed + 200)
     cot = (rng.normal(size=(1, cam["height"], cam["width"], 3)).astype(np.float32),
@@ -336,17 +355,11 @@ def check_gsplat(scene, standin, seed, version, packed, mode):
     ls64 = run_gsplat_oracle(scene, cot, np.float64, version, gm, packed, mode, bg)
     exact64 = run_gsplat_oracle(scene, cot, np.float64, version, "exact", packed, mode, bg)
     if not packed:
-        # Dense outputs of culled Gaussians (radii 0): gsplat leaves them uninitialised
-        # (at::empty), the oracle writes 0. Compare the visible ones only.
-        culled = np.all(ls32["meta.radii"].reshape(-1, 2) == 0, axis=1)
         for d in (cuda, cuda2, ls32, ls64):
-            for k in ("meta.means2d", "meta.depths", "meta.conics"):
-                if k in d:
-                    v = d[k].reshape(culled.size, -1).copy()
-                    v[culled] = 0
-                    d[k] = v.reshape(d[k].shape)
+            zero_culled(d)
     exact64 = {k: v for k, v in exact64.items() if k.startswith("v_")}
-    # isect_ids are int64 keys; compare them as two int32 halves' worth of equality only.
+    # isect_ids (int64 keys whose low word is the depth's float bits) are only counted
+    # (entries that differ), not checked against the tolerances.
     common = {k: v for k, v in cuda.items() if k in ls32 and k != "meta.isect_ids"}
     exp = {k: v for k, v in ls32.items() if k in common}
     for k in list(exp):
@@ -361,7 +374,7 @@ def check_gsplat(scene, standin, seed, version, packed, mode):
         for k in list(d):
             if k in ls32 and d[k].shape != ls32[k].shape and d[k].size == ls32[k].size:
                 d[k] = d[k].reshape(ls32[k].shape)
-    return summarise(scene["name"], cuda, cuda2, ls32, ls64, exact64, rep)
+    return summarise(cuda, cuda2, ls32, ls64, exact64, rep)
 
 
 # ---------------------------------------------------------------------------

@@ -565,7 +565,7 @@ pub fn rasterize_to_pixels_vjp<T: Real>(
 
     // 3. Backgrounds: Σ over pixels of v_C·T_final, a pairwise sum over the
     // image's pixels in row-major order per channel (a running f32 sum over
-    // a 400×400 image loses about 1e-2 of a sum that cancels).
+    // a 400×400 frame was 7e-3 off, 1.6e-5 of the largest value).
     if inp.backgrounds.is_some() {
         let mut vb = vec![T::ZERO; g.images * d];
         for img in 0..g.images {

@@ -37,13 +37,31 @@ mod tests {
         assert_eq!(pairwise_sum::<f64>(&[]), 0.0);
     }
 
+    /// The tree written on slices, as LPIPS had it before this module:
+    /// an independent statement of the order the bits depend on.
+    fn slice_tree(v: &[f32]) -> f32 {
+        if v.len() <= 8 {
+            let mut s = 0f32;
+            for &x in v {
+                s += x;
+            }
+            return s;
+        }
+        let mid = v.len() / 2;
+        slice_tree(&v[..mid]) + slice_tree(&v[mid..])
+    }
+
     #[test]
-    fn terms_by_index_give_the_bits_of_the_collected_terms() {
+    fn sums_give_the_bits_of_the_slice_tree() {
         let mut rng = crate::math::Rng::new(7);
         for n in [0usize, 1, 8, 9, 17, 1000, 4097] {
-            let v: Vec<f32> = (0..n).map(|_| rng.normal() as f32).collect();
-            let by = pairwise_sum_by(n, |i| v[i]);
-            assert_eq!(by.to_bits(), pairwise_sum(&v).to_bits(), "n = {n}");
+            // Terms of mixed sizes, so that the order shows in the bits.
+            let v: Vec<f32> = (0..n)
+                .map(|_| (rng.normal() * 10f64.powf(3.0 * rng.normal())) as f32)
+                .collect();
+            let want = slice_tree(&v).to_bits();
+            assert_eq!(pairwise_sum(&v).to_bits(), want, "n = {n}");
+            assert_eq!(pairwise_sum_by(n, |i| v[i]).to_bits(), want, "n = {n}");
         }
     }
 

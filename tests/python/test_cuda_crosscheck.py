@@ -34,3 +34,18 @@ def test_standin_agrees_with_the_oracle_it_calls(args, tmp_path, capsys):
         # The float64 run is a different computation: its difference is measured, not zero.
         assert any(t[k]["ls32 vs ls64"]["max"] > 0 for k in grads)
     assert "| tensor |" in capsys.readouterr().out
+
+
+def test_culled_dense_rows_are_zeroed_by_their_own_radii():
+    import numpy as np
+
+    radii = np.array([[[3, 2], [0, 0], [0, 5]]], np.int32)  # the middle Gaussian is culled
+    d = {"meta.radii": radii,
+         "meta.means2d": np.array([[[1.0, 2.0], [9e9, -7.0], [3.0, 4.0]]], np.float32),
+         "meta.depths": np.array([[5.0, np.nan, 6.0]], np.float32),
+         "meta.conics": np.arange(9, dtype=np.float32).reshape(1, 3, 3)}
+    cuda_crosscheck.zero_culled(d)
+    assert d["meta.means2d"].tolist() == [[[1.0, 2.0], [0.0, 0.0], [3.0, 4.0]]]
+    assert d["meta.depths"].tolist() == [[5.0, 0.0, 6.0]]
+    assert d["meta.conics"].tolist() == [[[0, 1, 2], [0, 0, 0], [6, 7, 8]]]
+    assert d["meta.radii"] is radii
