@@ -41,27 +41,17 @@ import liquid_splat as ls
 import liquid_splat.gsplat as lsg
 from liquid_splat.testing import compare, recommended_tolerances
 
+from gen_cases import projection  # noqa: E402  (this folder: Inria's getProjectionMatrix)
+
 
 # ---------------------------------------------------------------------------
 # Scenes
 # ---------------------------------------------------------------------------
 
 
-def projection(znear, zfar, tanx, tany):
-    """Inria's getProjectionMatrix (row-major for column vectors)."""
-    top, right = tany * znear, tanx * znear
-    p = np.zeros((4, 4))
-    p[0, 0] = 2 * znear / (2 * right)
-    p[1, 1] = 2 * znear / (2 * top)
-    p[3, 2] = 1.0
-    p[2, 2] = zfar / (zfar - znear)
-    p[2, 3] = -(zfar * znear) / (zfar - znear)
-    return p
-
-
 def camera(w2c, width, height, tanx, tany):
     """Inria's settings (transposed matrices) and gsplat's viewmat and K, float32."""
-    full = projection(0.01, 100.0, tanx, tany) @ w2c
+    full = projection(tanx, tany).numpy() @ w2c  # Inria's, znear 0.01, zfar 100
     campos = np.linalg.inv(w2c)[:3, 3]
     fx, fy = width / (2 * tanx), height / (2 * tany)
     return dict(
