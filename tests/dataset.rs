@@ -103,7 +103,8 @@ fn synthetic_scenes_are_deterministic_and_not_empty() {
 
 #[test]
 fn nerfies_layout_loads() {
-    let dir = tmp("nerfies").join("scene");
+    let root = tmp("nerfies");
+    let dir = root.join("scene");
     let opts = SynthOptions {
         frames: 6,
         ..small()
@@ -332,7 +333,8 @@ fn bad_input_is_a_named_error() {
 
 #[test]
 fn bad_nerfies_input_is_a_named_error() {
-    let dir = tmp("bad-nerfies").join("scene");
+    let root = tmp("bad-nerfies");
+    let dir = root.join("scene");
     synth::write("blob", &dir, &small(), Layout::Nerfies).unwrap();
     let lo = LoadOptions {
         nerfies_split: NerfiesSplit::TrainVal,

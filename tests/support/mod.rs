@@ -46,8 +46,10 @@ pub fn with_threads<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R 
 }
 
 /// A fresh, empty scratch directory for `name`, unique to this test crate
-/// and process.
-pub fn tmp(name: &str) -> PathBuf {
+/// and process, removed with everything in it when the returned guard is
+/// dropped; a failing test (one that is panicking) keeps it and prints its
+/// path.
+pub fn tmp(name: &str) -> Scratch {
     let d = std::env::temp_dir().join(format!(
         "ls-{}-{}-{name}",
         env!("CARGO_CRATE_NAME"),
@@ -55,7 +57,40 @@ pub fn tmp(name: &str) -> PathBuf {
     ));
     let _ = std::fs::remove_dir_all(&d);
     std::fs::create_dir_all(&d).unwrap_or_else(|e| panic!("{}: {e}", d.display()));
-    d
+    Scratch(d)
+}
+
+/// A scratch directory (see [`tmp`]); derefs to its path.
+pub struct Scratch(PathBuf);
+
+impl Scratch {
+    /// The directory's path.
+    pub fn as_path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            eprintln!("kept the failing test's files in {}", self.0.display());
+        } else {
+            let _ = std::fs::remove_dir_all(&self.0);
+        }
+    }
+}
+
+impl std::ops::Deref for Scratch {
+    type Target = Path;
+    fn deref(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl AsRef<Path> for Scratch {
+    fn as_ref(&self) -> &Path {
+        &self.0
+    }
 }
 
 /// A path under the repository's `fixtures/` directory.
