@@ -126,6 +126,30 @@ pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
     let _ = (v, start, len);
 }
 
+/// Ask the CPU to bring the value `v[i]` into its caches: the lines of its
+/// first and last bytes (one line or two); only a hint, nothing when `i` is
+/// outside `v`.
+#[inline(always)]
+pub(crate) fn prefetch_value<T>(v: &[T], i: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+        if i >= v.len() {
+            return;
+        }
+        let size = std::mem::size_of::<T>();
+        let first = v.as_ptr().wrapping_add(i) as *const i8;
+        // SAFETY: `i < v.len()`, so bytes `first .. first + size` lie in
+        // `v`; a prefetch never faults and changes no value.
+        unsafe {
+            _mm_prefetch::<_MM_HINT_T0>(first);
+            _mm_prefetch::<_MM_HINT_T0>(first.add(size.max(1) - 1));
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (v, i);
+}
+
 /// `s` with every slot set to `v`, as the initialised slice of the same
 /// memory (for a writer of [`vec_written_by`] or [`par_blocks_written`]
 /// that starts from a constant).

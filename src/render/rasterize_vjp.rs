@@ -51,7 +51,7 @@ use super::rasterize::{
 use super::transpose::RowMover;
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
 use crate::error::{Error, Result};
-use crate::kernels::{filled, prefetch};
+use crate::kernels::{filled, prefetch, prefetch_value};
 use crate::math::covariance::{cov3d_vjp, cov3d_vjp_scaled};
 use crate::math::pack::Pack;
 use crate::math::sh::{coeffs_for_degree, color_vjp};
@@ -678,6 +678,13 @@ fn gaussian_gradients<T: Real>(
     chunks.into_par_iter().for_each_init(Vec::new, |acc, out| {
         let s = out.start;
         let len = out.opacities.len();
+        // The chunk's entries lie scattered over the list: ask for all of
+        // them in one pass that has no per-Gaussian branch, so their cache
+        // misses overlap (in the sums below each Gaussian's loop ends at a
+        // data-dependent count).
+        for &pos in &index[start[s]..start[s + len]] {
+            prefetch_value(entry, pos as usize);
+        }
         // The sums first: the reads of different Gaussians are independent.
         acc.clear();
         acc.extend((s..s + len).map(|i| {
