@@ -16,8 +16,19 @@
 //! (in Python, for later calls of the command-line entry point too). Pinning
 //! changes speed only, never results; where the operating system is not
 //! Linux it does nothing.
+//!
+//! [`keep_awake`] keeps a pool's workers polling for work through the
+//! short serial steps between the parallel stages of one call (the
+//! rasterizer's binning between its per-Gaussian and per-pixel stages, for
+//! example). A rayon worker that finds no work sleeps after a few dozen
+//! polls, and waking it costs time: on a 2-core virtual machine, a parallel
+//! stage of two 50 µs tasks that follows a serial step of 20–1000 µs took
+//! 60–91 µs in the median and up to 0.98 ms (`cargo bench --bench wake`),
+//! as long as a whole parallel stage of a small frame.
 
+use std::cell::Cell;
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
 /// Whether pools built by [`pool`] pin their workers.
 static PIN: AtomicBool = AtomicBool::new(false);
@@ -157,6 +168,67 @@ fn pin_to(cpu: usize) -> bool {
     }
 }
 
+/// How long a worker kept awake by [`keep_awake`] polls without finding
+/// work before it returns to rayon's own idling (a few polls, then sleep).
+const AWAKE_IDLE_LIMIT: Duration = Duration::from_millis(1);
+
+thread_local! {
+    /// Whether this thread is inside [`keep_awake`]: running its closure,
+    /// or polling for work.
+    static AWAKE: Cell<bool> = const { Cell::new(false) };
+}
+
+/// Run `f`, keeping the other workers of the current pool (the global pool
+/// when called from outside any pool) polling for work instead of going to
+/// sleep whenever `f` runs a serial step. A polling worker runs the jobs of
+/// the pool that it finds and stops polling once it has found none for
+/// 1 ms: a serial step longer than that lets it sleep (at most that much
+/// CPU time spent per worker), and after `f` returns it keeps polling that
+/// long, so that a call that follows soon (the next pass, the next training
+/// step) finds it awake. Changes speed only, never results. A call inside
+/// another (on this thread, or in a job a polling worker runs) and a pool
+/// of one thread just run `f`.
+pub fn keep_awake<R>(f: impl FnOnce() -> R) -> R {
+    if rayon::current_num_threads() < 2 || AWAKE.with(Cell::get) {
+        return f();
+    }
+    let owner = rayon::current_thread_index();
+    rayon::spawn_broadcast(move |ctx| {
+        // A worker already polling (this job then runs inside its poll)
+        // goes on with that poll rather than nesting another.
+        if Some(ctx.index()) != owner && !AWAKE.with(Cell::get) {
+            poll();
+        }
+    });
+    struct Reset;
+    impl Drop for Reset {
+        fn drop(&mut self) {
+            AWAKE.with(|a| a.set(false));
+        }
+    }
+    AWAKE.with(|a| a.set(true));
+    let _reset = Reset;
+    f()
+}
+
+/// Run the pool's jobs as they come until none came for
+/// [`AWAKE_IDLE_LIMIT`].
+fn poll() {
+    AWAKE.with(|a| a.set(true));
+    let mut idle_since = Instant::now();
+    loop {
+        match rayon::yield_now() {
+            Some(rayon::Yield::Executed) => idle_since = Instant::now(),
+            _ if idle_since.elapsed() > AWAKE_IDLE_LIMIT => break,
+            // As rayon's own idle loop: a busy loop of polls (or of
+            // `spin_loop` hints between them) made the rasterizer's forward
+            // half as slow again in training on 2 cores.
+            _ => std::thread::yield_now(),
+        }
+    }
+    AWAKE.with(|a| a.set(false));
+}
+
 #[cfg(all(test, target_os = "linux"))]
 mod tests {
     use super::*;
@@ -186,6 +258,94 @@ mod tests {
             .broadcast(|ctx| (ctx.index(), allowed_cpus()));
         for (i, set) in got {
             assert_eq!(set, vec![cpus[i % cpus.len()]], "worker {i}");
+        }
+    }
+}
+
+#[cfg(test)]
+mod awake_tests {
+    use super::*;
+    use rayon::prelude::*;
+    use std::sync::mpsc;
+
+    fn in_pool<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap()
+            .install(f)
+    }
+
+    /// `f()` on another thread, failing the test (instead of hanging it)
+    /// if it has not returned within a minute.
+    fn within_a_minute<R: Send + 'static>(f: impl FnOnce() -> R + Send + 'static) -> R {
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let _ = tx.send(f());
+        });
+        rx.recv_timeout(Duration::from_secs(60))
+            .expect("did not return within a minute")
+    }
+
+    fn squares(n: u64) -> u64 {
+        (0..n).into_par_iter().map(|i| i * i).sum()
+    }
+
+    #[test]
+    fn keep_awake_returns_the_result_and_nests() {
+        let want = (0..10_000u64).map(|i| i * i).sum::<u64>();
+        for threads in [1, 2, 3] {
+            let got = in_pool(threads, || {
+                let r = keep_awake(|| keep_awake(|| squares(10_000)) + keep_awake(|| 0));
+                (r, AWAKE.with(Cell::get))
+            });
+            assert_eq!(got, (want, false), "{threads} threads");
+        }
+        // Outside any pool: the global pool's workers.
+        assert_eq!(keep_awake(|| squares(10_000)), want);
+        assert!(!AWAKE.with(Cell::get));
+    }
+
+    #[test]
+    fn a_panic_inside_propagates_and_resets() {
+        let (caught, after, flag) = in_pool(2, || {
+            let caught = std::panic::catch_unwind(|| keep_awake(|| panic!("inside"))).is_err();
+            (caught, squares(1_000), AWAKE.with(Cell::get))
+        });
+        assert!(caught);
+        assert_eq!(after, (0..1_000u64).map(|i| i * i).sum::<u64>());
+        assert!(!flag);
+    }
+
+    #[test]
+    fn calls_in_a_row_do_not_nest_their_polls() {
+        // Each call's polls find the previous call's still going; nested,
+        // 20,000 of them would overflow a worker's stack.
+        let want = (0..64u64).map(|i| i * i).sum::<u64>();
+        let got = within_a_minute(|| {
+            in_pool(2, || (0..20_000).map(|_| keep_awake(|| squares(64))).max())
+        });
+        assert_eq!(got, Some(want));
+    }
+
+    #[test]
+    fn parallel_calls_inside_parallel_work_finish() {
+        // Each task of an outer parallel loop calls `keep_awake` around
+        // parallel work of its own, so polling workers take jobs of other
+        // calls and other calls' broadcasts reach workers that are busy.
+        for threads in [2, 3, 4] {
+            let got = within_a_minute(move || {
+                in_pool(threads, || {
+                    (0..32u64)
+                        .into_par_iter()
+                        .map(|k| keep_awake(|| squares(2_000 + k)))
+                        .collect::<Vec<_>>()
+                })
+            });
+            let want: Vec<u64> = (0..32u64)
+                .map(|k| (0..2_000 + k).map(|i| i * i).sum())
+                .collect();
+            assert_eq!(got, want, "{threads} threads");
         }
     }
 }

@@ -474,7 +474,17 @@ pub fn rasterize_with_ndc_offset<T: Real>(
     forward(input, Some(ndc_offset))
 }
 
+/// The forward pass, with the pool's workers kept polling for work through
+/// its serial steps (binning between the per-Gaussian and per-pixel stages;
+/// [`crate::threads::keep_awake`]).
 fn forward<T: Real>(
+    input: &RasterInput<T>,
+    ndc_offset: Option<&[T]>,
+) -> Result<(RasterOutput<T>, RasterizeSaved<T>)> {
+    crate::threads::keep_awake(|| forward_stages(input, ndc_offset))
+}
+
+fn forward_stages<T: Real>(
     input: &RasterInput<T>,
     ndc_offset: Option<&[T]>,
 ) -> Result<(RasterOutput<T>, RasterizeSaved<T>)> {

@@ -424,16 +424,20 @@ pub fn rasterize_vjp<T: Real>(
     mode: GradientMode,
 ) -> Result<RasterGrads<T>> {
     check_cotangents(input, saved, grad_color, grad_depth)?;
-    // The serial step 2 runs beside the parallel step 1 (an idle worker
-    // takes it), so it costs no wall time of its own.
-    let (entry, (start, index)) = rayon::join(
-        || entry_gradients(input, saved, grad_color, grad_depth, mode),
-        || gaussian_entries(saved),
-    );
-    super::stages::mark("tiles, entry index");
-    let grads = gaussian_gradients(input, saved, &entry, &start, &index, mode);
-    super::stages::mark("per Gaussian");
-    Ok(grads)
+    // The pool's workers keep polling for work between the steps
+    // (`threads::keep_awake`).
+    Ok(crate::threads::keep_awake(|| {
+        // The serial step 2 runs beside the parallel step 1 (an idle worker
+        // takes it), so it costs no wall time of its own.
+        let (entry, (start, index)) = rayon::join(
+            || entry_gradients(input, saved, grad_color, grad_depth, mode),
+            || gaussian_entries(saved),
+        );
+        super::stages::mark("tiles, entry index");
+        let grads = gaussian_gradients(input, saved, &entry, &start, &index, mode);
+        super::stages::mark("per Gaussian");
+        grads
+    }))
 }
 
 /// Check that `input` is the one `saved` was computed from (count and image

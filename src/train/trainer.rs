@@ -360,9 +360,10 @@ impl<T: Real> Trainer<T> {
             time += self.ast_rng.normal() / pick.remaining as f64 * cfg.lr.ast_smooth(it as i64);
         }
 
-        let (g, mut times) = self
-            .model
-            .gradients(view, time, field_on, cfg.lambda_dssim)?;
+        // (The pool's workers poll for work between the stages.)
+        let (g, mut times) = crate::threads::keep_awake(|| {
+            self.model.gradients(view, time, field_on, cfg.lambda_dssim)
+        })?;
         let mut clock = Lap(Instant::now());
 
         // Densification, then Adam with the rates of iteration it − 1.
