@@ -182,9 +182,9 @@ thread_local! {
 /// when called from outside any pool) polling for work instead of going to
 /// sleep whenever `f` runs a serial step. A polling worker runs the jobs of
 /// the pool that it finds and stops polling once it has found none for
-/// 1 ms: a serial step longer than that lets it sleep (at most that much
-/// CPU time spent per worker), and after `f` returns it keeps polling that
-/// long, so that a call that follows soon (the next pass, the next training
+/// 1 ms: a serial step longer than that lets it sleep for the rest of the
+/// call (each worker polls once per outermost call), and otherwise, after
+/// `f` returns, it keeps polling that long, so that a call that follows soon (the next pass, the next training
 /// step) finds it awake. Changes speed only, never results. A call inside
 /// another (on this thread, or in a job a polling worker runs) and a pool
 /// of one thread just run `f`.
@@ -296,7 +296,12 @@ mod awake_tests {
         let want = (0..10_000u64).map(|i| i * i).sum::<u64>();
         for threads in [1, 2, 3] {
             let got = in_pool(threads, || {
-                let r = keep_awake(|| keep_awake(|| squares(10_000)) + keep_awake(|| 0));
+                let r = keep_awake(|| {
+                    // Inside a call, a nested call leaves the flag set.
+                    let inner = keep_awake(|| squares(10_000));
+                    assert!(AWAKE.with(Cell::get) || threads < 2);
+                    inner + keep_awake(|| 0)
+                });
                 (r, AWAKE.with(Cell::get))
             });
             assert_eq!(got, (want, false), "{threads} threads");
