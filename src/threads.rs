@@ -184,10 +184,10 @@ thread_local! {
 /// the pool that it finds and stops polling once it has found none for
 /// 1 ms: a serial step longer than that lets it sleep for the rest of the
 /// call (each worker polls once per outermost call), and otherwise, after
-/// `f` returns, it keeps polling that long, so that a call that follows soon (the next pass, the next training
-/// step) finds it awake. Changes speed only, never results. A call inside
-/// another (on this thread, or in a job a polling worker runs) and a pool
-/// of one thread just run `f`.
+/// `f` returns, it keeps polling that long, so that a call that follows
+/// soon (the next pass, the next training step) finds it awake. Changes
+/// speed only, never results. A call inside another (on this thread, or in
+/// a job a polling worker runs) and a pool of one thread just run `f`.
 pub fn keep_awake<R>(f: impl FnOnce() -> R) -> R {
     if rayon::current_num_threads() < 2 || AWAKE.with(Cell::get) {
         return f();
@@ -269,11 +269,7 @@ mod awake_tests {
     use std::sync::mpsc;
 
     fn in_pool<R: Send>(threads: usize, f: impl FnOnce() -> R + Send) -> R {
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap()
-            .install(f)
+        pool(threads).unwrap().install(f)
     }
 
     /// `f()` on another thread, failing the test (instead of hanging it)
