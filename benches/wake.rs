@@ -41,6 +41,9 @@ fn main() {
     );
     for gap in [0u64, 20, 100, 1000] {
         for awake in [false, true] {
+            // Each run starts once the previous run's polls are over (they
+            // end 1 ms after its call), with the workers asleep.
+            std::thread::sleep(Duration::from_millis(5));
             let mut t = pool.install(|| {
                 if awake {
                     liquid_splat::threads::keep_awake(|| stage_times(threads, gap))
