@@ -174,6 +174,12 @@ fn pin_to(cpu: usize) -> bool {
 /// own idling (a few polls, then sleep).
 const AWAKE_IDLE_LIMIT: Duration = Duration::from_millis(1);
 
+/// The longest one poll lasts, however many calls take it over: a worker
+/// that took up polling while it waited inside a join returns to that join
+/// after at most this long (plus the job it is running), even while other
+/// threads' calls follow each other closely.
+const AWAKE_MAX_POLL: Duration = Duration::from_millis(20);
+
 /// Nanoseconds since the first use of this clock in the process.
 fn since_start() -> u64 {
     static START: OnceLock<Instant> = OnceLock::new();
@@ -206,14 +212,18 @@ thread_local! {
 /// when called from outside any pool) polling for work instead of going to
 /// sleep whenever `f` runs a serial step. A polling worker runs the jobs of
 /// the pool that it finds, and stops polling once it has found none for
-/// 1 ms, or 1 ms after the latest call it polls for ended. So a serial step
-/// longer than 1 ms lets it sleep for the rest of the call (each worker
-/// polls once per outermost call); a call that follows within 1 ms (the
-/// next pass, the next training step) finds it awake, and takes over its
-/// poll; and a worker that took up polling while it waited inside a join
-/// of its own returns to that join at most 1 ms after the call ended,
-/// however busy the pool is. Changes speed only, never results. A call
-/// inside another on this thread and a pool of one thread just run `f`.
+/// 1 ms, once the latest call it polls for ended 1 ms ago, or after 20 ms
+/// of polling, whichever comes first (checked between jobs). So a serial
+/// step longer than 1 ms lets it sleep until the next call starts (each
+/// call asks every other worker once); a call that starts while a worker
+/// still polls (the next pass, the next training step, within 1 ms) takes
+/// over that poll, which then lasts until 1 ms after the new call ends,
+/// under the same idle and length limits; and a worker that took up
+/// polling while it waited inside a join returns to that join within about
+/// 1 ms of the call's end and at most 20 ms after it began polling, plus
+/// the job it is running, however busy the pool is. Changes speed only,
+/// never results. A call inside another on this thread and a pool of one
+/// thread just run `f`.
 pub fn keep_awake<R>(f: impl FnOnce() -> R) -> R {
     if rayon::current_num_threads() < 2 || IN_CALL.with(Cell::get) {
         return f();
@@ -235,7 +245,9 @@ pub fn keep_awake<R>(f: impl FnOnce() -> R) -> R {
         // A worker running a call of its own is awake; one already polling
         // (this job then runs inside its poll) polls on for this call
         // rather than nesting another poll.
-        if Some(ctx.index()) == owner || IN_CALL.with(Cell::get) {
+        // A job that arrives after its call is over neither starts a poll
+        // nor takes one over.
+        if Some(ctx.index()) == owner || IN_CALL.with(Cell::get) || call.over() {
             return;
         }
         let was_polling = POLL_FOR.with(|p| p.borrow_mut().replace(call.clone()).is_some());
@@ -249,11 +261,17 @@ pub fn keep_awake<R>(f: impl FnOnce() -> R) -> R {
 }
 
 /// Run the pool's jobs as they come until none came for
-/// [`AWAKE_IDLE_LIMIT`], or until the call polled for is over
-/// ([`Call::over`]).
+/// [`AWAKE_IDLE_LIMIT`], until the call polled for is over
+/// ([`Call::over`]), or for at most [`AWAKE_MAX_POLL`].
 fn poll() {
-    let mut idle_since = Instant::now();
+    let start = Instant::now();
+    let mut idle_since = start;
     loop {
+        if start.elapsed() > AWAKE_MAX_POLL
+            || POLL_FOR.with(|p| p.borrow().as_ref().is_none_or(|c| c.over()))
+        {
+            break;
+        }
         match rayon::yield_now() {
             Some(rayon::Yield::Executed) => idle_since = Instant::now(),
             _ if idle_since.elapsed() > AWAKE_IDLE_LIMIT => break,
@@ -261,9 +279,6 @@ fn poll() {
             // `spin_loop` hints between them) made the rasterizer's forward
             // half as slow again in training on 2 cores.
             _ => std::thread::yield_now(),
-        }
-        if POLL_FOR.with(|p| p.borrow().as_ref().is_none_or(|c| c.over())) {
-            break;
         }
     }
     POLL_FOR.with(|p| p.borrow_mut().take());
@@ -404,7 +419,8 @@ mod awake_tests {
     #[test]
     fn a_polling_worker_makes_calls_of_its_own() {
         // A job that a polling worker runs and that calls `keep_awake` is a
-        // call of its own (its closure flagged as one), not a no-op.
+        // call of its own (its closure flagged as one, and polling not
+        // flagged as one), not a no-op.
         let seen = within_a_minute(|| {
             in_pool(2, || {
                 (0..200).find_map(|_| {
@@ -413,7 +429,10 @@ mod awake_tests {
                             .into_par_iter()
                             .filter_map(|_| {
                                 spin(20);
-                                polling().then(|| keep_awake(|| IN_CALL.with(Cell::get)))
+                                polling().then(|| {
+                                    let before = IN_CALL.with(Cell::get);
+                                    !before && keep_awake(|| IN_CALL.with(Cell::get))
+                                })
                             })
                             .reduce_with(|a, b| a && b)
                     })
