@@ -20,6 +20,9 @@
 //! second parallel pass writes each chunk's entries in its sorted order.
 //! Chunk `c`'s entries of a tile therefore follow those of chunks `0..c`,
 //! which is the serial order, on any thread count.
+//! With one chunk (at most 4,096 Gaussians that touch a tile) the counts
+//! are the tiles' totals, which do not depend on the order: they are taken
+//! from the projected Gaussians alongside the radix sort.
 
 use super::project::Projected;
 use crate::math::Real;
@@ -134,35 +137,53 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
         Ok([keys]) => keys,
         Err(pieces) => pieces.concat(),
     };
-    radix_sort_by_depth(&mut keys);
+    let chunk = chunk_len(keys.len());
+    let n_chunks = keys.len().div_ceil(chunk);
+    let count = |rects: &mut dyn Iterator<Item = [u32; 4]>, counts: &mut [u32]| {
+        for r in rects {
+            for y in r[1]..r[3] {
+                let row = (y * grid[0]) as usize;
+                for c in &mut counts[row + r[0] as usize..row + r[2] as usize] {
+                    *c += 1;
+                }
+            }
+        }
+    };
     let rect = |k: &K| {
         let p = &proj[k.index() as usize];
         [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
     };
-    let rects: Vec<[u32; 4]> = if keys.len() <= MIN_TASK {
-        keys.iter().map(rect).collect()
-    } else {
-        keys.par_iter().with_min_len(MIN_TASK).map(rect).collect()
-    };
-    let chunk = chunk_len(keys.len());
-    let n_chunks = keys.len().div_ceil(chunk);
-
-    // 2. Per chunk of that order in parallel: the entries per tile.
+    // 2. The entries per tile of each chunk of the sorted order: with one
+    //    chunk, the tiles' totals, which do not depend on the order, so
+    //    they are counted alongside the sort; otherwise per chunk in
+    //    parallel after it.
     let mut counts = vec![0u32; n_chunks * n_tiles];
-    if n_tiles > 0 {
-        rects
-            .par_chunks(chunk)
-            .zip(counts.par_chunks_mut(n_tiles))
-            .for_each(|(rects, counts)| {
-                for r in rects {
-                    for y in r[1]..r[3] {
-                        let row = (y * grid[0]) as usize;
-                        for c in &mut counts[row + r[0] as usize..row + r[2] as usize] {
-                            *c += 1;
-                        }
-                    }
-                }
-            });
+    let rects: Vec<[u32; 4]>;
+    if n_chunks == 1 {
+        rayon::join(
+            || radix_sort_by_depth(&mut keys),
+            || {
+                let mut rects = proj
+                    .iter()
+                    .filter(|p| {
+                        p.radius > 0
+                            && p.rect_min[0] < p.rect_max[0]
+                            && p.rect_min[1] < p.rect_max[1]
+                    })
+                    .map(|p| [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]);
+                count(&mut rects, &mut counts)
+            },
+        );
+        rects = keys.iter().map(rect).collect();
+    } else {
+        radix_sort_by_depth(&mut keys);
+        rects = keys.par_iter().with_min_len(MIN_TASK).map(rect).collect();
+        if n_tiles > 0 {
+            rects
+                .par_chunks(chunk)
+                .zip(counts.par_chunks_mut(n_tiles))
+                .for_each(|(rects, counts)| count(&mut rects.iter().copied(), counts));
+        }
     }
 
     // 3. Each tile's range (an exclusive prefix sum over tiles of the
