@@ -27,7 +27,7 @@
 //! as long as a whole parallel stage of a small frame.
 
 use std::cell::{Cell, RefCell};
-use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -180,23 +180,18 @@ const AWAKE_IDLE_LIMIT: Duration = Duration::from_millis(1);
 /// threads' calls follow each other closely.
 const AWAKE_MAX_POLL: Duration = Duration::from_millis(20);
 
-/// Nanoseconds since the first use of this clock in the process.
-fn since_start() -> u64 {
-    static START: OnceLock<Instant> = OnceLock::new();
-    START.get_or_init(Instant::now).elapsed().as_nanos() as u64
-}
-
 /// One [`keep_awake`] call, as the workers polling for it see it.
 struct Call {
-    /// When the call ended ([`since_start`], at least 1); 0 while it runs.
-    end: AtomicU64,
+    /// When the call ended; unset while it runs.
+    end: OnceLock<Instant>,
 }
 
 impl Call {
     /// Whether the call ended over [`AWAKE_IDLE_LIMIT`] ago.
     fn over(&self) -> bool {
-        let end = self.end.load(Ordering::Acquire);
-        end != 0 && since_start().saturating_sub(end) > AWAKE_IDLE_LIMIT.as_nanos() as u64
+        self.end
+            .get()
+            .is_some_and(|e| e.elapsed() > AWAKE_IDLE_LIMIT)
     }
 }
 
@@ -229,24 +224,23 @@ pub fn keep_awake<R>(f: impl FnOnce() -> R) -> R {
         return f();
     }
     let call = Arc::new(Call {
-        end: AtomicU64::new(0),
+        end: OnceLock::new(),
     });
     struct End(Arc<Call>);
     impl Drop for End {
         fn drop(&mut self) {
             IN_CALL.with(|a| a.set(false));
-            self.0.end.store(since_start().max(1), Ordering::Release);
+            let _ = self.0.end.set(Instant::now());
         }
     }
     IN_CALL.with(|a| a.set(true));
-    let end = End(call.clone());
+    let _end = End(call.clone());
     let owner = rayon::current_thread_index();
     rayon::spawn_broadcast(move |ctx| {
         // A worker running a call of its own is awake; one already polling
         // (this job then runs inside its poll) polls on for this call
-        // rather than nesting another poll.
-        // A job that arrives after its call is over neither starts a poll
-        // nor takes one over.
+        // rather than nesting another poll; a job that arrives after its
+        // call is over neither starts a poll nor takes one over.
         if Some(ctx.index()) == owner || IN_CALL.with(Cell::get) || call.over() {
             return;
         }
@@ -255,9 +249,7 @@ pub fn keep_awake<R>(f: impl FnOnce() -> R) -> R {
             poll();
         }
     });
-    let r = f();
-    drop(end);
-    r
+    f()
 }
 
 /// Run the pool's jobs as they come until none came for
@@ -450,8 +442,8 @@ mod awake_tests {
     fn polls_end_after_the_last_call_however_busy_the_pool() {
         // After a call, a feeder keeps the pool's workers finding work; the
         // polls must still end about 1 ms after the call.
-        let pool = std::sync::Arc::new(pool(2).unwrap());
-        let stop = std::sync::Arc::new(AtomicBool::new(false));
+        let pool = Arc::new(pool(2).unwrap());
+        let stop = Arc::new(AtomicBool::new(false));
         pool.install(|| keep_awake(|| squares(10_000)));
         let feeder = std::thread::spawn({
             let (pool, stop) = (pool.clone(), stop.clone());

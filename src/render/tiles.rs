@@ -110,6 +110,30 @@ struct Slots(*mut MaybeUninit<u32>);
 // threads (see the fill in `bin_keyed`).
 unsafe impl Sync for Slots {}
 
+/// Whether a projected Gaussian has at least one entry.
+#[inline(always)]
+fn touches_a_tile<T: Real>(p: &Projected<T>) -> bool {
+    p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1]
+}
+
+/// A projected Gaussian's tile rectangle `[x0, y0, x1, y1]`.
+#[inline(always)]
+fn rect_of<T: Real>(p: &Projected<T>) -> [u32; 4] {
+    [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
+}
+
+/// Add each rectangle's tiles to `counts` (row-major, `grid_x` tiles a row).
+fn count_tiles(rects: impl Iterator<Item = [u32; 4]>, grid_x: u32, counts: &mut [u32]) {
+    for r in rects {
+        for y in r[1]..r[3] {
+            let row = (y * grid_x) as usize;
+            for c in &mut counts[row + r[0] as usize..row + r[2] as usize] {
+                *c += 1;
+            }
+        }
+    }
+}
+
 fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
     let n_tiles = grid[0] as usize * grid[1] as usize;
 
@@ -126,7 +150,7 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
         .map(|(c, piece)| {
             let mut keys = Vec::with_capacity(piece.len());
             for (i, p) in piece.iter().enumerate() {
-                if p.radius > 0 && p.rect_min[0] < p.rect_max[0] && p.rect_min[1] < p.rect_max[1] {
+                if touches_a_tile(p) {
                     keys.push(K::new(p.depth.bits(), (c * MIN_TASK + i) as u32));
                 }
             }
@@ -139,20 +163,7 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
     };
     let chunk = chunk_len(keys.len());
     let n_chunks = keys.len().div_ceil(chunk);
-    let count = |rects: &mut dyn Iterator<Item = [u32; 4]>, counts: &mut [u32]| {
-        for r in rects {
-            for y in r[1]..r[3] {
-                let row = (y * grid[0]) as usize;
-                for c in &mut counts[row + r[0] as usize..row + r[2] as usize] {
-                    *c += 1;
-                }
-            }
-        }
-    };
-    let rect = |k: &K| {
-        let p = &proj[k.index() as usize];
-        [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]
-    };
+    let rect = |k: &K| rect_of(&proj[k.index() as usize]);
     // 2. The entries per tile of each chunk of the sorted order: with one
     //    chunk, the tiles' totals, which do not depend on the order, so
     //    they are counted alongside the sort; otherwise per chunk in
@@ -163,15 +174,8 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
         rayon::join(
             || radix_sort_by_depth(&mut keys),
             || {
-                let mut rects = proj
-                    .iter()
-                    .filter(|p| {
-                        p.radius > 0
-                            && p.rect_min[0] < p.rect_max[0]
-                            && p.rect_min[1] < p.rect_max[1]
-                    })
-                    .map(|p| [p.rect_min[0], p.rect_min[1], p.rect_max[0], p.rect_max[1]]);
-                count(&mut rects, &mut counts)
+                let rects = proj.iter().filter(|p| touches_a_tile(*p)).map(rect_of);
+                count_tiles(rects, grid[0], &mut counts)
             },
         );
         rects = keys.iter().map(rect).collect();
@@ -182,7 +186,7 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
             rects
                 .par_chunks(chunk)
                 .zip(counts.par_chunks_mut(n_tiles))
-                .for_each(|(rects, counts)| count(&mut rects.iter().copied(), counts));
+                .for_each(|(rects, counts)| count_tiles(rects.iter().copied(), grid[0], counts));
         }
     }
 
