@@ -461,4 +461,45 @@ mod awake_tests {
         feeder.join().unwrap();
         assert_eq!(polling, [false, false]);
     }
+
+    #[test]
+    fn a_poll_lasts_at_most_its_cap_however_long_the_call() {
+        // A call that lasts five caps and keeps the other worker finding
+        // work: that worker's poll must end within the cap (checked before
+        // each job), while it goes on running the call's jobs.
+        let pool = pool(2).unwrap();
+        let call_len = 5 * AWAKE_MAX_POLL;
+        let seen = std::sync::Mutex::new(Vec::new());
+        pool.install(|| {
+            keep_awake(|| {
+                let me = rayon::current_thread_index();
+                let t0 = Instant::now();
+                rayon::scope(|s| {
+                    while t0.elapsed() < call_len {
+                        s.spawn(|_| {
+                            // When each job starts, on the other worker,
+                            // and whether that worker is polling.
+                            if rayon::current_thread_index() != me {
+                                seen.lock().unwrap().push((Instant::now(), polling()));
+                            }
+                            spin(20);
+                        });
+                        spin(40);
+                    }
+                });
+            })
+        });
+        let seen = seen.into_inner().unwrap();
+        let polled: Vec<Instant> = seen.iter().filter(|s| s.1).map(|s| s.0).collect();
+        let (Some(first), Some(last)) = (polled.first(), polled.last()) else {
+            panic!("the other worker never polled ({} jobs)", seen.len());
+        };
+        // The jobs a poll runs start within its cap (plus a scheduling
+        // margin: a job's clock is read after the check before it).
+        let span = *last - *first;
+        assert!(
+            span < AWAKE_MAX_POLL + Duration::from_millis(10),
+            "polled for {span:?}"
+        );
+    }
 }
