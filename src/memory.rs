@@ -80,6 +80,9 @@ mod tests {
         })
         .join()
         .unwrap();
-        assert!(faults < 1000, "{faults} page faults for a reused 32 MB buffer");
+        assert!(
+            faults < 1000,
+            "{faults} page faults for a reused 32 MB buffer"
+        );
     }
 }
