@@ -2,14 +2,20 @@
 //! from one pass to the next as they do in training
 //! (`cargo bench --bench frames`), on 1 and 2 pinned threads:
 //!
-//! - **repeated**: one random scene (seed 1, 2,600 Gaussians, f32, SH
-//!   degree 3) rendered and differentiated `PASSES` times, as `bench
-//!   raster` does; the fastest pass, and the binning's fastest time.
-//! - **rotating**: eight scenes (seeds 1 to 8) taken in turn for the same
-//!   number of passes; per scene the fastest pass, averaged over scenes.
-//! - **training**: 1,000 iterations of the built-in `swing` scene (CfC
+//! - **repeated**: each of eight random scenes (seeds 1 to 8, 2,600
+//!   Gaussians, f32, SH degree 3) rendered and differentiated `PASSES`
+//!   times in a row, as `bench raster` does with one; per scene the
+//!   fastest forward, backward and binning, averaged over the scenes.
+//! - **in turn**: the same eight scenes taken in turn, `PASSES` passes
+//!   each; the same statistics.
+//! - **training**: 1,000 iterations of the `swing` fixture scene (CfC
 //!   field, 64×64), the median per iteration of the rasterizer's forward
 //!   and backward and of the binning and gather stages.
+//!
+//! The passes' forwards run with the stage clock on (`render::stages`),
+//! so their times include its clock reads (a few µs), which `bench
+//! raster` leaves out of its timed runs; training runs inside its step's
+//! `threads::keep_awake`, the passes do not.
 //!
 //! A repeated frame leaves its inputs in the core's caches and its
 //! branches' outcomes in the branch predictor's history; a frame that
@@ -18,7 +24,7 @@ use clap::Parser;
 use liquid_splat::render::{self, scene, stages};
 use std::time::Instant;
 
-const PASSES: usize = 4000;
+const PASSES: usize = 500;
 const SCENES: u64 = 8;
 
 #[derive(Parser)]
@@ -32,15 +38,17 @@ fn ms(d: std::time::Duration) -> f64 {
 }
 
 /// Per scene, the fastest forward, backward and binning over `PASSES`
-/// passes that take the scenes in turn; each averaged over the scenes.
-fn passes(scenes: &[scene::Scene<f32>], grad: &[f32]) -> [f64; 3] {
+/// passes of it, the scenes taken in turn (`in_turn`) or each repeated
+/// `PASSES` times in a row; each averaged over the scenes.
+fn passes(scenes: &[scene::Scene<f32>], grad: &[f32], in_turn: bool) -> [f64; 3] {
     let inputs: Vec<_> = scenes
         .iter()
         .map(|s| s.input(scene::ColorSource::Sh, scene::CovSource::ScaleRotation))
         .collect();
     let mut best = vec![[f64::MAX; 3]; scenes.len()];
-    for i in 0..PASSES {
-        let k = i % scenes.len();
+    let n = scenes.len();
+    for i in 0..PASSES * n {
+        let k = if in_turn { i % n } else { i / PASSES };
         let t0 = Instant::now();
         let ((_, saved), st) = stages::record(|| render::rasterize(&inputs[k]).unwrap());
         let t1 = Instant::now();
@@ -71,7 +79,7 @@ fn training() -> [f64; 4] {
     use liquid_splat::train::run;
     let a = Run::parse_from(["frames", "fixtures/scenes/swing", "--iterations", "1000"]);
     let spec = a.run.spec();
-    let data = spec.load_dataset().expect("the built-in swing scene");
+    let data = spec.load_dataset().expect("the swing fixture scene");
     let config = spec.train_config(&data).unwrap();
     let views = run::views::<f32>(&data.train);
     let mut trainer = run::new_trainer::<f32>(&config, &data).unwrap();
@@ -111,11 +119,11 @@ fn main() {
     let mut rows = Vec::new();
     for threads in [1, 2] {
         let pool = liquid_splat::threads::pool(threads).unwrap();
-        let rep = pool.install(|| passes(&scenes[..1], &grad));
-        let rot = pool.install(|| passes(&scenes, &grad));
+        let rep = pool.install(|| passes(&scenes, &grad, false));
+        let rot = pool.install(|| passes(&scenes, &grad, true));
         let tr = pool.install(training);
         println!(
-            "{threads} thread(s): repeated {:.4} / {:.4} / {:.4}; rotating {:.4} / {:.4} / {:.4}; \
+            "{threads} thread(s): repeated {:.4} / {:.4} / {:.4}; in turn {:.4} / {:.4} / {:.4}; \
              training (swing, medians) {:.4} / {:.4} / {:.4}, gather {:.4}",
             rep[0], rep[1], rep[2], rot[0], rot[1], rot[2], tr[0], tr[1], tr[2], tr[3]
         );
@@ -123,7 +131,7 @@ fn main() {
     }
     let (r1, r2) = (&rows[0], &rows[1]);
     println!(
-        "2 threads over 1, forward / backward: repeated {:.2}x / {:.2}x; rotating {:.2}x / {:.2}x; \
+        "2 threads over 1, forward / backward: repeated {:.2}x / {:.2}x; in turn {:.2}x / {:.2}x; \
          training {:.2}x / {:.2}x",
         r1.0[0] / r2.0[0],
         r1.0[1] / r2.0[1],

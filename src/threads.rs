@@ -466,40 +466,48 @@ mod awake_tests {
     fn a_poll_lasts_at_most_its_cap_however_long_the_call() {
         // A call that lasts five caps and keeps the other worker finding
         // work: that worker's poll must end within the cap (checked before
-        // each job), while it goes on running the call's jobs.
+        // each job), while it goes on running the call's jobs. A poll can
+        // also end early, on the idle limit, if this thread is descheduled
+        // for over 1 ms; the call is then tried again (up to 5 times) so
+        // that the cap, not the idle limit, ends the poll checked.
         let pool = pool(2).unwrap();
         let call_len = 5 * AWAKE_MAX_POLL;
-        let seen = std::sync::Mutex::new(Vec::new());
-        pool.install(|| {
-            keep_awake(|| {
-                let me = rayon::current_thread_index();
-                let t0 = Instant::now();
-                rayon::scope(|s| {
-                    while t0.elapsed() < call_len {
-                        s.spawn(|_| {
-                            // When each job starts, on the other worker,
-                            // and whether that worker is polling.
-                            if rayon::current_thread_index() != me {
-                                seen.lock().unwrap().push((Instant::now(), polling()));
-                            }
-                            spin(20);
-                        });
-                        spin(40);
-                    }
-                });
-            })
-        });
-        let seen = seen.into_inner().unwrap();
-        let polled: Vec<Instant> = seen.iter().filter(|s| s.1).map(|s| s.0).collect();
-        let (Some(first), Some(last)) = (polled.first(), polled.last()) else {
-            panic!("the other worker never polled ({} jobs)", seen.len());
-        };
-        // The jobs a poll runs start within its cap (plus a scheduling
-        // margin: a job's clock is read after the check before it).
-        let span = *last - *first;
-        assert!(
-            span < AWAKE_MAX_POLL + Duration::from_millis(10),
-            "polled for {span:?}"
-        );
+        for _ in 0..5 {
+            let seen = std::sync::Mutex::new(Vec::new());
+            pool.install(|| {
+                keep_awake(|| {
+                    let me = rayon::current_thread_index();
+                    let t0 = Instant::now();
+                    rayon::scope(|s| {
+                        while t0.elapsed() < call_len {
+                            s.spawn(|_| {
+                                // When each job starts, on the other
+                                // worker, and whether it is polling.
+                                if rayon::current_thread_index() != me {
+                                    seen.lock().unwrap().push((Instant::now(), polling()));
+                                }
+                                spin(20);
+                            });
+                            spin(40);
+                        }
+                    });
+                })
+            });
+            let seen = seen.into_inner().unwrap();
+            let polled: Vec<Instant> = seen.iter().filter(|s| s.1).map(|s| s.0).collect();
+            let (Some(first), Some(last)) = (polled.first(), polled.last()) else {
+                panic!("the other worker never polled ({} jobs)", seen.len());
+            };
+            // The jobs a poll runs start within its cap (plus a scheduling
+            // margin: a job's clock is read after the check before it).
+            let span = *last - *first;
+            assert!(
+                span < AWAKE_MAX_POLL + Duration::from_millis(10),
+                "polled for {span:?}"
+            );
+            if span > AWAKE_MAX_POLL / 2 {
+                return;
+            }
+        }
     }
 }
