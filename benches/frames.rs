@@ -37,6 +37,15 @@ fn ms(d: std::time::Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
+/// The milliseconds of the stage `name` among `stages` (0 if absent).
+fn stage_ms(stages: &[stages::StageTime], name: &str) -> f64 {
+    stages
+        .iter()
+        .filter(|s| s.name == name)
+        .map(|s| s.wall * 1e3)
+        .sum()
+}
+
 /// Per scene, the fastest forward, backward and binning over `PASSES`
 /// passes of it, the scenes taken in turn (`in_turn`) or each repeated
 /// `PASSES` times in a row; each averaged over the scenes.
@@ -55,22 +64,12 @@ fn passes(scenes: &[scene::Scene<f32>], grad: &[f32], in_turn: bool) -> [f64; 3]
         let g = render::rasterize_vjp(&inputs[k], &saved, grad, None, render::GradientMode::Exact);
         let t2 = Instant::now();
         std::hint::black_box(g.unwrap());
-        let bin: f64 = st
-            .iter()
-            .filter(|s| s.name == "bin")
-            .map(|s| s.wall * 1e3)
-            .sum();
         let b = &mut best[k];
         b[0] = b[0].min(ms(t1 - t0));
         b[1] = b[1].min(ms(t2 - t1));
-        b[2] = b[2].min(bin);
+        b[2] = b[2].min(stage_ms(&st, "bin"));
     }
     std::array::from_fn(|j| best.iter().map(|b| b[j]).sum::<f64>() / best.len() as f64)
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
 }
 
 /// Medians per iteration of 1,000 iterations on `swing`: forward,
@@ -88,16 +87,10 @@ fn training() -> [f64; 4] {
         let (r, st) = stages::record(|| trainer.step(&views).unwrap());
         v[0].push(r.times.raster_forward * 1e3);
         v[1].push(r.times.raster_backward * 1e3);
-        for (j, name) in [(2, "bin"), (3, "gather")] {
-            v[j].push(
-                st.iter()
-                    .filter(|s| s.name == name)
-                    .map(|s| s.wall * 1e3)
-                    .sum(),
-            );
-        }
+        v[2].push(stage_ms(&st, "bin"));
+        v[3].push(stage_ms(&st, "gather"));
     }
-    v.map(|mut v| median(&mut v))
+    v.map(liquid_splat::bench::harness::median)
 }
 
 fn main() {

@@ -11,8 +11,8 @@
 /// each; glibc unmaps such a heap as soon as it is entirely free, whatever
 /// the trim threshold, unless the heap before it lacks room for the top
 /// padding. So the padding is set to 64 MB: a worker whose buffers outgrow
-/// its first heap keeps its second one. Without it, training the built-in
-/// `swing` scene for 1,000 iterations took 1.1 million page faults on one
+/// its first heap keeps its second one. Without it, training the `swing`
+/// fixture scene for 1,000 iterations took 1.1 million page faults on one
 /// thread (a second heap mapped and unmapped every iteration) and 18,000
 /// with it. The padding is address space: pages still cost memory only
 /// once written, except under strict overcommit accounting
