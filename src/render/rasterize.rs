@@ -31,6 +31,14 @@
 //! it is `+∞`), so `o·exp(power) < alpha_min·e^{−0.0099}`, well inside the
 //! alpha-skip rule whatever the rounding of `exp` (≤ 1 ulp) and of the
 //! product. A row whose lanes all skip an entry does no further work for it.
+//! The lanes of an entry that skip it this way while another lane goes on
+//! take the `exp` of 0 instead of their power (the backward's replay does
+//! the same for the lanes that do not blend): far from a splat the power is
+//! below about −87, where `exp` in f32 is subnormal, and CPUs compute
+//! subnormal results and operands with slow microcode assists. No output
+//! reads those lanes' values, so the bits are the same; the 64×64 bench
+//! frame's forward on one thread went from 0.58 to 0.38 ms on the
+//! development machine (AMD Zen 5) and from 5.2 to 0.8 ms on an Intel Xeon.
 //!
 //! Rows that cannot reach `power_min` are not looked at: each splat carries
 //! the image rows where its computed power can reach `power_min` at some
@@ -376,7 +384,11 @@ pub(crate) fn walk_row<V: Lanes>(
             if V::bits(cand) == 0 {
                 continue;
             }
-            let g = p.exp();
+            // Lanes outside `cand` never blend: their `exp` is taken of 0
+            // instead of their power, whose far-away values would give
+            // subnormal results that the CPU computes slowly (microcode
+            // assists) and that no output reads.
+            let g = V::select(cand, p, vzero).exp();
             let a = (V::splat(s.opacity) * g).min_of(amax);
             let hit = V::andnot(cand, a.lt(amin));
             let test_t = t * (one - a);
@@ -469,11 +481,15 @@ pub(crate) fn replay_row<V: Lanes>(
     let pyf = V::T::from_usize(row.py);
     let one = V::splat(V::T::ONE);
     let amax = V::splat(k.alpha_max);
+    let zero_v = V::splat(zero);
     let mut t = one;
     for b in blended {
         let s = &splats[b.j as usize];
         let dx = V::splat(s.xy[0]) - px;
-        let g = power_lanes(s, dx, s.xy[1] - pyf, k).exp();
+        // Lanes that do not blend take the `exp` of 0 (see `walk_row`);
+        // every use of their `g` is masked.
+        let blend = V::from_bits(b.mask);
+        let g = V::select(blend, power_lanes(s, dx, s.xy[1] - pyf, k), zero_v).exp();
         let a = (V::splat(s.opacity) * g).min_of(amax);
         let mut r = Record {
             j: b.j,
@@ -484,7 +500,7 @@ pub(crate) fn replay_row<V: Lanes>(
         t.store(&mut r.t);
         g.store(&mut r.g);
         rec.push(r);
-        t = V::select(V::from_bits(b.mask), t * (one - a), t);
+        t = V::select(blend, t * (one - a), t);
     }
     t
 }
