@@ -44,8 +44,13 @@ pub(crate) trait Lanes:
     /// Lane `l` is bit `l`.
     fn bits(m: Self::M) -> u16;
     fn from_bits(b: u16) -> Self::M;
-    /// `e^x` per lane.
-    fn exp(self) -> Self;
+    /// `e^x` per lane ([`fastmath::exp`]), where a lane below `lo`
+    /// (ordered) takes `e^lo` instead; NaN stays NaN. Lanes at or above `lo`
+    /// give exactly `e^x`'s bits, and the bound costs nothing more than the
+    /// exp's own lower clamp (the rasterizer's row walks pass the splat's
+    /// `power_min`, so that lanes that cannot blend compute no subnormal
+    /// results).
+    fn exp_above(self, lo: Self) -> Self;
     /// `Real::min(a, self)` for a splat `a`: `self < a ? self : a`.
     #[inline(always)]
     fn min_of(self, a: Self) -> Self {
@@ -141,8 +146,11 @@ impl<T: Real> Lanes for Scalar<T> {
         b
     }
     #[inline(always)]
-    fn exp(self) -> Self {
-        Pack(std::array::from_fn(|l| fastmath::exp(self.0[l])))
+    fn exp_above(self, lo: Self) -> Self {
+        Pack(std::array::from_fn(|l| {
+            let (x, lo) = (self.0[l], lo.0[l]);
+            fastmath::exp(if x < lo { lo } else { x })
+        }))
     }
 }
 
@@ -336,16 +344,24 @@ mod x86 {
             }
         }
         #[inline(always)]
-        fn exp(self) -> Self {
+        fn exp_above(self, lo: Self) -> Self {
+            // SAFETY: AVX-512F is present (this type only lives in functions
+            // compiled with it, reached after run-time detection). With `lo' = max(−104, lo)`, a lane at or
+            // above `lo` clamps to the same value as with −104.
+            unsafe { self.exp_from(_mm512_max_ps(_mm512_set1_ps(-104.0), lo.0)) }
+        }
+    }
+
+    impl Avx512 {
+        /// `exp_f32` with its lower clamp at `lo` (−104 or above).
+        #[inline(always)]
+        fn exp_from(self, lo: __m512) -> Self {
             // SAFETY: AVX-512F is present (this type only lives in functions
             // compiled with it, reached after run-time detection).
             unsafe {
-                // clamp(x, −104, 89) as f32::clamp: NaN stays NaN (max/min
+                // clamp(x, lo, 89) as f32::clamp: NaN stays NaN (max/min
                 // return their second operand when one is NaN).
-                let xc = _mm512_min_ps(
-                    _mm512_set1_ps(89.0),
-                    _mm512_max_ps(_mm512_set1_ps(-104.0), self.0),
-                );
+                let xc = _mm512_min_ps(_mm512_set1_ps(89.0), _mm512_max_ps(lo, self.0));
                 let t = _mm512_add_ps(
                     _mm512_mul_ps(xc, _mm512_set1_ps(expc::LOG2E)),
                     _mm512_set1_ps(expc::ROUND),
@@ -405,16 +421,15 @@ mod x86 {
         }
     }
 
-    /// [`crate::kernels::fastmath::exp_f32`] on 8 lanes.
+    /// [`crate::kernels::fastmath::exp_f32`] on 8 lanes, its lower clamp at
+    /// `lo` (−104 or above; NaN stays NaN, as `max` returns its second
+    /// operand when one is NaN).
     #[inline(always)]
-    fn exp8(x: __m256) -> __m256 {
+    fn exp8(x: __m256, lo: __m256) -> __m256 {
         // SAFETY: AVX2 is present (only called from `Avx2` methods, which run in
         // functions compiled with it, reached after run-time detection).
         unsafe {
-            let xc = _mm256_min_ps(
-                _mm256_set1_ps(89.0),
-                _mm256_max_ps(_mm256_set1_ps(-104.0), x),
-            );
+            let xc = _mm256_min_ps(_mm256_set1_ps(89.0), _mm256_max_ps(lo, x));
             let t = _mm256_add_ps(
                 _mm256_mul_ps(xc, _mm256_set1_ps(expc::LOG2E)),
                 _mm256_set1_ps(expc::ROUND),
@@ -610,8 +625,17 @@ mod x86 {
             }
         }
         #[inline(always)]
-        fn exp(self) -> Self {
-            Avx2([exp8(self.0[0]), exp8(self.0[1])])
+        fn exp_above(self, lo: Self) -> Self {
+            // SAFETY: AVX2 is present (this type only lives in functions
+            // compiled with it, reached after run-time detection). With `lo' = max(−104, lo)`, a lane at or
+            // above `lo` clamps to the same value as with −104.
+            unsafe {
+                let m = _mm256_set1_ps(-104.0);
+                Avx2([
+                    exp8(self.0[0], _mm256_max_ps(m, lo.0[0])),
+                    exp8(self.0[1], _mm256_max_ps(m, lo.0[1])),
+                ])
+            }
         }
     }
 
@@ -719,6 +743,7 @@ mod x86 {
 #[cfg(all(test, target_arch = "x86_64"))]
 mod arith_tests {
     use super::{Avx2, Avx512, Lanes, LANES};
+    use crate::kernels::fastmath;
     use crate::math::pack::Arith;
 
     /// Signed zeros, infinities, NaN, subnormals and ordinary values.
@@ -929,6 +954,87 @@ mod arith_tests {
                 // SAFETY: the CPU has AVX2 (checked above).
                 let got = unsafe { on_avx2(a, b, lo, hi) };
                 assert!(got == want, "AVX2, rotation {k}: {:?}", first_diff(&got));
+            }
+        }
+    }
+
+    #[target_feature(enable = "avx512f")]
+    fn exp_above_avx512(x: &[f32; LANES], lo: &[f32; LANES]) -> [f32; LANES] {
+        let mut out = [0.0; LANES];
+        Avx512::load(x).exp_above(Avx512::load(lo)).store(&mut out);
+        out
+    }
+
+    #[target_feature(enable = "avx2")]
+    fn exp_above_avx2(x: &[f32; LANES], lo: &[f32; LANES]) -> [f32; LANES] {
+        let mut out = [0.0; LANES];
+        Avx2::load(x).exp_above(Avx2::load(lo)).store(&mut out);
+        out
+    }
+
+    #[test]
+    fn exp_above_is_exp_at_or_above_the_bound_on_every_path() {
+        // Around the clamps (−104, 89) and the subnormal range (below
+        // −87.3), bounds like the splats' `power_min` (finite, ±∞), and
+        // NaN and infinite arguments.
+        let mut r = crate::math::rng::Rng::new(11);
+        let special = [
+            f32::NAN,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            -104.5,
+            -104.0,
+            -103.9,
+            -87.4,
+            -87.3,
+            -5.0,
+            -0.0,
+            0.0,
+            89.0,
+            89.5,
+        ];
+        let bounds = [
+            f32::NEG_INFINITY,
+            f32::INFINITY,
+            -200.0,
+            -104.0,
+            -90.0,
+            -87.0,
+            -5.55,
+            -0.01,
+        ];
+        for round in 0..400 {
+            let x: [f32; LANES] = std::array::from_fn(|l| match (round + l) % 4 {
+                0 => special[(round * 7 + l) % special.len()],
+                _ => r.uniform_range(-120.0, 95.0) as f32,
+            });
+            let lo: [f32; LANES] = std::array::from_fn(|l| match (round + 3 * l) % 3 {
+                0 => bounds[(round + l) % bounds.len()],
+                _ => r.uniform_range(-110.0, 0.0) as f32,
+            });
+            let want: [f32; LANES] = std::array::from_fn(|l| {
+                let e = fastmath::exp_f32(if x[l] < lo[l] { lo[l] } else { x[l] });
+                if x[l] >= lo[l] {
+                    assert_eq!(bits(e), bits(fastmath::exp_f32(x[l])));
+                }
+                if x[l].is_nan() {
+                    assert!(e.is_nan());
+                }
+                e
+            });
+            let portable = super::Scalar::load(&x).exp_above(super::Scalar::load(&lo));
+            let mut got = [0.0; LANES];
+            portable.store(&mut got);
+            assert_eq!(got.map(bits), want.map(bits), "portable, round {round}");
+            if std::is_x86_feature_detected!("avx512f") {
+                // SAFETY: the CPU has AVX-512F (checked above).
+                let got = unsafe { exp_above_avx512(&x, &lo) };
+                assert_eq!(got.map(bits), want.map(bits), "AVX-512, round {round}");
+            }
+            if std::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU has AVX2 (checked above).
+                let got = unsafe { exp_above_avx2(&x, &lo) };
+                assert_eq!(got.map(bits), want.map(bits), "AVX2, round {round}");
             }
         }
     }

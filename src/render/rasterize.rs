@@ -32,13 +32,15 @@
 //! alpha-skip rule whatever the rounding of `exp` (≤ 1 ulp) and of the
 //! product. A row whose lanes all skip an entry does no further work for it.
 //! The lanes of an entry that skip it this way while another lane goes on
-//! take the `exp` of 0 instead of their power (the backward's replay does
-//! the same for the lanes that do not blend): far from a splat the power is
-//! below about −87, where `exp` in f32 is subnormal, and CPUs compute
-//! subnormal results and operands with slow microcode assists. No output
-//! reads those lanes' values, so the bits are the same; the 64×64 bench
-//! frame's forward on one thread went from 0.58 to 0.38 ms on the
-//! development machine (AMD Zen 5) and from 5.2 to 0.8 ms on an Intel Xeon.
+//! take the `exp` of `power_min` instead of their power (the exp's lower
+//! clamp moved up to it, [`Lanes::exp_above`]; the backward's replay does
+//! the same): far from a splat the power is below about −87, where `exp` in
+//! f32 is subnormal, and CPUs compute subnormal results and operands with
+//! slow microcode assists. No output reads those lanes' values, so the bits
+//! are the same; the 64×64 bench frame's forward on one thread went from
+//! 0.55 to 0.35 ms on the development machine (AMD Zen 5) and, with a select
+//! of 0 in those lanes that cost more than the clamp does, from 5.2 to 0.8 ms
+//! on an Intel Xeon.
 //!
 //! Rows that cannot reach `power_min` are not looked at: each splat carries
 //! the image rows where its computed power can reach `power_min` at some
@@ -380,15 +382,16 @@ pub(crate) fn walk_row<V: Lanes>(
             let s = &splats[j];
             let dx = V::splat(s.xy[0]) - px;
             let p = power_lanes(s, dx, s.xy[1] - pyf, k);
-            let cand = V::andnot(V::andnot(active, p.gt(vzero)), p.lt(V::splat(s.power_min)));
+            let pmin = V::splat(s.power_min);
+            let cand = V::andnot(V::andnot(active, p.gt(vzero)), p.lt(pmin));
             if V::bits(cand) == 0 {
                 continue;
             }
-            // Lanes outside `cand` never blend: their `exp` is taken of 0
-            // instead of their power, whose far-away values would give
-            // subnormal results that the CPU computes slowly (microcode
-            // assists) and that no output reads.
-            let g = V::select(cand, p, vzero).exp();
+            // Lanes below `power_min` never blend: their `exp` is taken of
+            // `power_min` instead of their power, whose far-away values
+            // would give subnormal results that the CPU computes slowly
+            // (microcode assists) and that no output reads.
+            let g = p.exp_above(pmin);
             let a = (V::splat(s.opacity) * g).min_of(amax);
             let hit = V::andnot(cand, a.lt(amin));
             let test_t = t * (one - a);
@@ -481,15 +484,15 @@ pub(crate) fn replay_row<V: Lanes>(
     let pyf = V::T::from_usize(row.py);
     let one = V::splat(V::T::ONE);
     let amax = V::splat(k.alpha_max);
-    let zero_v = V::splat(zero);
     let mut t = one;
     for b in blended {
         let s = &splats[b.j as usize];
         let dx = V::splat(s.xy[0]) - px;
-        // Lanes that do not blend take the `exp` of 0 (see `walk_row`);
-        // every use of their `g` is masked.
+        // As in `walk_row`, lanes below `power_min` take its `exp` (they do
+        // not blend, and every use of their `g` is masked); the lanes that
+        // blend are at or above it.
         let blend = V::from_bits(b.mask);
-        let g = V::select(blend, power_lanes(s, dx, s.xy[1] - pyf, k), zero_v).exp();
+        let g = power_lanes(s, dx, s.xy[1] - pyf, k).exp_above(V::splat(s.power_min));
         let a = (V::splat(s.opacity) * g).min_of(amax);
         let mut r = Record {
             j: b.j,
