@@ -140,13 +140,17 @@ fn subnormal_flags<R>(f: impl FnOnce() -> R) -> (R, u32) {
     fn get() -> u32 {
         let mut x: u32 = 0;
         // SAFETY: stores MXCSR into `x`, a valid u32.
-        unsafe { std::arch::asm!("stmxcsr [{}]", in(reg) &mut x, options(nostack)) };
+        unsafe {
+            std::arch::asm!("stmxcsr [{}]", in(reg) &mut x, options(nostack, preserves_flags))
+        };
         x
     }
     fn set(x: u32) {
         // SAFETY: loads MXCSR from `x`, the current value with status flags
         // cleared (only the sticky flags change).
-        unsafe { std::arch::asm!("ldmxcsr [{}]", in(reg) &x, options(nostack, readonly)) };
+        unsafe {
+            std::arch::asm!("ldmxcsr [{}]", in(reg) &x, options(nostack, readonly, preserves_flags))
+        };
     }
     set(get() & !(DENORMAL | UNDERFLOW));
     let r = f();
@@ -159,10 +163,12 @@ fn subnormal_flags<R>(f: impl FnOnce() -> R) -> (R, u32) {
 /// put lanes far from a splat's centre, where `exp` underflows, next to
 /// lanes that blend). Subnormal arithmetic gives the same bits but runs
 /// through slow microcode assists: before the row walks took the `exp` of
-/// 0 in lanes that cannot blend, this frame's forward and backward raised
-/// both flags and ran 1.5–1.9 times slower on one thread (AMD Zen 5) and
-/// 5.7–6.6 times slower (Intel Xeon). One thread, so that all the work runs
-/// on the thread whose flags are read.
+/// `power_min` in lanes below it, this frame's forward and backward raised
+/// both flags and ran 1.6–1.8 times slower on one thread (AMD Zen 5) and
+/// 5–6.6 times slower (Intel Xeon). One thread, so that all the work runs
+/// on the thread whose flags are read. (The compiler does not promise to
+/// keep floating-point operations between the flag reads; here they are in
+/// calls it cannot move across them.)
 #[cfg(target_arch = "x86_64")]
 #[test]
 fn no_subnormal_arithmetic_on_any_path() {

@@ -38,9 +38,8 @@
 //! f32 is subnormal, and CPUs compute subnormal results and operands with
 //! slow microcode assists. No output reads those lanes' values, so the bits
 //! are the same; the 64×64 bench frame's forward on one thread went from
-//! 0.55 to 0.35 ms on the development machine (AMD Zen 5) and, with a select
-//! of 0 in those lanes that cost more than the clamp does, from 5.2 to 0.8 ms
-//! on an Intel Xeon.
+//! 0.55 to 0.35 ms on the development machine (AMD Zen 5) and from 4.5 to
+//! 0.7 ms on an Intel Xeon.
 //!
 //! Rows that cannot reach `power_min` are not looked at: each splat carries
 //! the image rows where its computed power can reach `power_min` at some
@@ -305,7 +304,8 @@ pub(crate) struct Blended {
 }
 
 /// A [`Blended`] entry as the backward replays it: the lanes'
-/// transmittance before the entry and `exp(power)`.
+/// transmittance before the entry and `exp(power)` (of `power_min` in the
+/// lanes below it, which do not blend).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Record<T> {
     pub j: u32,
@@ -491,7 +491,6 @@ pub(crate) fn replay_row<V: Lanes>(
         // As in `walk_row`, lanes below `power_min` take its `exp` (they do
         // not blend, and every use of their `g` is masked); the lanes that
         // blend are at or above it.
-        let blend = V::from_bits(b.mask);
         let g = power_lanes(s, dx, s.xy[1] - pyf, k).exp_above(V::splat(s.power_min));
         let a = (V::splat(s.opacity) * g).min_of(amax);
         let mut r = Record {
@@ -503,7 +502,7 @@ pub(crate) fn replay_row<V: Lanes>(
         t.store(&mut r.t);
         g.store(&mut r.g);
         rec.push(r);
-        t = V::select(blend, t * (one - a), t);
+        t = V::select(V::from_bits(b.mask), t * (one - a), t);
     }
     t
 }
