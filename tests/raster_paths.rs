@@ -99,15 +99,21 @@ fn cases() -> Vec<(SceneSpec, ColorSource, CovSource)> {
     ]
 }
 
-#[test]
-fn every_instruction_set_and_thread_count_gives_the_same_bits() {
-    let _isa = liquid_splat::kernels::fastmath::isa_test_lock();
+/// The instruction-set paths this CPU has (the portable one always).
+fn paths() -> Vec<Isa> {
     let mut paths = vec![Isa::Baseline];
     for isa in [Isa::Avx2, Isa::Avx512] {
         if force_isa(Some(isa)) {
             paths.push(isa);
         }
     }
+    paths
+}
+
+#[test]
+fn every_instruction_set_and_thread_count_gives_the_same_bits() {
+    let _isa = liquid_splat::kernels::fastmath::isa_test_lock();
+    let paths = paths();
     for (spec, colors, cov) in cases() {
         let mut want: Option<Vec<u32>> = None;
         for &isa in &paths {
@@ -173,12 +179,7 @@ fn subnormal_flags<R>(f: impl FnOnce() -> R) -> (R, u32) {
 #[test]
 fn no_subnormal_arithmetic_on_any_path() {
     let _isa = liquid_splat::kernels::fastmath::isa_test_lock();
-    let mut paths = vec![Isa::Baseline];
-    for isa in [Isa::Avx2, Isa::Avx512] {
-        if force_isa(Some(isa)) {
-            paths.push(isa);
-        }
-    }
+    let paths = paths();
     let mut scenes = cases();
     scenes.push((
         SceneSpec::bench(64, 64, 2600, 1),
