@@ -349,23 +349,13 @@ mod x86 {
         #[inline(always)]
         fn exp_above(self, lo: Self) -> Self {
             // SAFETY: AVX-512F is present (this type only lives in functions
-            // compiled with it, reached after run-time detection). With the
-            // clamp at `lo' = max(lo, −104)` (−104 for a NaN `lo`: `max`
-            // returns its second operand), a lane at or above `lo` clamps to
-            // the same value as with −104.
-            unsafe { self.exp_from(_mm512_max_ps(lo.0, _mm512_set1_ps(-104.0))) }
-        }
-    }
-
-    impl Avx512 {
-        /// `exp_f32` with its lower clamp at `lo` (−104 or above).
-        #[inline(always)]
-        fn exp_from(self, lo: __m512) -> Self {
-            // SAFETY: AVX-512F is present (this type only lives in functions
             // compiled with it, reached after run-time detection).
             unsafe {
-                // clamp(x, lo, 89) as f32::clamp: NaN stays NaN (max/min
-                // return their second operand when one is NaN).
+                // The lower clamp at `lo' = max(lo, −104)` (−104 for a NaN
+                // `lo`): a lane at or above `lo` clamps to the same value as
+                // with −104. clamp(x, lo', 89) as f32::clamp: NaN stays NaN
+                // (max/min return their second operand when one is NaN).
+                let lo = _mm512_max_ps(lo.0, _mm512_set1_ps(-104.0));
                 let xc = _mm512_min_ps(_mm512_set1_ps(89.0), _mm512_max_ps(lo, self.0));
                 let t = _mm512_add_ps(
                     _mm512_mul_ps(xc, _mm512_set1_ps(expc::LOG2E)),
@@ -427,13 +417,15 @@ mod x86 {
     }
 
     /// [`crate::kernels::fastmath::exp_f32`] on 8 lanes, its lower clamp at
-    /// `lo` (−104 or above; NaN stays NaN, as `max` returns its second
-    /// operand when one is NaN).
+    /// `lo' = max(lo, −104)` (−104 for a NaN `lo`), so a lane at or above
+    /// `lo` clamps to the same value as with −104; NaN stays NaN, as `max`
+    /// and `min` return their second operand when one is NaN.
     #[inline(always)]
     fn exp8(x: __m256, lo: __m256) -> __m256 {
         // SAFETY: AVX2 is present (only called from `Avx2` methods, which run in
         // functions compiled with it, reached after run-time detection).
         unsafe {
+            let lo = _mm256_max_ps(lo, _mm256_set1_ps(-104.0));
             let xc = _mm256_min_ps(_mm256_set1_ps(89.0), _mm256_max_ps(lo, x));
             let t = _mm256_add_ps(
                 _mm256_mul_ps(xc, _mm256_set1_ps(expc::LOG2E)),
@@ -631,17 +623,7 @@ mod x86 {
         }
         #[inline(always)]
         fn exp_above(self, lo: Self) -> Self {
-            // SAFETY: AVX2 is present (this type only lives in functions
-            // compiled with it, reached after run-time detection). With the
-            // clamp at `lo' = max(lo, −104)` (−104 for a NaN `lo`), a lane
-            // at or above `lo` clamps to the same value as with −104.
-            unsafe {
-                let m = _mm256_set1_ps(-104.0);
-                Avx2([
-                    exp8(self.0[0], _mm256_max_ps(lo.0[0], m)),
-                    exp8(self.0[1], _mm256_max_ps(lo.0[1], m)),
-                ])
-            }
+            Avx2([exp8(self.0[0], lo.0[0]), exp8(self.0[1], lo.0[1])])
         }
     }
 
