@@ -136,33 +136,6 @@ fn every_instruction_set_and_thread_count_gives_the_same_bits() {
     eprintln!("paths compared: {paths:?}");
 }
 
-/// The x86 status flags of subnormal arithmetic (MXCSR's denormal-operand
-/// and underflow flags) that `f` raises on this thread: cleared before it,
-/// read after it.
-#[cfg(target_arch = "x86_64")]
-fn subnormal_flags(f: impl FnOnce()) -> u32 {
-    const DENORMAL: u32 = 1 << 1;
-    const UNDERFLOW: u32 = 1 << 4;
-    fn get() -> u32 {
-        let mut x: u32 = 0;
-        // SAFETY: stores MXCSR into `x`, a valid u32.
-        unsafe {
-            std::arch::asm!("stmxcsr [{}]", in(reg) &mut x, options(nostack, preserves_flags))
-        };
-        x
-    }
-    fn set(x: u32) {
-        // SAFETY: loads MXCSR from `x`, the current value with status flags
-        // cleared (only the sticky flags change).
-        unsafe {
-            std::arch::asm!("ldmxcsr [{}]", in(reg) &x, options(nostack, readonly, preserves_flags))
-        };
-    }
-    set(get() & !(DENORMAL | UNDERFLOW));
-    f();
-    get() & (DENORMAL | UNDERFLOW)
-}
-
 /// No subnormal number is computed or read by the forward or by the
 /// backward in either gradient mode, on any instruction-set path, for the
 /// scenes above and the 64×64 bench frame (whose many overlapping splats
@@ -189,8 +162,9 @@ fn no_subnormal_arithmetic_on_any_path() {
     for (spec, colors, cov) in scenes {
         for &isa in &paths {
             assert!(force_isa(Some(isa)));
-            let flags =
-                support::with_threads(1, || subnormal_flags(|| drop(run_bits(&spec, colors, cov))));
+            let flags = support::with_threads(1, || {
+                support::subnormal_flags(|| drop(run_bits(&spec, colors, cov)))
+            });
             assert_eq!(
                 flags, 0,
                 "{isa:?}: subnormal flags {flags:#b} on the {}x{} scene with seed {}",

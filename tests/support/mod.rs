@@ -133,3 +133,30 @@ pub fn copy_dir(from: &Path, to: &Path) {
         }
     }
 }
+
+/// The x86 status flags of subnormal arithmetic (MXCSR's denormal-operand
+/// and underflow flags) that `f` raises on this thread: cleared before it,
+/// read after it.
+#[cfg(target_arch = "x86_64")]
+pub fn subnormal_flags(f: impl FnOnce()) -> u32 {
+    const DENORMAL: u32 = 1 << 1;
+    const UNDERFLOW: u32 = 1 << 4;
+    fn get() -> u32 {
+        let mut x: u32 = 0;
+        // SAFETY: stores MXCSR into `x`, a valid u32.
+        unsafe {
+            std::arch::asm!("stmxcsr [{}]", in(reg) &mut x, options(nostack, preserves_flags))
+        };
+        x
+    }
+    fn set(x: u32) {
+        // SAFETY: loads MXCSR from `x`, the current value with status flags
+        // cleared (only the sticky flags change).
+        unsafe {
+            std::arch::asm!("ldmxcsr [{}]", in(reg) &x, options(nostack, readonly, preserves_flags))
+        };
+    }
+    set(get() & !(DENORMAL | UNDERFLOW));
+    f();
+    get() & (DENORMAL | UNDERFLOW)
+}
