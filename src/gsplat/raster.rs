@@ -11,6 +11,9 @@
 //! this Gaussian; else `C += c·(α·T)`, `T = next_T`. Outputs
 //! `render_colors = C + T·background`, `render_alphas = 1 − T` and
 //! `last_ids`, the index of the last blended intersection (0 if none).
+//! Pairs with `σ ≥ 20` and `o ≤ 1e6`, which that rule skips whatever the
+//! exponential returns, are skipped before it (the same decisions and bits,
+//! without the subnormal numbers the exponential gives far out).
 //!
 //! Backward, [`GradientMode::Gsplat`] (v1.5.3 `RasterizeToPixels3DGSBwd.cu`
 //! l.106–242; 1.6 `RasterizeToPixels3DGSDevice.cuh` l.105–173): back to
@@ -218,6 +221,7 @@ fn walk<T: Real>(
     mut on_decision: impl FnMut(Decision),
 ) -> T {
     let half = T::from_f64(0.5);
+    let (far_sigma, far_opacity) = (T::from_f64(20.0), T::from_f64(1e6));
     let mut t = T::ONE;
     for pos in range.0..range.1 {
         let g = inp.flatten_ids[pos] as usize;
@@ -229,8 +233,19 @@ fn walk<T: Real>(
             inp.conics[3 * g + 2],
         ];
         let sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy;
-        let vis = (-sigma).exp();
         let o = inp.opacities[g];
+        // Far from the splat, `σ ≥ 20`: `vis = exp(−σ) ≤ 2.1e-9`, so for any
+        // opacity up to 1e6, `α ≤ o·vis ≤ 2.1e-3 < 1/255` and the pair is
+        // skipped below whatever else holds. It is skipped here without the
+        // exponential, whose result (and `o·vis`) farther out is subnormal
+        // in f32, which the CPU computes slowly in microcode: the same
+        // decisions and bits. (A NaN `σ` or opacity, or an opacity above
+        // 1e6, takes the full test.)
+        if sigma >= far_sigma && o <= far_opacity {
+            on_decision(Decision::Skip);
+            continue;
+        }
+        let vis = (-sigma).exp();
         let alpha = k.max_alpha.min(o * vis);
         if sigma < T::ZERO || alpha < k.alpha_threshold {
             on_decision(Decision::Skip);
@@ -581,4 +596,83 @@ pub fn rasterize_to_pixels_vjp<T: Real>(
         out.v_backgrounds = Some(vb);
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The pixel walk's decision on one Gaussian against the full rule
+    /// (`vis = exp(−σ)`, skip if `σ < 0 || min(MAX_ALPHA, o·vis) < 1/255`),
+    /// for `σ` from 0 to 50 (across the early skip's bound at 20) and
+    /// opacities from negative to infinite and NaN.
+    fn early_skip_keeps_every_decision<T: Real>() {
+        for version in Version::ALL {
+            let k = Constants::<T>::new(version);
+            for o in [
+                0.0,
+                1e-30,
+                0.004,
+                0.5,
+                1.0,
+                2.0,
+                1e6,
+                1.5e6,
+                1e30,
+                f64::INFINITY,
+                -1.0,
+                f64::NAN,
+            ] {
+                let (m, conic, color, opacity) = (
+                    [T::ZERO; 2],
+                    [T::ONE, T::ZERO, T::ONE],
+                    [T::ONE],
+                    [T::from_f64(o)],
+                );
+                let inp = RasterInput {
+                    means2d: &m,
+                    conics: &conic,
+                    colors: &color,
+                    opacities: &opacity,
+                    backgrounds: None,
+                    channels: 1,
+                    width: 16,
+                    height: 16,
+                    tile_size: 16,
+                    isect_offsets: &[0],
+                    flatten_ids: &[0],
+                };
+                for step in 0..1000 {
+                    let px = T::from_f64(step as f64 * 0.01);
+                    let mut got = Vec::new();
+                    walk(&inp, &k, (0, 1), px, T::ZERO, |_, _| {}, |d| got.push(d));
+                    // The walk's `σ` with `a = c = 1`, `b = 0`, `dy = 0`.
+                    let sigma = T::from_f64(0.5) * (px * px);
+                    let vis = (-sigma).exp();
+                    let alpha = k.max_alpha.min(opacity[0] * vis);
+                    let skip = sigma < T::ZERO || alpha < k.alpha_threshold;
+                    let want = if skip {
+                        Decision::Skip
+                    } else if T::ONE * (T::ONE - alpha) <= k.transmittance_threshold {
+                        Decision::Stop
+                    } else if opacity[0] * vis <= k.max_alpha {
+                        Decision::Blend
+                    } else {
+                        Decision::BlendClamped
+                    };
+                    assert_eq!(got, [want], "{version:?}, o {o}, pixel {px:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn early_skip_keeps_every_decision_f32() {
+        early_skip_keeps_every_decision::<f32>();
+    }
+
+    #[test]
+    fn early_skip_keeps_every_decision_f64() {
+        early_skip_keeps_every_decision::<f64>();
+    }
 }
