@@ -565,10 +565,9 @@ fn thread_count_does_not_change_a_bit() {
 /// a frame of many overlapping splats (each tile's list holds Gaussians
 /// far from many of its pixels, where `exp(−σ)` is subnormal or 0 in f32).
 /// Subnormal arithmetic gives the same bits but runs through slow microcode
-/// assists: before the pixel walk skipped far pairs without the
-/// exponential, the 64×64 bench frame's forward took 18.5 ms on one thread
-/// (AMD Zen 5; 5.3 ms now). One thread, so that all the work runs on the
-/// thread whose flags are read.
+/// assists (benches/README.md, "gsplat-convention rasterizer: subnormal
+/// pairs"). One thread, so that all the work runs on the thread whose flags
+/// are read.
 #[cfg(target_arch = "x86_64")]
 #[test]
 fn no_subnormal_arithmetic() {

@@ -11,9 +11,10 @@
 //! this Gaussian; else `C += c·(α·T)`, `T = next_T`. Outputs
 //! `render_colors = C + T·background`, `render_alphas = 1 − T` and
 //! `last_ids`, the index of the last blended intersection (0 if none).
-//! Pairs with `σ ≥ 20` and `o ≤ 1e6`, which that rule skips whatever the
-//! exponential returns, are skipped before it (the same decisions and bits,
-//! without the subnormal numbers the exponential gives far out).
+//! Pairs with `σ ≥ 20` and `|o| ≤ 1e6` are skipped before the exponential:
+//! there `exp(−σ) ≤ 2.1e-9` and the rule skips them anyway (the same
+//! decisions and bits, without the subnormal numbers the exponential gives
+//! far out).
 //!
 //! Backward, [`GradientMode::Gsplat`] (v1.5.3 `RasterizeToPixels3DGSBwd.cu`
 //! l.106–242; 1.6 `RasterizeToPixels3DGSDevice.cuh` l.105–173): back to
@@ -234,14 +235,15 @@ fn walk<T: Real>(
         ];
         let sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy;
         let o = inp.opacities[g];
-        // Far from the splat, `σ ≥ 20`: `vis = exp(−σ) ≤ 2.1e-9`, so for any
-        // opacity up to 1e6, `α ≤ o·vis ≤ 2.1e-3 < 1/255` and the pair is
-        // skipped below whatever else holds. It is skipped here without the
-        // exponential, whose result (and `o·vis`) farther out is subnormal
-        // in f32, which the CPU computes slowly in microcode: the same
-        // decisions and bits. (A NaN `σ` or opacity, or an opacity above
-        // 1e6, takes the full test.)
-        if sigma >= far_sigma && o <= far_opacity {
+        // Far from the splat, `σ ≥ 20`: `vis = exp(−σ) ≤ 2.1e-9`, so for an
+        // opacity in [−1e6, 1e6], `α ≤ o·vis ≤ 2.1e-3 < 1/255` and the pair
+        // is skipped below whatever else holds. It is skipped here without
+        // the exponential, whose result (and `o·vis`) farther out is
+        // subnormal or 0 in f32, computed slowly in microcode: the same
+        // decisions and bits. (A NaN `σ` or opacity, or an opacity outside
+        // that range, takes the full test: an infinite one times a `vis`
+        // of 0 is NaN, which the `min` turns into `MAX_ALPHA`.)
+        if sigma >= far_sigma && o >= -far_opacity && o <= far_opacity {
             on_decision(Decision::Skip);
             continue;
         }
@@ -604,63 +606,70 @@ mod tests {
 
     /// The pixel walk's decision on one Gaussian against the full rule
     /// (`vis = exp(−σ)`, skip if `σ < 0 || min(MAX_ALPHA, o·vis) < 1/255`),
-    /// for `σ` from 0 to 50 (across the early skip's bound at 20) and
-    /// opacities from negative to infinite and NaN.
+    /// for `σ` from 0 to 800 (across the early skip's bound at 20 and past
+    /// the exponential's underflow to 0 in f32 and f64), `σ` infinite and
+    /// NaN (an infinite conic), and opacities from −∞ to +∞ and NaN.
     fn early_skip_keeps_every_decision<T: Real>() {
+        let opacities = [
+            0.0,
+            1e-30,
+            0.004,
+            0.5,
+            1.0,
+            2.0,
+            1e6,
+            1.5e6,
+            1e30,
+            f64::INFINITY,
+            -1.0,
+            -1e6,
+            -1.5e6,
+            f64::NEG_INFINITY,
+            f64::NAN,
+        ];
         for version in Version::ALL {
             let k = Constants::<T>::new(version);
-            for o in [
-                0.0,
-                1e-30,
-                0.004,
-                0.5,
-                1.0,
-                2.0,
-                1e6,
-                1.5e6,
-                1e30,
-                f64::INFINITY,
-                -1.0,
-                f64::NAN,
-            ] {
-                let (m, conic, color, opacity) = (
-                    [T::ZERO; 2],
-                    [T::ONE, T::ZERO, T::ONE],
-                    [T::ONE],
-                    [T::from_f64(o)],
-                );
-                let inp = RasterInput {
-                    means2d: &m,
-                    conics: &conic,
-                    colors: &color,
-                    opacities: &opacity,
-                    backgrounds: None,
-                    channels: 1,
-                    width: 16,
-                    height: 16,
-                    tile_size: 16,
-                    isect_offsets: &[0],
-                    flatten_ids: &[0],
-                };
-                for step in 0..1000 {
-                    let px = T::from_f64(step as f64 * 0.01);
-                    let mut got = Vec::new();
-                    walk(&inp, &k, (0, 1), px, T::ZERO, |_, _| {}, |d| got.push(d));
-                    // The walk's `σ` with `a = c = 1`, `b = 0`, `dy = 0`.
-                    let sigma = T::from_f64(0.5) * (px * px);
-                    let vis = (-sigma).exp();
-                    let alpha = k.max_alpha.min(opacity[0] * vis);
-                    let skip = sigma < T::ZERO || alpha < k.alpha_threshold;
-                    let want = if skip {
-                        Decision::Skip
-                    } else if T::ONE * (T::ONE - alpha) <= k.transmittance_threshold {
-                        Decision::Stop
-                    } else if opacity[0] * vis <= k.max_alpha {
-                        Decision::Blend
-                    } else {
-                        Decision::BlendClamped
+            for o in opacities {
+                for a in [T::ONE, T::from_f64(f64::INFINITY)] {
+                    let (m, conic, color, opacity) = (
+                        [T::ZERO; 2],
+                        [a, T::ZERO, T::ONE],
+                        [T::ONE],
+                        [T::from_f64(o)],
+                    );
+                    let inp = RasterInput {
+                        means2d: &m,
+                        conics: &conic,
+                        colors: &color,
+                        opacities: &opacity,
+                        backgrounds: None,
+                        channels: 1,
+                        width: 16,
+                        height: 16,
+                        tile_size: 16,
+                        isect_offsets: &[0],
+                        flatten_ids: &[0],
                     };
-                    assert_eq!(got, [want], "{version:?}, o {o}, pixel {px:?}");
+                    for step in 0..4000 {
+                        let px = T::from_f64(step as f64 * 0.01);
+                        let mut got = Vec::new();
+                        walk(&inp, &k, (0, 1), px, T::ZERO, |_, _| {}, |d| got.push(d));
+                        // The walk's `σ` with `b = 0`, `dy = 0`.
+                        let (dx, z) = (-px, T::ZERO);
+                        let sigma = T::from_f64(0.5) * (a * dx * dx + T::ONE * z * z) + z * dx * z;
+                        let vis = (-sigma).exp();
+                        let alpha = k.max_alpha.min(opacity[0] * vis);
+                        let want = if sigma < T::ZERO || alpha < k.alpha_threshold {
+                            Decision::Skip
+                        } else if T::ONE - alpha <= k.transmittance_threshold {
+                            Decision::Stop
+                        } else if opacity[0] * vis <= k.max_alpha {
+                            Decision::Blend
+                        } else {
+                            Decision::BlendClamped
+                        };
+                        assert_eq!(got, [want], "{version:?}, o {o}, a {a:?}, pixel {px:?}");
+                    }
                 }
             }
         }
