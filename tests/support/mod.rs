@@ -1,5 +1,6 @@
 //! Helpers shared by the integration tests: the command-line runner, a
-//! local thread pool, scratch directories and fixture paths.
+//! local thread pool, scratch directories, fixture paths and the x86
+//! subnormal-arithmetic flags.
 //!
 //! Each test file that needs them declares `mod support;` (Cargo builds
 //! every `tests/*.rs` as its own crate, so a file uses only part of this).
