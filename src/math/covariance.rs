@@ -121,7 +121,9 @@ pub fn cov3d_vjp<N: Arith>(
     grad_cov: [N; 6],
 ) -> ([N; 3], [N; 4]) {
     let (gs, gq) = cov3d_vjp_scaled(scale, modifier, q, grad_cov);
-    (gs.map(|g| modifier * g), gq)
+    // (Written out, not `gs.map(..)`: a closure left out of line would run
+    // without the caller's vector instruction set.)
+    ([modifier * gs[0], modifier * gs[1], modifier * gs[2]], gq)
 }
 
 /// Backward of [`cov3d`] as upstream returns it: `(dL/d(modifier·scale),

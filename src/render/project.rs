@@ -398,6 +398,29 @@ fn transform_n<N: Arith>(m: &[N::Elem; 16], p: [N; 3], i: usize) -> N {
         + N::splat(m[12 + i])
 }
 
+/// `[f(0), f(1), f(2)]` for `three!(|i| f(i))`, written out: the closure of
+/// `std::array::from_fn` may be left out of line, and an out-of-line
+/// function runs without the caller's vector instruction set (each vector
+/// operation in it then becomes a call).
+macro_rules! three {
+    (|$i:ident| $e:expr) => {
+        [
+            {
+                let $i = 0;
+                $e
+            },
+            {
+                let $i = 1;
+                $e
+            },
+            {
+                let $i = 2;
+                $e
+            },
+        ]
+    };
+}
+
 /// Backward of [`project`] for visible Gaussians, on any [`Arith`] (one
 /// Gaussian, or one per lane of a [`Pack`](crate::math::pack::Pack)): from
 /// the forward's dilated 2D covariance `cov2d` ([`Projected::cov2d`]) and
@@ -471,8 +494,8 @@ pub(crate) fn project_vjp<N: Arith>(
     let j02 = -(fx * e_tx) / tz2;
     let j11 = fy / t[2];
     let j12 = -(fy * e_ty) / tz2;
-    let a0: [N; 3] = std::array::from_fn(|r| wr(0, r) * j00 + wr(2, r) * j02);
-    let a1: [N; 3] = std::array::from_fn(|r| wr(1, r) * j11 + wr(2, r) * j12);
+    let a0: [N; 3] = three!(|r| wr(0, r) * j00 + wr(2, r) * j02);
+    let a1: [N; 3] = three!(|r| wr(1, r) * j11 + wr(2, r) * j12);
     let v = sym3(&cov3d);
     // a = A0ᵀVA0, b = A1ᵀVA0, c = A1ᵀVA1.
     let mut gcov = [N::ZERO; 6];
@@ -491,10 +514,10 @@ pub(crate) fn project_vjp<N: Arith>(
             full(&a0, &a1, d, i, j) + full(&a0, &a1, d, j, i)
         };
     }
-    let va0: [N; 3] = std::array::from_fn(|i| v[i][0] * a0[0] + v[i][1] * a0[1] + v[i][2] * a0[2]);
-    let va1: [N; 3] = std::array::from_fn(|i| v[i][0] * a1[0] + v[i][1] * a1[1] + v[i][2] * a1[2]);
-    let ga0: [N; 3] = std::array::from_fn(|i| two * va0[i] * da + va1[i] * db);
-    let ga1: [N; 3] = std::array::from_fn(|i| two * va1[i] * dc + va0[i] * db);
+    let va0: [N; 3] = three!(|i| v[i][0] * a0[0] + v[i][1] * a0[1] + v[i][2] * a0[2]);
+    let va1: [N; 3] = three!(|i| v[i][0] * a1[0] + v[i][1] * a1[1] + v[i][2] * a1[2]);
+    let ga0: [N; 3] = three!(|i| two * va0[i] * da + va1[i] * db);
+    let ga1: [N; 3] = three!(|i| two * va1[i] * dc + va0[i] * db);
     // A(0, r) = Wr(0, r)·J00 + Wr(2, r)·J02; A(1, r) = Wr(1, r)·J11 + Wr(2, r)·J12.
     let mut dj00 = N::ZERO;
     let mut dj02 = N::ZERO;
@@ -528,8 +551,7 @@ pub(crate) fn project_vjp<N: Arith>(
         + ky * fy * e_ty * tz3 * dj12
         + if inria { N::ZERO } else { g.depth };
     let dt = [dtx, dty, dtz];
-    let mut gmean: [N; 3] =
-        std::array::from_fn(|j| wr(0, j) * dt[0] + wr(1, j) * dt[1] + wr(2, j) * dt[2]);
+    let mut gmean: [N; 3] = three!(|j| wr(0, j) * dt[0] + wr(1, j) * dt[1] + wr(2, j) * dt[2]);
 
     // Pixel = ((ndc + 1)·S − 1)/2, so d pixel / d ndc = S/2. Inria mode
     // accumulates the centre gradient in NDC units already.
