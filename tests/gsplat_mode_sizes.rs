@@ -7,7 +7,6 @@ mod gsplat_common;
 use gsplat_common::*;
 use liquid_splat::gsplat::rendering::{RasterizationSettings, RasterizeMode};
 use liquid_splat::gsplat::{GradientMode, Version};
-use liquid_splat::math::gradcheck::cotangent;
 use liquid_splat::math::Real;
 fn max_rel<T: Real>(a: &[T], b: &[T]) -> f64 {
     let scale = a
@@ -37,14 +36,8 @@ fn go<T: Real>(tag: &str, spec: &SceneSpec, seeds: std::ops::Range<u64>) -> Vec<
                     ..RasterizationSettings::new(s.width, s.height, version)
                 };
                 let base = run_composite::<T>(&s, v, &settings, None);
-                let vc: Vec<T> = cotangent(1, base.colors.len())
-                    .iter()
-                    .map(|&x| T::from_f64(x))
-                    .collect();
-                let va: Vec<T> = cotangent(2, base.alphas.len())
-                    .iter()
-                    .map(|&x| T::from_f64(x))
-                    .collect();
+                let vc: Vec<T> = cotangent_in(1, base.colors.len());
+                let va: Vec<T> = cotangent_in(2, base.alphas.len());
                 let e = run_composite::<T>(&s, v, &settings, Some((&vc, &va, GradientMode::Exact)))
                     .grads
                     .unwrap();

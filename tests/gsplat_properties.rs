@@ -529,14 +529,8 @@ fn thread_count_does_not_change_a_bit() {
                 let run = |threads: usize| {
                     support::with_threads(threads, || {
                         let base = run_composite::<f32>(&s, v, &settings, None);
-                        let vc: Vec<f32> = cotangent(9, base.colors.len())
-                            .iter()
-                            .map(|&x| x as f32)
-                            .collect();
-                        let va: Vec<f32> = cotangent(8, base.alphas.len())
-                            .iter()
-                            .map(|&x| x as f32)
-                            .collect();
+                        let vc: Vec<f32> = cotangent_in(9, base.colors.len());
+                        let va: Vec<f32> = cotangent_in(8, base.alphas.len());
                         let r = run_composite::<f32>(&s, v, &settings, Some((&vc, &va, grad)));
                         let g = r.grads.unwrap();
                         let mut bits: Vec<u32> = r.colors.iter().map(|x| x.to_bits()).collect();
@@ -588,14 +582,8 @@ fn no_subnormal_arithmetic() {
                 ..RasterizationSettings::new(spec.width, spec.height, version)
             };
             let base = run_composite::<f32>(&s, v, &settings, None);
-            let vc: Vec<f32> = cotangent(9, base.colors.len())
-                .iter()
-                .map(|&x| x as f32)
-                .collect();
-            let va: Vec<f32> = cotangent(8, base.alphas.len())
-                .iter()
-                .map(|&x| x as f32)
-                .collect();
+            let vc: Vec<f32> = cotangent_in(9, base.colors.len());
+            let va: Vec<f32> = cotangent_in(8, base.alphas.len());
             for grad in GradientMode::ALL {
                 let flags = support::with_threads(1, || {
                     support::subnormal_flags(|| {

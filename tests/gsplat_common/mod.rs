@@ -73,6 +73,11 @@ impl SceneSpec {
     }
 }
 
+/// [`cotangent`]`(seed, n)` in `T` (each value rounded once from f64).
+pub fn cotangent_in<T: Real>(seed: u64, n: usize) -> Vec<T> {
+    cotangent(seed, n).into_iter().map(T::from_f64).collect()
+}
+
 pub fn scene(spec: &SceneSpec, seed: u64) -> Scene {
     let mut rng = Rng::new(seed);
     let fov_x = 0.9;
