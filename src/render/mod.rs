@@ -43,7 +43,10 @@
 //! for the same instruction sets and tested against the one-Gaussian
 //! functions (see the private module `preprocess`); then the binned list
 //! gathers one record per entry, and the blend runs in parallel over image
-//! rows (each row owns its pixels). Backward: each tile accumulates into a buffer
+//! rows (each row owns its pixels). Small frames on two or more threads
+//! project each half of the Gaussians and sort its keys on one task, then
+//! merge the two halves' orders in two tasks (see the private module
+//! `tiles`), so that no sort runs on one thread while the other waits. Backward: each tile accumulates into a buffer
 //! indexed by list position, per entry the fixed pairwise sum of a row's 16
 //! pixels, rows in ascending order; each Gaussian then sums its entries in
 //! ascending list position; the chain rule runs per Gaussian. No result
@@ -484,6 +487,29 @@ fn forward<T: Real>(
     crate::threads::keep_awake(|| forward_stages(input, ndc_offset))
 }
 
+/// The per-Gaussian stage and the binning of a small frame on two or more
+/// threads ([`tiles::two_runs_apply`]): each half of the Gaussians is
+/// projected, and its keys collected, counted and sorted into a
+/// [`tiles::Run`], on one task, so that the sort runs in parallel on data
+/// its thread has just written; then [`tiles::merge_runs`]. Stage `project`
+/// includes the runs, `bin` the merge and the gather. The same list as
+/// [`tiles::bin`].
+fn project_and_bin_in_halves<T: Real, K: tiles::Key>(
+    intr: &Intrinsics<T>,
+    input: &RasterInput<T>,
+    n: usize,
+    ndc_offset: Option<&[T]>,
+) -> (preprocess::Preprocessed<T>, tiles::Binning, Vec<Splat<T>>) {
+    let (pre, runs) =
+        preprocess::preprocess_in_halves(intr, input, n, ndc_offset, |first, proj| {
+            tiles::run::<T, K>(first, proj, intr.grid)
+        });
+    stages::mark("project");
+    let (binning, splats) = tiles::merge_runs(runs, &pre.splats, intr.grid);
+    stages::mark("bin");
+    (pre, binning, splats)
+}
+
 fn forward_stages<T: Real>(
     input: &RasterInput<T>,
     ndc_offset: Option<&[T]>,
@@ -495,22 +521,30 @@ fn forward_stages<T: Real>(
     let intr = Intrinsics::new(input.camera);
     let (w, h) = (intr.width, intr.height);
 
-    // 1. Per-Gaussian preprocessing.
-    let pre = preprocess::preprocess(&intr, input, n, ndc_offset);
-    stages::mark("project");
-
-    // 2. Binning, and the splat data of every entry in list order.
-    let binning = tiles::bin(&pre.proj, intr.grid);
-    stages::mark("bin");
-    // (`with_min_len`: a short list is copied on this thread, where handing
-    // it out would cost more than the copy.)
-    let splats: Vec<Splat<T>> = binning
-        .list
-        .par_iter()
-        .with_min_len(1 << 14)
-        .map(|&g| pre.splats[g as usize])
-        .collect();
-    stages::mark("gather");
+    // 1. Per-Gaussian preprocessing, and 2. binning, with the splat data
+    //    of every entry in list order.
+    let (pre, binning, splats) = if tiles::two_runs_apply(n, intr.grid) {
+        if std::mem::size_of::<T>() <= 4 {
+            project_and_bin_in_halves::<T, u64>(&intr, input, n, ndc_offset)
+        } else {
+            project_and_bin_in_halves::<T, u128>(&intr, input, n, ndc_offset)
+        }
+    } else {
+        let pre = preprocess::preprocess(&intr, input, n, ndc_offset);
+        stages::mark("project");
+        let binning = tiles::bin(&pre.proj, intr.grid);
+        stages::mark("bin");
+        // (`with_min_len`: a short list is copied on this thread, where
+        // handing it out would cost more than the copy.)
+        let splats: Vec<Splat<T>> = binning
+            .list
+            .par_iter()
+            .with_min_len(1 << 14)
+            .map(|&g| pre.splats[g as usize])
+            .collect();
+        stages::mark("gather");
+        (pre, binning, splats)
+    };
 
     // 3. Per-row blending.
     let grid_x = intr.grid[0] as usize;

@@ -87,19 +87,15 @@ pub(crate) fn preprocess<T: Real>(
     n: usize,
     ndc_offset: Option<&[T]>,
 ) -> Preprocessed<T> {
-    let mut proj = Vec::with_capacity(n);
-    let mut colors = Vec::with_capacity(n);
-    let mut covs = Vec::with_capacity(n);
-    let mut splats = Vec::with_capacity(n);
-    let mut radii = Vec::with_capacity(n);
-    let mut means2d = Vec::with_capacity(2 * n);
+    let mut pre = Preprocessed::with_capacity(n);
+    let out = pre.spare(n);
     (
-        proj.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
-        colors.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
-        covs.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
-        splats.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
-        radii.spare_capacity_mut()[..n].par_chunks_mut(BATCH),
-        means2d.spare_capacity_mut()[..2 * n].par_chunks_mut(2 * BATCH),
+        out.proj.par_chunks_mut(BATCH),
+        out.colors.par_chunks_mut(BATCH),
+        out.cov3d.par_chunks_mut(BATCH),
+        out.splats.par_chunks_mut(BATCH),
+        out.radii.par_chunks_mut(BATCH),
+        out.means2d.par_chunks_mut(2 * BATCH),
     )
         .into_par_iter()
         .with_min_len(4)
@@ -115,24 +111,140 @@ pub(crate) fn preprocess<T: Real>(
             };
             batch(k, input, ndc_offset, b * BATCH, &mut out);
         });
-    // SAFETY: the chunks above cover elements 0..n (0..2n for the centres)
-    // of each buffer's capacity, and `batch_body` writes every element of
-    // the chunks it is given (its final loop runs over all of them).
-    unsafe {
-        proj.set_len(n);
-        colors.set_len(n);
-        covs.set_len(n);
-        splats.set_len(n);
-        radii.set_len(n);
-        means2d.set_len(2 * n);
+    // SAFETY: the chunks above cover all of `out`, and `batch_body` writes
+    // every element of the chunks it is given (its final loop runs over
+    // all of them).
+    unsafe { pre.set_len(n) };
+    pre
+}
+
+impl<T> Preprocessed<T> {
+    /// Empty buffers with room for `n` Gaussians.
+    fn with_capacity(n: usize) -> Self {
+        Preprocessed {
+            proj: Vec::with_capacity(n),
+            colors: Vec::with_capacity(n),
+            cov3d: Vec::with_capacity(n),
+            splats: Vec::with_capacity(n),
+            radii: Vec::with_capacity(n),
+            means2d: Vec::with_capacity(2 * n),
+        }
     }
-    Preprocessed {
-        proj,
-        colors,
-        cov3d: covs,
-        splats,
-        radii,
-        means2d,
+
+    /// The uninitialised slots of the first `n` Gaussians (capacity at
+    /// least `n`).
+    fn spare(&mut self, n: usize) -> BatchOut<'_, T> {
+        BatchOut {
+            proj: &mut self.proj.spare_capacity_mut()[..n],
+            colors: &mut self.colors.spare_capacity_mut()[..n],
+            cov3d: &mut self.cov3d.spare_capacity_mut()[..n],
+            splats: &mut self.splats.spare_capacity_mut()[..n],
+            radii: &mut self.radii.spare_capacity_mut()[..n],
+            means2d: &mut self.means2d.spare_capacity_mut()[..2 * n],
+        }
+    }
+
+    /// Take the first `n` Gaussians' slots as written.
+    ///
+    /// # Safety
+    /// Every element of [`Self::spare`]`(n)` has been written.
+    unsafe fn set_len(&mut self, n: usize) {
+        // SAFETY: the caller's guarantee.
+        unsafe {
+            self.proj.set_len(n);
+            self.colors.set_len(n);
+            self.cov3d.set_len(n);
+            self.splats.set_len(n);
+            self.radii.set_len(n);
+            self.means2d.set_len(2 * n);
+        }
+    }
+}
+
+/// [`preprocess`] in two halves of whole batches, each on its own task,
+/// which then calls `then(first, proj)` on its half's projections (the
+/// Gaussians `first..first + proj.len()`), so that the work that follows on
+/// each half runs on the task that has its data at hand. Returns both
+/// halves' results, first half first. Same values as [`preprocess`].
+pub(crate) fn preprocess_in_halves<T: Real, R: Send>(
+    k: &Intrinsics<T>,
+    input: &RasterInput<T>,
+    n: usize,
+    ndc_offset: Option<&[T]>,
+    then: impl Fn(usize, &[Projected<T>]) -> R + Sync,
+) -> (Preprocessed<T>, [R; 2]) {
+    let mut pre = Preprocessed::with_capacity(n);
+    let all = pre.spare(n);
+    let half = n.div_ceil(BATCH) / 2 * BATCH;
+    let (lo, hi) = all.split_at(half);
+    let task = |first: usize, mut out: BatchOut<'_, T>| {
+        let mut start = 0;
+        while start < out.proj.len() {
+            let len = BATCH.min(out.proj.len() - start);
+            batch(
+                k,
+                input,
+                ndc_offset,
+                first + start,
+                &mut out.range(start, len),
+            );
+            start += len;
+        }
+        // SAFETY: the loop above ran `batch` on consecutive batches that
+        // cover all of `out`, and `batch_body` writes every element of the
+        // batch it is given; `MaybeUninit<X>` has the layout of `X`.
+        let done = unsafe {
+            std::slice::from_raw_parts(out.proj.as_ptr() as *const Projected<T>, out.proj.len())
+        };
+        then(first, done)
+    };
+    let (a, b) = rayon::join(|| task(0, lo), || task(half, hi));
+    // SAFETY: the halves cover all of `all`, and every element of each was
+    // written (see `task`).
+    unsafe { pre.set_len(n) };
+    (pre, [a, b])
+}
+
+impl<'a, T> BatchOut<'a, T> {
+    /// The outputs of the Gaussians before `mid` and from `mid`.
+    fn split_at(self, mid: usize) -> (BatchOut<'a, T>, BatchOut<'a, T>) {
+        let (proj, proj2) = self.proj.split_at_mut(mid);
+        let (colors, colors2) = self.colors.split_at_mut(mid);
+        let (cov3d, cov3d2) = self.cov3d.split_at_mut(mid);
+        let (splats, splats2) = self.splats.split_at_mut(mid);
+        let (radii, radii2) = self.radii.split_at_mut(mid);
+        let (means2d, means2d2) = self.means2d.split_at_mut(2 * mid);
+        (
+            BatchOut {
+                proj,
+                colors,
+                cov3d,
+                splats,
+                radii,
+                means2d,
+            },
+            BatchOut {
+                proj: proj2,
+                colors: colors2,
+                cov3d: cov3d2,
+                splats: splats2,
+                radii: radii2,
+                means2d: means2d2,
+            },
+        )
+    }
+
+    /// The outputs of the `len` Gaussians from `start`.
+    fn range(&mut self, start: usize, len: usize) -> BatchOut<'_, T> {
+        let r = start..start + len;
+        BatchOut {
+            proj: &mut self.proj[r.clone()],
+            colors: &mut self.colors[r.clone()],
+            cov3d: &mut self.cov3d[r.clone()],
+            splats: &mut self.splats[r.clone()],
+            radii: &mut self.radii[r],
+            means2d: &mut self.means2d[2 * start..2 * (start + len)],
+        }
     }
 }
 
@@ -553,6 +665,60 @@ mod tests {
             sh,
             cov.into_iter().chain(off).collect(),
         ]
+    }
+
+    /// [`preprocess_in_halves`] gives the results of [`preprocess`], and
+    /// hands each half's projections to its callback.
+    fn check_halves<T: Real>() {
+        for (n, seed) in [(203usize, 7u64), (33, 8), (16, 9), (1, 10), (0, 11)] {
+            let [means, scales, rots, opac, sh, _] = scene::<T>(n, seed);
+            let cam = camera::<T>(61, 47);
+            let input = RasterInput {
+                means3d: &means,
+                colors: Colors::Sh {
+                    coeffs: &sh,
+                    stride: 16,
+                    degree: 3,
+                },
+                opacities: &opac,
+                covariances: Covariances::ScaleRotation {
+                    scales: &scales,
+                    rotations: &rots,
+                    scale_modifier: T::ONE,
+                },
+                camera: &cam,
+                background: [T::ZERO; 3],
+            };
+            let k = Intrinsics::new(input.camera);
+            let want = preprocess(&k, &input, n, None);
+            for threads in [1, 2] {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .unwrap();
+                let (got, halves) = pool.install(|| {
+                    preprocess_in_halves(&k, &input, n, None, |first, proj| {
+                        (first, format!("{proj:?}"))
+                    })
+                });
+                // Debug prints every value's shortest round trip: equal
+                // text, equal values.
+                assert_eq!(format!("{got:?}"), format!("{want:?}"), "n {n}");
+                let half = halves[1].0;
+                assert!(
+                    half % BATCH == 0 && half <= n && n - half <= half + BATCH,
+                    "n {n}"
+                );
+                assert_eq!(halves[0], (0, format!("{:?}", &want.proj[..half])), "n {n}");
+                assert_eq!(halves[1].1, format!("{:?}", &want.proj[half..]), "n {n}");
+            }
+        }
+    }
+
+    #[test]
+    fn halves_match_the_parallel_stage() {
+        check_halves::<f32>();
+        check_halves::<f64>();
     }
 
     fn check_all_paths<T: Real>() {

@@ -23,6 +23,15 @@
 //! With one chunk (at most 4,096 Gaussians that touch a tile) the counts
 //! are the tiles' totals, which do not depend on the order: they are taken
 //! from the projected Gaussians alongside the radix sort.
+//!
+//! Small frames on two or more threads ([`two_runs_apply`]) are binned
+//! another way, in two parallel steps with no serial sort between them:
+//! each half of the Gaussians (by index) is collected, counted per tile and
+//! radix-sorted into a [`Run`] on its own task, right after that task
+//! projected it (`render::project_and_bin_in_halves`); then
+//! [`merge_runs`] writes the list from the two runs' merge, one task from
+//! the front of every tile and one from the back. The list and ranges are
+//! the same.
 
 use super::project::Projected;
 use crate::math::Real;
@@ -54,7 +63,7 @@ fn chunk_len(n: usize) -> usize {
 
 /// A sort key: depth bits in the high part, Gaussian index in the
 /// low 32 bits, so integer order is `(depth bits, index)` order.
-trait Key: Copy + Ord + Send + Sync {
+pub(crate) trait Key: Copy + Ord + Send + Sync {
     /// Significant bits of the depth's IEEE pattern.
     const DEPTH_BITS: u32;
     fn new(depth_bits: u64, index: u32) -> Self;
@@ -103,12 +112,183 @@ pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
     }
 }
 
-/// A pointer to the list's storage that the fill tasks share; each writes
+/// Whether [`run`] and [`merge_runs`] bin a frame of `n` Gaussians on a
+/// `grid` of tiles on this pool: small frames (at most `2·MIN_TASK`
+/// Gaussians, above which [`bin`]'s counting sort runs in parallel) of at
+/// least two tile rows, on two or more threads.
+pub(crate) fn two_runs_apply(n: usize, grid: [u32; 2]) -> bool {
+    n <= 2 * MIN_TASK && grid[1] >= 2 && rayon::current_num_threads() >= 2
+}
+
+/// One piece of the Gaussians (consecutive indices) that touch a tile,
+/// sorted by `(depth bits, index)`, with their entries per tile.
+pub(crate) struct Run<K> {
+    /// Sorted keys.
+    keys: Vec<K>,
+    /// The tile rectangle of each key's Gaussian.
+    rects: Vec<[u32; 4]>,
+    /// Entries per tile (row-major) of the piece.
+    counts: Vec<u32>,
+}
+
+/// The [`Run`] of the Gaussians `first..first + piece.len()`, whose
+/// projections are `piece`, on a `grid` of tiles.
+pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [u32; 2]) -> Run<K> {
+    let mut keys: Vec<K> = Vec::with_capacity(piece.len());
+    let mut counts = vec![0u32; grid[0] as usize * grid[1] as usize];
+    for (i, p) in piece.iter().enumerate() {
+        if touches_a_tile(p) {
+            keys.push(K::new(p.depth.bits(), (first + i) as u32));
+            for y in p.rect_min[1]..p.rect_max[1] {
+                let row = (y * grid[0]) as usize;
+                for c in &mut counts[row + p.rect_min[0] as usize..row + p.rect_max[0] as usize] {
+                    *c += 1;
+                }
+            }
+        }
+    }
+    radix_sort_by_depth(&mut keys);
+    let rects = keys
+        .iter()
+        .map(|k| rect_of(&piece[k.index() as usize - first]))
+        .collect();
+    Run {
+        keys,
+        rects,
+        counts,
+    }
+}
+
+/// The binning of [`bin`] from the runs of the two halves of the Gaussians,
+/// and `payload[g]` (one value per Gaussian) of every list entry `g` in
+/// list order.
+///
+/// The merge of two runs sorted by `(depth bits, index)`, with distinct
+/// indices, is the one sorted order. After the tiles' ranges (the prefix
+/// sum of the runs' counts), two tasks split that order between them with
+/// no hand-off: one merges the runs from their starts and writes the first
+/// half of the merged keys' entries from each tile's first slot upwards,
+/// the other merges them from their ends and writes the rest from each
+/// tile's last slot downwards. Every tile's entries are then those of
+/// [`bin`], on any thread count; each entry's payload is copied as it is
+/// written.
+pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
+    runs: [Run<K>; 2],
+    payload: &[P],
+    grid: [u32; 2],
+) -> (Binning, Vec<P>) {
+    let [a, b] = runs;
+    let mut ranges = Vec::with_capacity(a.counts.len());
+    let mut total = 0u32;
+    for (ka, kb) in a.counts.iter().zip(&b.counts) {
+        let k = ka + kb;
+        ranges.push([total, total + k]);
+        total += k;
+    }
+    let total = total as usize;
+
+    let mut list: Vec<u32> = Vec::with_capacity(total);
+    let mut gathered: Vec<P> = Vec::with_capacity(total);
+    let out = Entries {
+        list: Slots(list.spare_capacity_mut().as_mut_ptr()),
+        payload_out: Slots(gathered.spare_capacity_mut().as_mut_ptr()),
+        payload,
+        grid_x: grid[0],
+    };
+    let keys = a.keys.len() + b.keys.len();
+    let front = keys / 2;
+    rayon::join(
+        || {
+            let mut next: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
+            let (mut i, mut j) = (0, 0);
+            for _ in 0..front {
+                let take_a = j == b.keys.len() || (i < a.keys.len() && a.keys[i] < b.keys[j]);
+                let (k, r) = if take_a {
+                    i += 1;
+                    (a.keys[i - 1], a.rects[i - 1])
+                } else {
+                    j += 1;
+                    (b.keys[j - 1], b.rects[j - 1])
+                };
+                for t in out.tiles(r) {
+                    let s = next[t];
+                    next[t] += 1;
+                    // SAFETY: the first `front` keys in merged order write
+                    // upwards from each tile's first slot, the others (the
+                    // other task) downwards from its end, and the runs
+                    // counted each tile's entries: every slot below `total`
+                    // (the capacity) is written once.
+                    unsafe { out.write(s as usize, k.index()) };
+                }
+            }
+        },
+        || {
+            let mut end: Vec<u32> = ranges.iter().map(|r| r[1]).collect();
+            let (mut i, mut j) = (a.keys.len(), b.keys.len());
+            for _ in front..keys {
+                let take_a = j == 0 || (i > 0 && a.keys[i - 1] > b.keys[j - 1]);
+                let (k, r) = if take_a {
+                    i -= 1;
+                    (a.keys[i], a.rects[i])
+                } else {
+                    j -= 1;
+                    (b.keys[j], b.rects[j])
+                };
+                for t in out.tiles(r) {
+                    end[t] -= 1;
+                    // SAFETY: see the first task.
+                    unsafe { out.write(end[t] as usize, k.index()) };
+                }
+            }
+        },
+    );
+    // SAFETY: every one of the first `total` slots of both vectors was
+    // written (see the tasks); a panic in a task propagates before these
+    // lines, leaving the vectors empty.
+    unsafe {
+        list.set_len(total);
+        gathered.set_len(total);
+    }
+    (Binning { list, ranges }, gathered)
+}
+
+/// The list and the payload copies of [`merge_runs`], written slot by slot.
+struct Entries<'a, P> {
+    list: Slots<u32>,
+    payload_out: Slots<P>,
+    payload: &'a [P],
+    grid_x: u32,
+}
+
+impl<P: Copy> Entries<'_, P> {
+    /// The tiles (row-major indices) of the rectangle `r`.
+    #[inline(always)]
+    fn tiles(&self, r: [u32; 4]) -> impl Iterator<Item = usize> {
+        let gx = self.grid_x;
+        (r[1]..r[3]).flat_map(move |y| (y * gx + r[0]) as usize..(y * gx + r[2]) as usize)
+    }
+
+    /// Write Gaussian `g` and its payload at `slot`.
+    ///
+    /// # Safety
+    /// `slot` is below the vectors' capacity and written by no other call.
+    #[inline(always)]
+    unsafe fn write(&self, slot: usize, g: u32) {
+        let value = self.payload[g as usize];
+        // SAFETY: the caller's guarantee.
+        unsafe {
+            (*self.list.0.add(slot)).write(g);
+            (*self.payload_out.0.add(slot)).write(value);
+        }
+    }
+}
+
+/// A pointer to a list's storage that the fill tasks share; each writes
 /// only its own slots.
-struct Slots(*mut MaybeUninit<u32>);
+struct Slots<E>(*mut MaybeUninit<E>);
 // SAFETY: the pointer is only used to write disjoint slots from different
-// threads (see the fill in `bin_keyed`).
-unsafe impl Sync for Slots {}
+// threads (see the fill in `bin_keyed` and the tasks of `merge_runs`).
+unsafe impl<E: Send> Sync for Slots<E> {}
 
 /// Whether a projected Gaussian has at least one entry.
 #[inline(always)]
@@ -460,6 +640,46 @@ mod tests {
         }
         // Several chunks with a shorter last one, and the most chunks.
         assert!(short_last && most_chunks);
+    }
+
+    fn two_runs_match_reference<T: Real, K: Key>() {
+        for (seed, n) in [0usize, 1, 2, 17, 1000, 4095, 8192].into_iter().enumerate() {
+            for grid in [[5u32, 11], [4, 4], [3, 4]] {
+                let proj = imbalanced::<T>(n, grid, 200 + seed as u64);
+                let want = reference(&proj, grid);
+                let index: Vec<u32> = (0..n as u32).collect();
+                // Halves at a batch boundary, uneven, and one empty.
+                for half in [n / 32 * 16, n / 3, 0, n] {
+                    for threads in [1, 2, 3] {
+                        let pool = rayon::ThreadPoolBuilder::new()
+                            .num_threads(threads)
+                            .build()
+                            .unwrap();
+                        let (got, payload) = pool.install(|| {
+                            let runs = [
+                                run::<T, K>(0, &proj[..half], grid),
+                                run::<T, K>(half, &proj[half..], grid),
+                            ];
+                            merge_runs(runs, &index, grid)
+                        });
+                        let at = format!("n {n}, grid {grid:?}, half {half}, {threads} threads");
+                        assert_eq!(got.ranges, want.ranges, "{at}");
+                        assert!(got.list == want.list, "{at}");
+                        assert!(payload == got.list, "payload in list order, {at}");
+                    }
+                }
+            }
+        }
+    }
+
+    /// Two runs merged against the serial definition on imbalanced inputs
+    /// (ties in depth, culled and empty rectangles, a crowded tile), for
+    /// several ways to cut the Gaussians in two, 1, 2 and 3 threads and
+    /// both key widths; the payload comes out in list order.
+    #[test]
+    fn merged_runs_match_the_serial_definition() {
+        two_runs_match_reference::<f32, u64>();
+        two_runs_match_reference::<f64, u128>();
     }
 
     /// The parallel binning against its serial definition on imbalanced
