@@ -5,12 +5,18 @@
 //! - **repeated**: each of eight random scenes (seeds 1 to 8, 2,600
 //!   Gaussians, f32, SH degree 3) rendered and differentiated `PASSES`
 //!   times in a row, as `bench raster` does with one; per scene the
-//!   fastest forward, backward and binning, averaged over the scenes.
+//!   fastest forward, backward and binning (with the gather), averaged
+//!   over the scenes.
 //! - **in turn**: the same eight scenes taken in turn, `PASSES` passes
 //!   each; the same statistics.
 //! - **training**: 1,000 iterations of the `swing` fixture scene (CfC
 //!   field, 64×64), the median per iteration of the rasterizer's forward
-//!   and backward and of the binning and gather stages.
+//!   and backward and of the binning (with the gather).
+//!
+//! The binning column is the stages `bin` and `gather`. On two threads
+//! these frames sort each half of the Gaussians inside the projection's
+//! tasks (`render::project_and_bin_in_halves`), so there it holds the
+//! merge of the two halves and the gather only.
 //!
 //! The passes' forwards run with the stage clock on (`render::stages`),
 //! so their times include its clock reads (a few µs), which `bench
@@ -37,16 +43,19 @@ fn ms(d: std::time::Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
-/// The milliseconds of the stage `name` among `stages` (0 if absent).
-fn stage_ms(stages: &[stages::StageTime], name: &str) -> f64 {
+/// The milliseconds of the stages named in `names` among `stages` (0 if
+/// absent).
+fn stage_ms(stages: &[stages::StageTime], names: &[&str]) -> f64 {
     stages
         .iter()
-        .filter(|s| s.name == name)
-        .map(|s| s.wall * 1e3)
-        .sum()
+        .filter(|s| names.contains(&s.name))
+        .fold(0.0, |sum, s| sum + s.wall * 1e3)
 }
 
-/// Per scene, the fastest forward, backward and binning over `PASSES`
+/// The stages of the binning and the gather.
+const BINNING: [&str; 2] = ["bin", "gather"];
+
+/// Per scene, the fastest forward, backward and binning (with the gather) over `PASSES`
 /// passes of it, the scenes taken in turn (`in_turn`) or each repeated
 /// `PASSES` times in a row; each averaged over the scenes.
 fn passes(scenes: &[scene::Scene<f32>], grad: &[f32], in_turn: bool) -> [f64; 3] {
@@ -67,14 +76,14 @@ fn passes(scenes: &[scene::Scene<f32>], grad: &[f32], in_turn: bool) -> [f64; 3]
         let b = &mut best[k];
         b[0] = b[0].min(ms(t1 - t0));
         b[1] = b[1].min(ms(t2 - t1));
-        b[2] = b[2].min(stage_ms(&st, "bin"));
+        b[2] = b[2].min(stage_ms(&st, &BINNING));
     }
     std::array::from_fn(|j| best.iter().map(|b| b[j]).sum::<f64>() / best.len() as f64)
 }
 
 /// Medians per iteration of 1,000 iterations on `swing`: forward,
-/// backward, binning, gather (ms).
-fn training() -> [f64; 4] {
+/// backward, binning with the gather (ms).
+fn training() -> [f64; 3] {
     use liquid_splat::train::run;
     let a = Run::parse_from(["frames", "fixtures/scenes/swing", "--iterations", "1000"]);
     let spec = a.run.spec();
@@ -82,13 +91,12 @@ fn training() -> [f64; 4] {
     let config = spec.train_config(&data).unwrap();
     let views = run::views::<f32>(&data.train);
     let mut trainer = run::new_trainer::<f32>(&config, &data).unwrap();
-    let mut v: [Vec<f64>; 4] = Default::default();
+    let mut v: [Vec<f64>; 3] = Default::default();
     while trainer.iteration() < config.iterations {
         let (r, st) = stages::record(|| trainer.step(&views).unwrap());
         v[0].push(r.times.raster_forward * 1e3);
         v[1].push(r.times.raster_backward * 1e3);
-        v[2].push(stage_ms(&st, "bin"));
-        v[3].push(stage_ms(&st, "gather"));
+        v[2].push(stage_ms(&st, &BINNING));
     }
     v.map(liquid_splat::bench::harness::median)
 }
@@ -108,7 +116,7 @@ fn main() {
         .into_iter()
         .map(|v| v as f32)
         .collect();
-    println!("64x64, {n} Gaussians, f32, ms: forward / backward / binning");
+    println!("64x64, {n} Gaussians, f32, ms: forward / backward / binning and gather");
     let mut rows = Vec::new();
     for threads in [1, 2] {
         let pool = liquid_splat::threads::pool(threads).unwrap();
@@ -117,8 +125,8 @@ fn main() {
         let tr = pool.install(training);
         println!(
             "{threads} thread(s): repeated {:.4} / {:.4} / {:.4}; in turn {:.4} / {:.4} / {:.4}; \
-             training (swing, medians) {:.4} / {:.4} / {:.4}, gather {:.4}",
-            rep[0], rep[1], rep[2], rot[0], rot[1], rot[2], tr[0], tr[1], tr[2], tr[3]
+             training (swing, medians) {:.4} / {:.4} / {:.4}",
+            rep[0], rep[1], rep[2], rot[0], rot[1], rot[2], tr[0], tr[1], tr[2]
         );
         rows.push((rep, rot, tr));
     }
