@@ -1,5 +1,6 @@
 //! Sixteen pixels as one value: the vector type the row functions of the
-//! rasterizer are written in ([`super::rasterize`], [`super::rasterize_vjp`]),
+//! rasterizer are written in ([`super::rasterize`](mod@super::rasterize),
+//! [`super::rasterize_vjp`](mod@super::rasterize_vjp)),
 //! and sixteen Gaussians as one value in the backward's per-Gaussian chain
 //! rule (the register types implement [`crate::math::pack::Arith`]).
 //!

@@ -149,7 +149,7 @@ pub struct RasterOutput<T> {
     pub means2d: Vec<T>,
 }
 
-/// What [`rasterize`] saves for its backward, [`rasterize_vjp`].
+/// What [`rasterize()`] saves for its backward, [`rasterize_vjp()`].
 #[derive(Clone, Debug)]
 pub struct RasterizeSaved<T> {
     intr: Intrinsics<T>,

@@ -1,5 +1,5 @@
 //! The rasterizer's backward ([`rasterize_vjp`]) and the per-pixel backward
-//! of the blending ([`super::rasterize`]).
+//! of the blending ([`super::rasterize`](mod@super::rasterize)).
 //!
 //! For a pixel with blended entries `i = 0..n` (front to back), transmittance
 //! `T_i = Π_{j<i} (1 − α_j)` and per-entry weight `w_i = g·c_i + g_D·z_i`
@@ -10,7 +10,7 @@
 //! Through `α = min(0.99, o·G)` the gradient is zero where the clamp is active.
 //!
 //! Vectorised as the forward: a tile row is one group of
-//! [`LANES`](super::rasterize::LANES) pixels. The forward saved, per row and
+//! [`LANES`] pixels. The forward saved, per row and
 //! tile, the entries at which some pixel blends with the mask of blending
 //! pixels ([`Blended`]); the backward replays them ([`replay_row`]: the same
 //! products, so the same transmittances and `exp(power)`, without the skip
@@ -410,7 +410,7 @@ pub(crate) fn tile_vjp<T: Real>(
     tile_vjp_body::<Scalar<T>>(job, grads, rec)
 }
 
-/// The backward pass of [`super::rasterize`]: gradients of
+/// The backward pass of [`super::rasterize()`]: gradients of
 /// `<grad_color, color> + <grad_depth, depth>` with respect to every input
 /// (`grad_color` `[3,H,W]`, `grad_depth` `[1,H,W]` or `None` for zero),
 /// differentiated as `mode` says ([`GradientMode::Inria`] ignores
@@ -753,7 +753,8 @@ struct Outputs<'a, T> {
 
 /// The chain rule of step 3 for the chunk of Gaussians starting at `s`
 /// (`acc` their entry sums), several Gaussians per vector: 16 lanes in
-/// AVX-512 registers ([`Avx512`]) or pairs of AVX2 registers ([`Avx2`]) in
+/// AVX-512 registers ([`super::lanes::Avx512`]) or pairs of AVX2 registers
+/// ([`super::lanes::Avx2`]) in
 /// f32, 4 lanes of [`Pack`] otherwise. Every lane computes exactly what the
 /// scalar [`project::project_vjp`], [`crate::math::sh::sh_to_color_vjp`] and
 /// [`cov3d_vjp`] compute on that Gaussian alone (see

@@ -1,7 +1,7 @@
 //! Optional per-stage timing of the rasterizer, for benchmarks.
 //!
 //! [`record`] runs a closure with the calling thread's stage clock on;
-//! [`rasterize`](super::rasterize) and [`rasterize_vjp`](super::rasterize_vjp)
+//! [`rasterize`](super::rasterize()) and [`rasterize_vjp`](super::rasterize_vjp())
 //! call `mark` at the end of each stage, which (only while the clock is
 //! on) appends the stage's wall time and the process CPU time spent during
 //! it. CPU time over wall time is the parallelism a stage reached (idle
