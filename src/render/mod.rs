@@ -477,9 +477,9 @@ pub fn rasterize_with_ndc_offset<T: Real>(
     forward(input, Some(ndc_offset))
 }
 
-/// The forward pass, with the pool's workers kept polling for work through
-/// its serial steps (binning between the per-Gaussian and per-pixel stages;
-/// [`crate::threads::keep_awake`]).
+/// The forward pass, with the pool's workers kept polling for work between
+/// its stages (where the binning, between the per-Gaussian and per-pixel
+/// stages, runs partly on one thread; [`crate::threads::keep_awake`]).
 fn forward<T: Real>(
     input: &RasterInput<T>,
     ndc_offset: Option<&[T]>,
@@ -499,15 +499,15 @@ fn project_and_bin_in_halves<T: Real, K: tiles::Key>(
     input: &RasterInput<T>,
     n: usize,
     ndc_offset: Option<&[T]>,
-) -> (preprocess::Preprocessed<T>, tiles::Binning, Vec<Splat<T>>) {
+) -> Result<(preprocess::Preprocessed<T>, tiles::Binning, Vec<Splat<T>>)> {
     let (pre, runs) =
         preprocess::preprocess_in_halves(intr, input, n, ndc_offset, |first, proj| {
             tiles::run::<T, K>(first, proj, intr.grid)
         });
     stages::mark("project");
-    let (binning, splats) = tiles::merge_runs(runs, &pre.splats, intr.grid);
+    let (binning, splats) = tiles::merge_runs(runs, &pre.splats, intr.grid)?;
     stages::mark("bin");
-    (pre, binning, splats)
+    Ok((pre, binning, splats))
 }
 
 fn forward_stages<T: Real>(
@@ -523,16 +523,16 @@ fn forward_stages<T: Real>(
 
     // 1. Per-Gaussian preprocessing, and 2. binning, with the splat data
     //    of every entry in list order.
-    let (pre, binning, splats) = if tiles::two_runs_apply(n, intr.grid) {
+    let (pre, binning, splats) = if tiles::two_runs_apply(n) {
         if std::mem::size_of::<T>() <= 4 {
-            project_and_bin_in_halves::<T, u64>(&intr, input, n, ndc_offset)
+            project_and_bin_in_halves::<T, u64>(&intr, input, n, ndc_offset)?
         } else {
-            project_and_bin_in_halves::<T, u128>(&intr, input, n, ndc_offset)
+            project_and_bin_in_halves::<T, u128>(&intr, input, n, ndc_offset)?
         }
     } else {
         let pre = preprocess::preprocess(&intr, input, n, ndc_offset);
         stages::mark("project");
-        let binning = tiles::bin(&pre.proj, intr.grid);
+        let binning = tiles::bin(&pre.proj, intr.grid)?;
         stages::mark("bin");
         // (`with_min_len`: a short list is copied on this thread, where
         // handing it out would cost more than the copy.)

@@ -68,8 +68,9 @@ pub(crate) struct Preprocessed<T> {
     pub means2d: Vec<T>,
 }
 
-/// The outputs of one batch: `proj.len() ≤ BATCH` Gaussians from `first`,
-/// every element written by [`batch`].
+/// The output slots of consecutive Gaussians: of one batch (`proj.len() ≤
+/// BATCH`, every element written by [`batch`]) or, split into batches, of
+/// all of them or of a half ([`Preprocessed::spare`], [`BatchOut::split_at`]).
 struct BatchOut<'a, T> {
     proj: &'a mut [MaybeUninit<Projected<T>>],
     colors: &'a mut [MaybeUninit<ShColorSaved<T>>],
@@ -192,17 +193,24 @@ pub(crate) fn preprocess_in_halves<T: Real, R: Send>(
         }
         // SAFETY: the loop above ran `batch` on consecutive batches that
         // cover all of `out`, and `batch_body` writes every element of the
-        // batch it is given; `MaybeUninit<X>` has the layout of `X`.
-        let done = unsafe {
-            std::slice::from_raw_parts(out.proj.as_ptr() as *const Projected<T>, out.proj.len())
-        };
-        then(first, done)
+        // batch it is given.
+        then(first, unsafe { assume_init(out.proj) })
     };
     let (a, b) = rayon::join(|| task(0, lo), || task(half, hi));
     // SAFETY: the halves cover all of `all`, and every element of each was
     // written (see `task`).
     unsafe { pre.set_len(n) };
     (pre, [a, b])
+}
+
+/// `s` as initialised values, for as long as `s` is borrowed.
+///
+/// # Safety
+/// Every element of `s` has been written.
+unsafe fn assume_init<X>(s: &[MaybeUninit<X>]) -> &[X] {
+    // SAFETY: `MaybeUninit<X>` has the layout of `X`, and the caller
+    // guarantees every element is initialised.
+    unsafe { std::slice::from_raw_parts(s.as_ptr() as *const X, s.len()) }
 }
 
 impl<'a, T> BatchOut<'a, T> {

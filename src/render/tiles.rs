@@ -34,6 +34,7 @@
 //! the same.
 
 use super::project::Projected;
+use crate::error::{Error, Result};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -104,7 +105,9 @@ impl Key for u128 {
 }
 
 /// Bin `proj` on a `grid` of `[tiles x, tiles y]` (see the module docs).
-pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
+///
+/// Fails when the list would hold more than `u32::MAX` entries.
+pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Result<Binning> {
     if std::mem::size_of::<T>() <= 4 {
         bin_keyed::<T, u64>(proj, grid)
     } else {
@@ -112,12 +115,12 @@ pub(crate) fn bin<T: Real>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
     }
 }
 
-/// Whether [`run`] and [`merge_runs`] bin a frame of `n` Gaussians on a
-/// `grid` of tiles on this pool: small frames (at most `2·MIN_TASK`
-/// Gaussians, above which [`bin`]'s counting sort runs in parallel) of at
-/// least two tile rows, on two or more threads.
-pub(crate) fn two_runs_apply(n: usize, grid: [u32; 2]) -> bool {
-    n <= 2 * MIN_TASK && grid[1] >= 2 && rayon::current_num_threads() >= 2
+/// Whether [`run`] and [`merge_runs`] bin a frame of `n` Gaussians on this
+/// pool: small frames (at most `2·MIN_TASK` = 8,192 Gaussians; on larger
+/// ones [`bin`] measured faster, benches/README.md, "Rasterizer: small
+/// frames sorted in two halves") on two or more threads.
+pub(crate) fn two_runs_apply(n: usize) -> bool {
+    n <= 2 * MIN_TASK && rayon::current_num_threads() >= 2
 }
 
 /// One piece of the Gaussians (consecutive indices) that touch a tile,
@@ -139,12 +142,7 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
     for (i, p) in piece.iter().enumerate() {
         if touches_a_tile(p) {
             keys.push(K::new(p.depth.bits(), (first + i) as u32));
-            for y in p.rect_min[1]..p.rect_max[1] {
-                let row = (y * grid[0]) as usize;
-                for c in &mut counts[row + p.rect_min[0] as usize..row + p.rect_max[0] as usize] {
-                    *c += 1;
-                }
-            }
+            count_tiles(std::iter::once(rect_of(p)), grid[0], &mut counts);
         }
     }
     radix_sort_by_depth(&mut keys);
@@ -176,16 +174,12 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
     runs: [Run<K>; 2],
     payload: &[P],
     grid: [u32; 2],
-) -> (Binning, Vec<P>) {
+) -> Result<(Binning, Vec<P>)> {
     let [a, b] = runs;
-    let mut ranges = Vec::with_capacity(a.counts.len());
-    let mut total = 0u32;
-    for (ka, kb) in a.counts.iter().zip(&b.counts) {
-        let k = ka + kb;
-        ranges.push([total, total + k]);
-        total += k;
-    }
-    let total = total as usize;
+    debug_assert_eq!(a.counts.len(), b.counts.len(), "runs of one grid");
+    let totals = a.counts.iter().zip(&b.counts);
+    let ranges = tile_ranges(totals.map(|(&ka, &kb)| ka as u64 + kb as u64))?;
+    let total = ranges.last().map_or(0, |r| r[1]) as usize;
 
     let mut list: Vec<u32> = Vec::with_capacity(total);
     let mut gathered: Vec<P> = Vec::with_capacity(total);
@@ -249,7 +243,31 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
         list.set_len(total);
         gathered.set_len(total);
     }
-    (Binning { list, ranges }, gathered)
+    Ok((Binning { list, ranges }, gathered))
+}
+
+/// Each tile's `[start, end)` in the list from its number of entries
+/// (`totals`, row-major). Fails when the list would hold more than
+/// `u32::MAX` entries (a frame where many Gaussians cover many tiles).
+fn tile_ranges(totals: impl IntoIterator<Item = u64>) -> Result<Vec<[u32; 2]>> {
+    let mut ranges = Vec::new();
+    let mut start = 0u64;
+    for k in totals {
+        let end = start + k;
+        let (Ok(s), Ok(e)) = (u32::try_from(start), u32::try_from(end)) else {
+            return Err(Error::invalid(
+                "Gaussians",
+                format!(
+                    "their tile rectangles hold more than {} list entries in all; \
+                     render fewer or smaller Gaussians, or a smaller image",
+                    u32::MAX
+                ),
+            ));
+        };
+        ranges.push([s, e]);
+        start = end;
+    }
+    Ok(ranges)
 }
 
 /// The list and the payload copies of [`merge_runs`], written slot by slot.
@@ -283,8 +301,8 @@ impl<P: Copy> Entries<'_, P> {
     }
 }
 
-/// A pointer to a list's storage that the fill tasks share; each writes
-/// only its own slots.
+/// A pointer to the storage of a list (or of its payload copies) that the
+/// fill tasks share; each writes only its own slots.
 struct Slots<E>(*mut MaybeUninit<E>);
 // SAFETY: the pointer is only used to write disjoint slots from different
 // threads (see the fill in `bin_keyed` and the tasks of `merge_runs`).
@@ -303,6 +321,7 @@ fn rect_of<T: Real>(p: &Projected<T>) -> [u32; 4] {
 }
 
 /// Add each rectangle's tiles to `counts` (row-major, `grid_x` tiles a row).
+#[inline(always)]
 fn count_tiles(rects: impl Iterator<Item = [u32; 4]>, grid_x: u32, counts: &mut [u32]) {
     for r in rects {
         for y in r[1]..r[3] {
@@ -314,7 +333,7 @@ fn count_tiles(rects: impl Iterator<Item = [u32; 4]>, grid_x: u32, counts: &mut 
     }
 }
 
-fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning {
+fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Result<Binning> {
     let n_tiles = grid[0] as usize * grid[1] as usize;
 
     // 1. The Gaussians that touch a tile, sorted by `(depth bits, index)`,
@@ -373,18 +392,16 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
     // 3. Each tile's range (an exclusive prefix sum over tiles of the
     //    chunks' totals), then each (chunk, tile) pair's first slot: the
     //    tile's start plus the entries of the earlier chunks.
-    let mut ranges = vec![[0u32; 2]; n_tiles];
+    let mut totals = vec![0u64; n_tiles];
     for c in counts.chunks(n_tiles.max(1)) {
-        for (r, &k) in ranges.iter_mut().zip(c) {
-            r[1] += k;
+        for (t, &k) in totals.iter_mut().zip(c) {
+            *t += k as u64;
         }
     }
-    let mut total = 0u32;
-    for r in ranges.iter_mut() {
-        let k = r[1];
-        *r = [total, total + k];
-        total += k;
-    }
+    // (Every partial sum below is at most the list's length, which
+    // `tile_ranges` checks fits in `u32`.)
+    let ranges = tile_ranges(totals)?;
+    let total = ranges.last().map_or(0, |r| r[1]);
     let mut cursor: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
     for c in counts.chunks_mut(n_tiles.max(1)) {
         for (cur, k) in cursor.iter_mut().zip(c) {
@@ -426,7 +443,7 @@ fn bin_keyed<T: Real, K: Key>(proj: &[Projected<T>], grid: [u32; 2]) -> Binning 
     // counts sum to `total` and every counted entry was written, see above);
     // a panic in a task propagates before this line, leaving `list` empty.
     unsafe { list.set_len(total) };
-    Binning { list, ranges }
+    Ok(Binning { list, ranges })
 }
 
 /// Sort keys that are in ascending index order by depth bits, stably (so
@@ -491,7 +508,7 @@ mod tests {
             splat(2.0, [0, 0], [1, 1]),
             Projected::culled(),
         ];
-        let b = bin(&proj, [2, 1]);
+        let b = bin(&proj, [2, 1]).unwrap();
         assert_eq!(b.list, vec![0, 2, 1, 0]);
         assert_eq!(b.ranges, vec![[0, 2], [2, 4]]);
     }
@@ -530,7 +547,7 @@ mod tests {
                 }
             }
             keys.sort_unstable();
-            let b = bin(&proj, grid);
+            let b = bin(&proj, grid).unwrap();
             let want: Vec<u32> = keys.iter().map(|k| k.2).collect();
             assert_eq!(b.list, want, "grid {grid:?}");
             let n_tiles = (grid[0] * grid[1]) as usize;
@@ -589,7 +606,11 @@ mod tests {
                     rng.below(grid[1] as u64) as u32,
                 );
                 let (rmin, rmax) = match rng.below(20) {
-                    0..=9 => ([2, 3], [3, 4]),
+                    // One crowded tile (clamped into small grids).
+                    0..=9 => (
+                        [2.min(grid[0] - 1), 3.min(grid[1] - 1)],
+                        [3.min(grid[0]), 4.min(grid[1])],
+                    ),
                     10 => ([0, 0], grid),
                     11 => {
                         p.radius = 0;
@@ -633,7 +654,7 @@ mod tests {
                     .num_threads(threads)
                     .build()
                     .unwrap();
-                let got = pool.install(|| bin(&proj, grid));
+                let got = pool.install(|| bin(&proj, grid).unwrap());
                 assert_eq!(got.ranges, want.ranges, "n {n}, {threads} threads");
                 assert!(got.list == want.list, "n {n}, {threads} threads");
             }
@@ -644,7 +665,7 @@ mod tests {
 
     fn two_runs_match_reference<T: Real, K: Key>() {
         for (seed, n) in [0usize, 1, 2, 17, 1000, 4095, 8192].into_iter().enumerate() {
-            for grid in [[5u32, 11], [4, 4], [3, 4]] {
+            for grid in [[5u32, 11], [4, 4], [1, 9], [7, 1], [1, 1]] {
                 let proj = imbalanced::<T>(n, grid, 200 + seed as u64);
                 let want = reference(&proj, grid);
                 let index: Vec<u32> = (0..n as u32).collect();
@@ -660,7 +681,7 @@ mod tests {
                                 run::<T, K>(0, &proj[..half], grid),
                                 run::<T, K>(half, &proj[half..], grid),
                             ];
-                            merge_runs(runs, &index, grid)
+                            merge_runs(runs, &index, grid).unwrap()
                         });
                         let at = format!("n {n}, grid {grid:?}, half {half}, {threads} threads");
                         assert_eq!(got.ranges, want.ranges, "{at}");
@@ -670,6 +691,24 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn tile_ranges_refuse_a_list_past_u32() {
+        assert_eq!(
+            tile_ranges([1, 0, 2]).unwrap(),
+            vec![[0, 1], [1, 1], [1, 3]]
+        );
+        let max = u32::MAX as u64;
+        assert_eq!(
+            tile_ranges([max - 1, 1]).unwrap(),
+            vec![[0, u32::MAX - 1], [u32::MAX - 1, u32::MAX]]
+        );
+        let err = tile_ranges([max, 1]).unwrap_err().to_string();
+        assert!(
+            err.contains("Gaussians") && err.contains("4294967295"),
+            "{err}"
+        );
     }
 
     /// Two runs merged against the serial definition on imbalanced inputs
