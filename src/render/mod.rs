@@ -46,7 +46,8 @@
 //! rows (each row owns its pixels). Small frames on two or more threads
 //! project each half of the Gaussians and sort its keys on one task, then
 //! merge the two halves' orders in two tasks (see the private module
-//! `tiles`), so that no sort runs on one thread while the other waits. Backward: each tile accumulates into a buffer
+//! `tiles`), so that no sort runs on one thread while the other waits.
+//! Backward: each tile accumulates into a buffer
 //! indexed by list position, per entry the fixed pairwise sum of a row's 16
 //! pixels, rows in ascending order; each Gaussian then sums its entries in
 //! ascending list position; the chain rule runs per Gaussian. No result
