@@ -260,11 +260,7 @@ fn rasterization_matches_central_differences() {
         ),
         (
             "SH degree 3, packed, occlusion",
-            Variant {
-                sh_degree: Some(3),
-                use_covars: false,
-                backgrounds: true,
-            },
+            Variant::SH3,
             RasterizeMode::Classic,
             true,
             SceneSpec {

@@ -26,11 +26,7 @@ fn go<T: Real>(tag: &str, spec: &SceneSpec, seeds: std::ops::Range<u64>) -> Vec<
             let mut worst = [0.0f64; 6];
             for seed in seeds.clone() {
                 let s = scene(spec, seed);
-                let v = Variant {
-                    sh_degree: Some(3),
-                    use_covars: false,
-                    backgrounds: true,
-                };
+                let v = Variant::SH3;
                 let settings = RasterizationSettings {
                     rasterize_mode: mode,
                     ..RasterizationSettings::new(s.width, s.height, version)

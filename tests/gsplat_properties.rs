@@ -467,11 +467,7 @@ fn gradient_modes_differ_where_documented() {
         ..SceneSpec::new(12, 2, 40, 30)
     };
     let s = scene(&spec, 77);
-    let v = Variant {
-        sh_degree: Some(3),
-        use_covars: false,
-        backgrounds: true,
-    };
+    let v = Variant::SH3;
     for version in Version::ALL {
         let settings = RasterizationSettings::new(40, 30, version);
         let base = run_composite::<f64>(&s, v, &settings, None);
@@ -570,11 +566,7 @@ fn no_subnormal_arithmetic() {
         ..SceneSpec::new(600, 1, 48, 40)
     };
     let s = scene(&spec, 77);
-    let v = Variant {
-        sh_degree: Some(3),
-        use_covars: false,
-        backgrounds: true,
-    };
+    let v = Variant::SH3;
     for version in Version::ALL {
         for mode in [RasterizeMode::Classic, RasterizeMode::Antialiased] {
             let settings = RasterizationSettings {

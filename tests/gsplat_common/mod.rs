@@ -180,6 +180,15 @@ pub struct Variant {
     pub backgrounds: bool,
 }
 
+impl Variant {
+    /// SH colours of degree 3, scales and rotations, and backgrounds.
+    pub const SH3: Variant = Variant {
+        sh_degree: Some(3),
+        use_covars: false,
+        backgrounds: true,
+    };
+}
+
 /// The composite on a scene: (loss against the base images, decisions).
 pub struct Composite<T> {
     pub colors: Vec<T>,
