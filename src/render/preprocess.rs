@@ -196,7 +196,7 @@ pub(crate) fn preprocess_in_halves<T: Real, R: Send>(
         // batch it is given.
         then(first, unsafe { assume_init(out.proj) })
     };
-    let (a, b) = rayon::join(|| task(0, lo), || task(half, hi));
+    let (a, b) = crate::threads::spin_join(|| task(0, lo), || task(half, hi));
     // SAFETY: the halves cover all of `all`, and every element of each was
     // written (see `task`).
     unsafe { pre.set_len(n) };

@@ -58,6 +58,7 @@ use crate::math::sh::{coeffs_for_degree, color_vjp};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
+use std::sync::Mutex;
 
 /// The gradient one list entry (a Gaussian in one tile) receives from the
 /// tile's pixels. In [`GradientMode::Inria`] the centre gradient is already
@@ -427,12 +428,7 @@ pub fn rasterize_vjp<T: Real>(
     // The pool's workers keep polling for work between the steps
     // (`threads::keep_awake`).
     Ok(crate::threads::keep_awake(|| {
-        // The serial step 2 runs beside the parallel step 1 (an idle worker
-        // takes it), so it costs no wall time of its own.
-        let (entry, (start, index)) = rayon::join(
-            || entry_gradients(input, saved, grad_color, grad_depth, mode),
-            || gaussian_entries(saved),
-        );
+        let (entry, (start, index)) = entry_gradients(input, saved, grad_color, grad_depth, mode);
         super::stages::mark("tiles, entry index");
         let grads = gaussian_gradients(input, saved, &entry, &start, &index, mode);
         super::stages::mark("per Gaussian");
@@ -483,23 +479,33 @@ fn check_cotangents<T: Real>(
 }
 
 /// Step 1, per tile in parallel: the gradient of every list entry, each the
-/// sum over the tile's rows in ascending order (see the module docs). Each
-/// tile accumulates in a scratch buffer of its worker and writes its entries
+/// sum over the tile's rows in ascending order (see the module docs); with
+/// step 2 ([`gaussian_entries`], serial) run beside it. Each tile
+/// accumulates in a scratch buffer of its worker and writes its entries
 /// once, so the result buffer is never zeroed and its fresh pages are first
 /// touched in parallel.
+///
+/// A frame of at most [`FEW_TILES`] tiles with entries, on two or more
+/// workers, runs in one fixed part per worker of about equal estimated
+/// cost ([`crate::threads::balanced_parts`]: a tile costs in proportion to
+/// the records the forward saved for it, see [`tile_cost`]), each part's
+/// jobs in tile order, step 2 among them; the caller waits for the others'
+/// parts by spinning ([`crate::threads::run_parts`]). Larger frames hand
+/// out pieces of at most 2 tiles as rayon splits them, with step 2 beside.
+/// Which worker computes a tile changes no result.
 fn entry_gradients<T: Real>(
     input: &RasterInput<T>,
     saved: &RasterizeSaved<T>,
     grad_color: &[T],
     grad_depth: Option<&[T]>,
     mode: GradientMode,
-) -> Vec<EntryGrad<T>> {
+) -> (Vec<EntryGrad<T>>, GaussianEntries) {
     let (w, h) = (saved.intr.width, saved.intr.height);
     let grid_x = saved.intr.grid[0] as usize;
     let m = saved.num_rendered();
     let mut entry: Vec<EntryGrad<T>> = Vec::with_capacity(m);
     let mut rest: &mut [MaybeUninit<EntryGrad<T>>] = &mut entry.spare_capacity_mut()[..m];
-    let mut chunks = Vec::with_capacity(saved.binning.ranges.len());
+    let mut tiles = Vec::with_capacity(saved.binning.ranges.len());
     let mut pos = 0usize;
     for (tile, r) in saved.binning.ranges.iter().enumerate() {
         let (s, e) = (r[0] as usize, r[1] as usize);
@@ -509,24 +515,24 @@ fn entry_gradients<T: Real>(
             continue;
         }
         let (head, tail) = rest.split_at_mut(e - s);
-        chunks.push((tile, s, head));
+        tiles.push(TilePiece {
+            tile,
+            start: s,
+            out: head,
+        });
         rest = tail;
         pos = e;
     }
     assert!(pos == m, "tile ranges do not cover the list");
-    // (`for_each_init` starts new scratch buffers for every stealable piece
-    // of at most 2 tiles; buffers kept per worker across pieces measured
-    // slower on the trained hellwarrior frames.)
-    chunks.into_par_iter().with_max_len(2).for_each_init(
-        || (Vec::new(), Vec::new()),
-        |(rec, scratch), (tile, s, out)| {
+    let tile_job =
+        |rec: &mut Vec<Record<T>>, scratch: &mut Vec<EntryGrad<T>>, t: TilePiece<'_, T>| {
             let job = TileJob {
-                splats: &saved.splats[s..s + out.len()],
+                splats: &saved.splats[t.start..t.start + t.out.len()],
                 blended: &saved.blended,
                 blended_end: &saved.blended_end,
                 grid_x,
-                tx: tile % grid_x,
-                bounds: raster::tile_bounds(tile, grid_x, w, h),
+                tx: t.tile % grid_x,
+                bounds: raster::tile_bounds(t.tile, grid_x, w, h),
                 width: w,
                 height: h,
                 bg: input.background,
@@ -535,29 +541,116 @@ fn entry_gradients<T: Real>(
                 mode,
             };
             scratch.clear();
-            scratch.resize(out.len(), EntryGrad::ZERO);
-            // The rows replay only the entries they blended, a sparse walk
-            // the hardware prefetcher does not follow: ask for the tile's
-            // whole gathered list first.
+            scratch.resize(t.out.len(), EntryGrad::ZERO);
+            // The rows replay only the entries they blended, a sparse walk the
+            // hardware prefetcher does not follow: ask for the tile's whole
+            // gathered list first.
             prefetch(job.splats, 0, job.splats.len());
             tile_vjp(&job, scratch, rec);
-            for (o, g) in out.iter_mut().zip(scratch.iter()) {
+            for (o, g) in t.out.iter_mut().zip(scratch.iter()) {
                 o.write(*g);
             }
-        },
-    );
-    // SAFETY: the chunks are consecutive pieces of `entry`'s first `m`
+        };
+    let threads = rayon::current_num_threads();
+    let index = if threads >= 2 && tiles.len() <= FEW_TILES {
+        let index = Mutex::new(None);
+        let mut jobs: Vec<(u64, Step1<T>)> = Vec::with_capacity(tiles.len() + 1);
+        jobs.push((entries_cost(saved), Step1::Entries));
+        jobs.extend(
+            tiles
+                .into_iter()
+                .map(|t| (tile_cost(saved, t.tile), Step1::Tile(t))),
+        );
+        let parts = crate::threads::balanced_parts(jobs, threads, |j| match j {
+            Step1::Entries => 0,
+            Step1::Tile(t) => 1 + t.tile,
+        });
+        crate::threads::run_parts(parts, |part| {
+            let (mut rec, mut scratch) = (Vec::new(), Vec::new());
+            for job in part {
+                match job {
+                    Step1::Tile(t) => tile_job(&mut rec, &mut scratch, t),
+                    Step1::Entries => {
+                        let e = gaussian_entries(saved);
+                        *index.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
+                    }
+                }
+            }
+        });
+        let index = index.into_inner().unwrap_or_else(|p| p.into_inner());
+        index.expect("every part ran")
+    } else {
+        // (`for_each_init` starts new scratch buffers for every stealable
+        // piece of at most 2 tiles; buffers kept per worker across pieces
+        // measured slower on the trained hellwarrior frames.)
+        let tiles_in_pieces = || {
+            tiles.into_par_iter().with_max_len(2).for_each_init(
+                || (Vec::new(), Vec::new()),
+                |(rec, scratch), t| tile_job(rec, scratch, t),
+            )
+        };
+        rayon::join(tiles_in_pieces, || gaussian_entries(saved)).1
+    };
+    // SAFETY: the tile pieces are consecutive pieces of `entry`'s first `m`
     // spare slots that together cover all of them (the asserts above), and
-    // every task wrote each slot of its chunk; a panic in a task propagates
+    // every job wrote each slot of its piece; a panic in a job propagates
     // before this line, leaving `entry` empty.
     unsafe { entry.set_len(m) };
-    entry
+    (entry, index)
+}
+
+/// At most this many tiles with entries, step 1 runs in fixed parts (see
+/// [`entry_gradients`]): a 128×128 frame's. At 400×400 (625 tiles) the
+/// parts' tiles, scattered over the image, measured 5 % slower on two
+/// threads than rayon's pieces of neighbouring tiles.
+const FEW_TILES: usize = 64;
+
+/// One tile's job of step 1: its list from `start`, its entries' gradients
+/// to write to `out`.
+struct TilePiece<'a, T> {
+    tile: usize,
+    start: usize,
+    out: &'a mut [MaybeUninit<EntryGrad<T>>],
+}
+
+/// A job of step 1 in fixed parts: a tile, or step 2.
+enum Step1<'a, T> {
+    Tile(TilePiece<'a, T>),
+    Entries,
+}
+
+/// Each Gaussian's entries ([`gaussian_entries`]).
+type GaussianEntries = (Vec<usize>, Vec<u32>);
+
+/// The estimated cost of `tile`'s backward in nanoseconds, for balancing
+/// only: 16 per record the forward saved for its rows (a tile replays and
+/// walks back exactly those; measured at 15.9–16.4 ns per record over the
+/// 16 tiles of the 64×64 bench frame on the 2-core AMD EPYC).
+fn tile_cost<T: Real>(saved: &RasterizeSaved<T>, tile: usize) -> u64 {
+    let grid_x = saved.intr.grid[0] as usize;
+    let tx = tile % grid_x;
+    let [_, _, y0, y1] = raster::tile_bounds(tile, grid_x, saved.intr.width, saved.intr.height);
+    let records: u64 = (y0..y1)
+        .map(|py| {
+            let ends = &saved.blended_end[py * grid_x..(py + 1) * grid_x];
+            let start = if tx == 0 { 0 } else { ends[tx - 1] };
+            (ends[tx] - start) as u64
+        })
+        .sum();
+    16 * records
+}
+
+/// The estimated cost of step 2 in nanoseconds, as [`tile_cost`]'s: about
+/// 1 per list entry and a third per Gaussian (4.9–5.0 µs for the 64×64
+/// bench frame's 2,600 Gaussians and their entries on the same machine).
+fn entries_cost<T: Real>(saved: &RasterizeSaved<T>) -> u64 {
+    (saved.num_rendered() + saved.len() / 3) as u64
 }
 
 /// Step 2: each Gaussian's entries in ascending list position (so ascending
 /// tile), as `index[start[g]..start[g + 1]]`. A serial counting sort (about
-/// 2 ns per entry); [`rasterize_vjp`] runs it beside step 1.
-fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> (Vec<usize>, Vec<u32>) {
+/// 1.2 ns per entry); [`entry_gradients`] runs it beside step 1.
+fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> GaussianEntries {
     let n = saved.len();
     let list = &saved.binning.list;
     let mut start = vec![0usize; n + 1];
@@ -649,7 +742,13 @@ fn gaussian_gradients<T: Real>(
         scales_or_cov: Vec::with_capacity(cov_w * n),
         rotations: Vec::with_capacity(rot_w * n),
     };
-    let mut chunks = Vec::with_capacity(n.div_ceil(CHUNK));
+    // Chunks of at most `CHUNK` Gaussians, none across the start of a
+    // fixed part of `part_len` (one part per worker for a small frame, see
+    // `FEW_GAUSSIANS`; else one).
+    let threads = rayon::current_num_threads();
+    let few = threads >= 2 && n <= FEW_GAUSSIANS;
+    let part_len = if few { n.div_ceil(threads) } else { n }.max(1);
+    let mut chunks = Vec::with_capacity(n.div_ceil(CHUNK) + threads);
     {
         let mut m3 = spare(&mut grads.means3d, 3 * n);
         let mut m2 = spare(&mut grads.means2d, 3 * n);
@@ -657,8 +756,10 @@ fn gaussian_gradients<T: Real>(
         let mut op = spare(&mut grads.opacities, n);
         let mut cov = spare(&mut grads.scales_or_cov, cov_w * n);
         let mut rot = spare(&mut grads.rotations, rot_w * n);
-        for s in (0..n).step_by(CHUNK) {
-            let len = CHUNK.min(n - s);
+        let mut s = 0;
+        while s < n {
+            let part_end = (s / part_len + 1) * part_len;
+            let len = CHUNK.min(part_end.min(n) - s);
             chunks.push(OutChunk {
                 start: s,
                 means3d: take(&mut m3, 3 * len),
@@ -668,6 +769,7 @@ fn gaussian_gradients<T: Real>(
                 scales_or_cov: take(&mut cov, cov_w * len),
                 rotations: take(&mut rot, rot_w * len),
             });
+            s += len;
         }
     }
     let ctx = Ctx {
@@ -679,7 +781,7 @@ fn gaussian_gradients<T: Real>(
         sh,
         scale_rot,
     };
-    chunks.into_par_iter().for_each_init(Vec::new, |acc, out| {
+    let chunk_job = |acc: &mut Vec<EntryGrad<T>>, out: OutChunk<'_, T>| {
         let s = out.start;
         let len = out.opacities.len();
         // The chunk's entries lie scattered over the list: ask for all of
@@ -709,7 +811,26 @@ fn gaussian_gradients<T: Real>(
             rotations: filled(out.rotations, T::ZERO),
         };
         chain_rule(&ctx, s, acc, &mut o);
-    });
+    };
+    if few {
+        let mut parts: Vec<Vec<OutChunk<T>>> = Vec::with_capacity(threads);
+        for c in chunks {
+            if c.start % part_len == 0 {
+                parts.push(Vec::new());
+            }
+            parts.last_mut().expect("a part starts at 0").push(c);
+        }
+        crate::threads::run_parts(parts, |part| {
+            let mut acc = Vec::new();
+            for out in part {
+                chunk_job(&mut acc, out);
+            }
+        });
+    } else {
+        chunks
+            .into_par_iter()
+            .for_each_init(Vec::new, |acc, out| chunk_job(acc, out));
+    }
     // SAFETY: the chunks are consecutive pieces of each buffer's first
     // `w·n` spare slots (`w` its width) that together cover all of them, and
     // every task wrote every slot of its pieces (`filled`); a panic in a
@@ -724,6 +845,15 @@ fn gaussian_gradients<T: Real>(
     }
     grads
 }
+
+/// At most this many Gaussians, on two or more workers, step 3 runs in one
+/// fixed part of consecutive Gaussians per worker, each part's chunks in
+/// turn, the caller waiting for the others' parts by spinning
+/// ([`crate::threads::run_parts`]); more, in chunks as rayon hands them
+/// out. The bound of the two-half binning (`tiles::two_runs_apply`): the
+/// small frames, where the waits between steps are a large share of a
+/// pass.
+const FEW_GAUSSIANS: usize = 8192;
 
 /// What the chain rule of step 3 reads besides the entry sums.
 struct Ctx<'a, T> {

@@ -191,7 +191,7 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
     };
     let keys = a.keys.len() + b.keys.len();
     let front = keys / 2;
-    rayon::join(
+    crate::threads::spin_join(
         || {
             let mut next: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
             let (mut i, mut j) = (0, 0);
