@@ -28,7 +28,7 @@
 
 use std::cell::{Cell, RefCell};
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, Instant};
 
 /// Whether pools built by [`pool`] pin their workers.
@@ -140,7 +140,8 @@ pub fn current_thread_is_pinned() -> bool {
 
 /// `(a(), b())`, as [`rayon::join`], except in how the caller waits: the
 /// caller runs `a` and then `b` too if no other worker has started it;
-/// otherwise it spins until `b` ends, instead of waiting in rayon, where a
+/// otherwise it spins until `b` ends ([`spin_until`]: for up to 100 µs,
+/// then it waits in rayon), instead of waiting in rayon at once, where a
 /// waiting worker soon yields its CPU or sleeps and must then be woken.
 /// For the short parallel steps of a small frame, whose parts end within a
 /// few microseconds of each other: on the 2-core development machine, the
@@ -160,7 +161,7 @@ pub(crate) fn spin_join<RA: Send, RB: Send>(
     let rb = Mutex::new(None);
     let done = AtomicBool::new(false);
     let run_b = || {
-        let taken = b.lock().map(|mut b| b.take()).ok().flatten();
+        let taken = b.lock().unwrap_or_else(PoisonError::into_inner).take();
         taken.map(|b| {
             let _done = SetOnDrop(&done);
             *rb.lock().unwrap_or_else(|p| p.into_inner()) = Some(b());
@@ -185,7 +186,7 @@ pub(crate) fn spin_join<RA: Send, RB: Send>(
 /// `work(part)` for every part of `parts`, on the workers of the current
 /// pool, waiting as [`spin_join`] does: the caller runs the first part,
 /// then every part no other worker has started, and then spins until the
-/// others end. For a few parts of about equal cost (see
+/// others end (as long as [`spin_until`] does). For a few parts of about equal cost (see
 /// [`balanced_parts`]); a panic in any part propagates once every part has
 /// ended.
 pub(crate) fn run_parts<P: Send>(parts: Vec<P>, work: impl Fn(P) + Sync) {
@@ -197,7 +198,10 @@ pub(crate) fn run_parts<P: Send>(parts: Vec<P>, work: impl Fn(P) + Sync) {
     let parts: Vec<Mutex<Option<P>>> = parts.into_iter().map(|p| Mutex::new(Some(p))).collect();
     let done: Vec<AtomicBool> = parts.iter().map(|_| AtomicBool::new(false)).collect();
     let run = |i: usize| {
-        let part = parts[i].lock().map(|mut p| p.take()).ok().flatten();
+        let part = parts[i]
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
         if let Some(part) = part {
             let _done = SetOnDrop(&done[i]);
             work(part);
@@ -213,12 +217,12 @@ pub(crate) fn run_parts<P: Send>(parts: Vec<P>, work: impl Fn(P) + Sync) {
     });
 }
 
-/// Split `jobs`, each with its estimated cost, into `parts` lists of close
-/// to equal total cost, each list in ascending `order` of its jobs: the
-/// costliest job first, each to the list with the least so far (the first
-/// such); then, while one lowers the largest total, the best move of a job,
-/// or swap of two, between the costliest and the cheapest list. Only speed
-/// depends on the split.
+/// Split `jobs`, each with its estimated cost, into `parts` lists (at
+/// least one) of close to equal total cost, each list in ascending `order`
+/// of its jobs: the costliest job first, each to the list with the least
+/// so far (the first such); then, for up to 16 rounds, the move of a job,
+/// or swap of two, between the costliest and the cheapest list that lowers
+/// the larger of their totals most. Only speed depends on the split.
 pub(crate) fn balanced_parts<J>(
     mut jobs: Vec<(u64, J)>,
     parts: usize,
@@ -234,7 +238,8 @@ pub(crate) fn balanced_parts<J>(
         l.0 += j.0;
         l.1.push(j);
     }
-    // At most 16 rounds; each lowers the largest total, or the loop stops.
+    // Each round lowers the larger of the two lists' totals and raises the
+    // smaller one, both staying between their old totals, or the loop stops.
     for _ in 0..16 {
         let hi = (0..lists.len()).max_by_key(|&i| (lists[i].0, std::cmp::Reverse(i)));
         let lo = (0..lists.len()).min_by_key(|&i| lists[i].0);
@@ -287,23 +292,23 @@ impl Drop for SetOnDrop<'_> {
     }
 }
 
-/// Wait until `flag` is set: spin for up to [`SPIN_LIMIT`] (the waits
-/// this is for are a few microseconds), then give the CPU away between
-/// looks, in case the worker waited for has none (more workers than CPUs).
+/// Spin until `flag` is set, for at most [`SPIN_LIMIT`] (the waits this
+/// is for are a few microseconds). A longer wait is left to the end of the
+/// rayon scope the caller is in, which waits for every job in it as rayon
+/// does (and does not keep a CPU busy, when workers outnumber CPUs).
 fn spin_until(flag: &AtomicBool) {
     let start = Instant::now();
     let mut spins = 0u32;
     while !flag.load(Ordering::Acquire) {
         spins = spins.wrapping_add(1);
-        if !spins.is_multiple_of(64) || start.elapsed() < SPIN_LIMIT {
-            std::hint::spin_loop();
-        } else {
-            std::thread::yield_now();
+        if spins.is_multiple_of(64) && start.elapsed() >= SPIN_LIMIT {
+            return;
         }
+        std::hint::spin_loop();
     }
 }
 
-/// How long [`spin_until`] spins before it yields the CPU between looks.
+/// How long [`spin_until`] spins at most.
 const SPIN_LIMIT: Duration = Duration::from_micros(100);
 
 /// The CPUs the calling thread may run on, ascending (empty if the system
@@ -703,6 +708,18 @@ mod parts_tests {
         assert_eq!(totals(&lists), vec![9, 9]);
     }
 
+    /// The largest total of the greedy split alone (costliest first, each
+    /// to the first list with the least so far).
+    fn greedy_max(mut costs: Vec<u64>, parts: usize) -> u64 {
+        costs.sort_unstable_by(|a, b| b.cmp(a));
+        let mut t = vec![0u64; parts];
+        for c in costs {
+            let i = (0..parts).min_by_key(|&i| t[i]).unwrap();
+            t[i] += c;
+        }
+        t.into_iter().max().unwrap_or(0)
+    }
+
     #[test]
     fn balanced_parts_keep_every_job_once_in_order() {
         let mut rng = crate::math::rng::Rng::new(7);
@@ -715,6 +732,7 @@ mod parts_tests {
                     })
                     .collect();
                 let max_cost = jobs.iter().map(|j| j.0).max().unwrap_or(0);
+                let greedy = greedy_max(jobs.iter().map(|j| j.0).collect(), parts);
                 let lists = balanced_parts(jobs, parts, |j| j.1);
                 assert_eq!(lists.len(), parts);
                 let mut seen: Vec<usize> = lists.iter().flatten().map(|j| j.1).collect();
@@ -729,6 +747,10 @@ mod parts_tests {
                 let t = totals(&lists);
                 let spread = t.iter().max().unwrap() - t.iter().min().unwrap();
                 assert!(spread <= max_cost, "{parts} parts, {n} jobs: totals {t:?}");
+                assert!(
+                    *t.iter().max().unwrap() <= greedy,
+                    "{parts} parts, {n} jobs: {t:?}"
+                );
             }
         }
     }
@@ -736,12 +758,14 @@ mod parts_tests {
     #[test]
     fn run_parts_runs_each_part_once_on_any_pool() {
         for threads in 1..=3 {
-            let seen = pool(threads).unwrap().install(|| {
-                let seen = Mutex::new(Vec::new());
-                let parts: Vec<Vec<usize>> =
-                    (0..5).map(|p| (10 * p..10 * p + 3).collect()).collect();
-                run_parts(parts, |part| seen.lock().unwrap().extend(part));
-                seen.into_inner().unwrap()
+            let seen = within_a_minute(move || {
+                pool(threads).unwrap().install(|| {
+                    let seen = Mutex::new(Vec::new());
+                    let parts: Vec<Vec<usize>> =
+                        (0..5).map(|p| (10 * p..10 * p + 3).collect()).collect();
+                    run_parts(parts, |part| seen.lock().unwrap().extend(part));
+                    seen.into_inner().unwrap()
+                })
             });
             let mut seen = seen;
             seen.sort_unstable();
@@ -750,20 +774,43 @@ mod parts_tests {
         }
     }
 
+    /// Wait until `flag` is set, or a second has passed (on one thread no
+    /// other worker ever sets it).
+    fn wait_a_while_for(flag: &AtomicBool) {
+        let start = Instant::now();
+        while !flag.load(Ordering::Acquire) && start.elapsed() < Duration::from_secs(1) {
+            std::thread::yield_now();
+        }
+    }
+
     #[test]
     fn run_parts_and_spin_join_propagate_a_panic_without_hanging() {
+        // The caller's own part (or `a`) waits until another worker has
+        // started the part that panics, so that on two or more threads the
+        // caller waits for a panicking worker.
         for threads in 1..=3 {
             let (parts, join_b, join_a) = within_a_minute(move || {
                 pool(threads).unwrap().install(|| {
+                    let started = AtomicBool::new(false);
                     let parts = catch_unwind(AssertUnwindSafe(|| {
-                        run_parts(vec![0, 1, 2], |p| {
-                            if p == 1 {
+                        run_parts(vec![0, 1, 2], |p| match p {
+                            0 => wait_a_while_for(&started),
+                            1 => {
+                                started.store(true, Ordering::Release);
                                 panic!("part 1");
                             }
+                            _ => {}
                         })
                     }));
+                    let started = AtomicBool::new(false);
                     let join_b = catch_unwind(AssertUnwindSafe(|| {
-                        spin_join(|| 1, || -> u32 { panic!("b") })
+                        spin_join(
+                            || wait_a_while_for(&started),
+                            || -> u32 {
+                                started.store(true, Ordering::Release);
+                                panic!("b")
+                            },
+                        )
                     }));
                     let join_a = catch_unwind(AssertUnwindSafe(|| {
                         spin_join(|| -> u32 { panic!("a") }, || 2)

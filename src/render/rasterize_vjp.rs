@@ -485,8 +485,9 @@ fn check_cotangents<T: Real>(
 /// once, so the result buffer is never zeroed and its fresh pages are first
 /// touched in parallel.
 ///
-/// A frame of at most [`FEW_TILES`] tiles with entries, on two or more
-/// workers, runs in one fixed part per worker of about equal estimated
+/// A frame of at most [`FEW_TILES`] tiles with entries and
+/// [`FEW_GAUSSIANS`] Gaussians, on two or more workers, runs in one fixed
+/// part per worker of about equal estimated
 /// cost ([`crate::threads::balanced_parts`]: a tile costs in proportion to
 /// the records the forward saved for it, see [`tile_cost`]), each part's
 /// jobs in tile order, step 2 among them; the caller waits for the others'
@@ -552,7 +553,7 @@ fn entry_gradients<T: Real>(
             }
         };
     let threads = rayon::current_num_threads();
-    let index = if threads >= 2 && tiles.len() <= FEW_TILES {
+    let index = if threads >= 2 && tiles.len() <= FEW_TILES && saved.len() <= FEW_GAUSSIANS {
         let index = Mutex::new(None);
         let mut jobs: Vec<(u64, Step1<T>)> = Vec::with_capacity(tiles.len() + 1);
         jobs.push((entries_cost(saved), Step1::Entries));
