@@ -220,6 +220,15 @@ proptest! {
 /// EWA formula written out independently.
 #[test]
 fn single_gaussian_pixel_values_by_hand() {
+    // Inside the image; and at its right edge, across the last, 8-pixel
+    // wide, tile column.
+    single_gaussian_by_hand(0.15, -0.1, 0.06);
+    single_gaussian_by_hand(0.33, 0.05, 0.12);
+}
+
+/// One Gaussian at camera-space `(x, y, 2)` of scale `s`: its pixels and the
+/// pairs the backward replays against a formula written out here.
+fn single_gaussian_by_hand(x: f64, y: f64, s: f64) {
     let (w, h) = (40usize, 30usize);
     let (fovx, fovy) = (0.9f64, 0.7f64);
     let cam = Camera::from_w2c(
@@ -232,7 +241,7 @@ fn single_gaussian_pixel_values_by_hand() {
     )
     .unwrap();
     let rc = cam.raster::<f64>();
-    let (x, y, z, s, o) = (0.15, -0.1, 2.0, 0.06, 0.8);
+    let (z, o) = (2.0, 0.8);
     let col = [0.9, 0.4, 0.1];
     let bg = [0.1, 0.2, 0.3];
     let input = RasterInput {
@@ -247,7 +256,7 @@ fn single_gaussian_pixel_values_by_hand() {
         camera: &rc,
         background: bg,
     };
-    let (out, _) = rasterize(&input).unwrap();
+    let (out, saved) = rasterize(&input).unwrap();
     // Independent formula.
     let fx = w as f64 / (2.0 * libm::tan(fovx / 2.0));
     let fy = h as f64 / (2.0 * libm::tan(fovy / 2.0));
@@ -263,12 +272,30 @@ fn single_gaussian_pixel_values_by_hand() {
     let v = h as f64 / 2.0 + fy * y / z - 0.5;
     assert!((out.means2d[0] - u).abs() < 1e-5 && (out.means2d[1] - v).abs() < 1e-5);
     let mut checked = 0;
+    // The pairs the backward replays: in each row, the pixels of every
+    // 16-pixel tile segment in which the Gaussian blends at some pixel.
+    let mut replayed = 0u64;
+    let mut last_column = 0;
     for py in 0..h {
         for px in 0..w {
             let (dx, dy) = (u - px as f64, v - py as f64);
             let alpha =
                 (o * libm::exp(-0.5 * (ia * dx * dx + ic * dy * dy) - ib * dx * dy)).min(0.99);
             let pix = py * w + px;
+            let segment = px / 16 * 16..(px / 16 * 16 + 16).min(w);
+            if alpha >= 1.0 / 255.0
+                && !segment.clone().take_while(|&q| q < px).any(|q| {
+                    let (dx, dy) = (u - q as f64, v - py as f64);
+                    o * libm::exp(-0.5 * (ia * dx * dx + ic * dy * dy) - ib * dx * dy)
+                        >= 1.0 / 255.0
+                })
+            {
+                // The segment's first blending pixel.
+                replayed += segment.len() as u64;
+            }
+            if alpha >= 1.0 / 255.0 && px >= 32 {
+                last_column += 1;
+            }
             if alpha < 1.0 / 255.0 {
                 assert_eq!(out.final_t[pix], 1.0);
                 continue;
@@ -286,4 +313,12 @@ fn single_gaussian_pixel_values_by_hand() {
         }
     }
     assert!(checked > 20, "only {checked} pixels covered");
+    assert_eq!(saved.pairs_replayed(), replayed);
+    assert!(saved.pairs_replayed() < saved.pairs_evaluated());
+    if x > 0.3 {
+        assert!(
+            last_column > 0,
+            "the Gaussian reaches the 8-pixel tile column"
+        );
+    }
 }

@@ -91,11 +91,13 @@ pub fn lpips<T: Real>(w: &lpips::LpipsWeights, size: usize, reps: usize) -> crat
 
 /// Nominal FLOPs of one (pixel, Gaussian) pair, counted from the code of a
 /// pair that blends (f32): forward `power` 8, `exp` 23, alpha and
-/// transmittance 3, colour and depth 12; the backward repeats the forward walk
-/// and adds 35 for the per-pixel gradient (lane reductions not counted).
-/// Rejected pairs cost fewer, so the percentages below are upper bounds on
-/// the FMA units' use.
-pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 81.0];
+/// transmittance 3, colour and depth 12; the backward replays the entries
+/// that blend ([`render::RasterizeSaved::pairs_replayed`]: `power`, `exp`,
+/// alpha and transmittance, 34) and adds 35 for the per-pixel gradient
+/// (lane reductions not counted). Rejected pairs, and the pixels of a
+/// replayed entry that do not blend, cost fewer, so the percentages below
+/// are upper bounds on the FMA units' use.
+pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 69.0];
 
 /// The rasterizer's forward and backward (f32, SH degree 3, exact
 /// gradients) at 800x800/50k, 400x400/20k and 64x64/2.6k Gaussians on each
@@ -126,6 +128,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
         ("fwd ms", 10),
         ("bwd ms", 10),
         ("pairs eval", 12),
+        ("bwd replayed", 12),
         ("fwd pair/s", 11),
         ("bwd pair/s", 11),
         ("fwd %", 6),
@@ -153,12 +156,12 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
             let (fwd, bwd, pairs) = pool.install(|| -> crate::Result<_> {
                 let mut f = harness::Samples::new();
                 let mut b = harness::Samples::new();
-                let mut pairs = 0;
+                let mut pairs = [0; 2];
                 for _ in 0..reps {
                     let (r, t) = harness::timed(|| render::rasterize(&input));
                     let (_, state) = r?;
                     f.push(t);
-                    pairs = state.pairs_evaluated();
+                    pairs = [state.pairs_evaluated(), state.pairs_replayed()];
                     let (r, t) = harness::timed(|| backward(&state));
                     r?;
                     b.push(t);
@@ -178,12 +181,16 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
                 stage_lines.push((format!("{w}x{h} {n}"), threads, stages));
                 Ok((f.min(), b.min(), pairs))
             })?;
-            let rate = [pairs as f64 / fwd, pairs as f64 / bwd];
+            // Both passes' pairs/s count the frame's pairs (the forward's),
+            // so they compare as times do; the backward's FLOP rate counts
+            // the pairs it replays.
+            let rate = [pairs[0] as f64 / fwd, pairs[0] as f64 / bwd];
+            let flop_rate = [
+                rate[0] * RASTER_FLOP_PER_PAIR[0],
+                pairs[1] as f64 / bwd * RASTER_FLOP_PER_PAIR[1],
+            ];
             let pct = |i: usize| match peak {
-                Some((_, g)) => format!(
-                    "{:.1}",
-                    100.0 * rate[i] * RASTER_FLOP_PER_PAIR[i] / (g * 1e9)
-                ),
+                Some((_, g)) => format!("{:.1}", 100.0 * flop_rate[i] / (g * 1e9)),
                 None => "-".into(),
             };
             table.print_row(&[
@@ -191,7 +198,8 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
                 format!("{threads}"),
                 format!("{:.2}", fwd * 1e3),
                 format!("{:.2}", bwd * 1e3),
-                format!("{pairs}"),
+                format!("{}", pairs[0]),
+                format!("{}", pairs[1]),
                 format!("{:.3e}", rate[0]),
                 format!("{:.3e}", rate[1]),
                 pct(0),
@@ -201,8 +209,10 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
     }
     println!(
         "(f32, SH degree 3, exact gradients, minimum over {reps} runs; pairs eval: (pixel, Gaussian) \
-         pairs the forward evaluated, up to each pixel's stop; %: pairs/s x {} (forward) or {} \
-         (backward) FLOP per pair over the FMA peak)",
+         pairs the forward evaluated, up to each pixel's stop, and pair/s of both passes those \
+         pairs over the pass's time; bwd replayed: the pairs the backward evaluates, each row's \
+         pixels of a tile times the entries that blend in one of them; %: FLOP/s over the FMA \
+         peak, {} FLOP per pair evaluated (forward) or {} per pair replayed (backward))",
         RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
     );
     println!(

@@ -201,10 +201,27 @@ impl<T: Real> RasterizeSaved<T> {
     /// it (all of them if none did). Entries a row passes over because they
     /// cannot reach it (`rasterize::candidate_rows`) count too, as pairs
     /// decided without arithmetic; the count does not depend on that
-    /// shortcut. The backward's forward walk evaluates
-    /// the same pairs, then walks back over the blended ones.
+    /// shortcut. The backward evaluates fewer: [`Self::pairs_replayed`].
     pub fn pairs_evaluated(&self) -> u64 {
         self.evaluated
+    }
+    /// (pixel, Gaussian) pairs the backward evaluates: for each image row,
+    /// each tile's pixels in that row times the entries at which at least
+    /// one of them blends (the backward replays those entries, all the
+    /// row's pixels of the tile at once, and walks back over them).
+    pub fn pairs_replayed(&self) -> u64 {
+        let grid_x = self.intr.grid[0] as usize;
+        let width = self.intr.width;
+        let mut total = 0u64;
+        for ends in self.blended_end.chunks(grid_x.max(1)) {
+            let mut start = 0;
+            for (tx, &end) in ends.iter().enumerate() {
+                let pixels = BLOCK.min(width - tx * BLOCK);
+                total += (end - start) as u64 * pixels as u64;
+                start = end;
+            }
+        }
+        total
     }
     /// Gaussian index of each sorted entry (tile-major, then depth, then index).
     pub fn sorted_list(&self) -> &[u32] {
