@@ -9,9 +9,6 @@
 //! read 47–49 ns in quiet minutes and 347–382 ns in the slow periods in
 //! which the rasterizer's two-thread stages slow down (benches/README.md,
 //! "The machine's slow periods"). Linux only (elsewhere it says so).
-use std::sync::atomic::{AtomicU32, Ordering};
-use std::time::Instant;
-
 const BATCHES: usize = 200;
 const TRIPS: u32 = 1_000;
 
@@ -34,30 +31,12 @@ fn main() {
         }
     }
     for _ in 0..5 {
-        let flag = AtomicU32::new(0);
-        // Worker 0 sends odd values and waits for the next even one; worker
-        // 1 answers each odd value with the next even one. Worker 0 times
-        // each batch.
-        let times = pool.broadcast(|ctx| {
-            let mut batches = Vec::with_capacity(BATCHES);
-            for b in 0..BATCHES as u32 {
-                let t = Instant::now();
-                for i in b * TRIPS..(b + 1) * TRIPS {
-                    let (wait_for, send) = if ctx.index() == 0 {
-                        (2 * i, 2 * i + 1)
-                    } else {
-                        (2 * i + 1, 2 * i + 2)
-                    };
-                    while flag.load(Ordering::Acquire) != wait_for {
-                        std::hint::spin_loop();
-                    }
-                    flag.store(send, Ordering::Release);
-                }
-                batches.push(t.elapsed().as_secs_f64() * 1e9 / TRIPS as f64);
-            }
-            batches
-        });
-        let mut t = times[0].clone();
+        let mut t: Vec<f64> = (0..BATCHES)
+            .map(|_| {
+                liquid_splat::bench::harness::round_trip_ns(&pool, TRIPS)
+                    .expect("a pool of 2 threads")
+            })
+            .collect();
         t.sort_by(f64::total_cmp);
         println!(
             "ns per round trip, fastest / median batch: {:.1} / {:.1}",

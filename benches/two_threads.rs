@@ -8,59 +8,48 @@
 //! two-thread times alone go up, so each round:
 //!
 //! 1. waits, for up to two minutes, until a cache line's round trip between
-//!    the two pinned workers takes under 100 ns (the median of a batch of
-//!    2,000; 40–50 ns in quiet minutes on the development VM, 340–400 ns in
-//!    its slow periods);
-//! 2. runs `PASSES` forward and backward passes on one thread, then
-//!    `PASSES` on two, and takes the fastest forward and backward of each;
-//! 3. times the round trip again: a round that ended slow is printed but
-//!    left out of the medians.
+//!    the two pinned workers takes under 100 ns (the median of five batches'
+//!    means, 2,000 round trips a batch; 40–50 ns in quiet minutes on the
+//!    development VM, 340–400 ns in its slow periods);
+//! 2. runs `PASSES` forward and backward passes on one thread and `PASSES`
+//!    on two (one thread first in even rounds, two threads first in odd
+//!    ones), and takes the fastest forward and backward of each;
+//! 3. times the round trip again. A round that did not start quiet (the
+//!    wait ran out) or ended slow is printed but left out of the summary.
 //!
 //! It prints each round's times and two-over-one ratios, then, per
-//! direction, the median and range of the kept rounds' ratios and the ratio
-//! of the fastest passes over all rounds. Linux with pinning and two CPUs
-//! only (elsewhere it says so).
+//! direction, the median (of an even count, the mean of the middle two) and
+//! range of the kept rounds' ratios and the ratio of the fastest passes over
+//! the kept rounds. Linux with pinning and two CPUs only (elsewhere it says
+//! so); with less than two CPUs' worth of time, every round waits out its
+//! two minutes.
+use liquid_splat::bench::harness;
 use liquid_splat::render::{self, scene};
-use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::{Duration, Instant};
 
-/// The round trip (ns, median of a batch) under which a minute is quiet.
+/// The round trip (ns, see [`round_trip_ns`]) under which a minute is quiet.
 const QUIET_NS: f64 = 100.0;
-/// Round trips per batch of [`round_trip_ns`].
-const TRIPS: u32 = 2_000;
 
-/// The median over 5 batches of the ns per round trip of one atomic
-/// between the pool's two workers.
+/// The ns per round trip of one atomic between the pool's two workers: the
+/// median of 5 batches' means, 2,000 round trips a batch.
 fn round_trip_ns(pool: &rayon::ThreadPool) -> f64 {
-    let mut batches: Vec<f64> = (0..5)
-        .map(|_| {
-            let flag = AtomicU32::new(0);
-            let times = pool.broadcast(|ctx| {
-                let t = Instant::now();
-                for i in 0..TRIPS {
-                    let (wait_for, send) = if ctx.index() == 0 {
-                        (2 * i, 2 * i + 1)
-                    } else {
-                        (2 * i + 1, 2 * i + 2)
-                    };
-                    while flag.load(Ordering::Acquire) != wait_for {
-                        std::hint::spin_loop();
-                    }
-                    flag.store(send, Ordering::Release);
-                }
-                t.elapsed().as_secs_f64() * 1e9 / TRIPS as f64
-            });
-            times[0]
-        })
+    let batches = (0..5)
+        .map(|_| harness::round_trip_ns(pool, 2_000).expect("a pool of 2 threads"))
         .collect();
-    batches.sort_by(f64::total_cmp);
-    batches[batches.len() / 2]
+    spread(batches).0
 }
 
-/// The median, smallest and largest of `v` (not empty).
+/// The median (of an even count, the mean of the middle two), smallest and
+/// largest of `v` (not empty).
 fn spread(mut v: Vec<f64>) -> (f64, f64, f64) {
     v.sort_by(f64::total_cmp);
-    (v[v.len() / 2], v[0], v[v.len() - 1])
+    let k = v.len();
+    let median = if k % 2 == 1 {
+        v[k / 2]
+    } else {
+        (v[k / 2 - 1] + v[k / 2]) / 2.0
+    };
+    (median, v[0], v[k - 1])
 }
 
 fn main() {
@@ -111,28 +100,41 @@ fn main() {
     let mut kept = [Vec::new(), Vec::new()];
     let mut best = [[f64::MAX; 2]; 2];
     for r in 0..rounds {
-        let waited = Instant::now();
-        while round_trip_ns(&pools[1]) >= QUIET_NS && waited.elapsed() < Duration::from_secs(120) {
+        let start = Instant::now();
+        let mut started_quiet = round_trip_ns(&pools[1]) < QUIET_NS;
+        while !started_quiet && start.elapsed() < Duration::from_secs(120) {
             std::thread::sleep(Duration::from_millis(500));
+            started_quiet = round_trip_ns(&pools[1]) < QUIET_NS;
         }
-        let one = fastest(&pools[0]);
-        let two = fastest(&pools[1]);
+        let waited = start.elapsed().as_secs_f64();
+        let (one, two) = if r % 2 == 0 {
+            let one = fastest(&pools[0]);
+            (one, fastest(&pools[1]))
+        } else {
+            let two = fastest(&pools[1]);
+            (fastest(&pools[0]), two)
+        };
         let after = round_trip_ns(&pools[1]);
         let ratio = [one[0] / two[0], one[1] / two[1]];
-        let quiet = after < QUIET_NS;
+        let kept_round = started_quiet && after < QUIET_NS;
         println!(
             "round {r}: forward {:.4} / {:.4} ({:.3}x), backward {:.4} / {:.4} ({:.3}x); \
-             waited {:.0} s, round trip after {after:.0} ns{}",
+             waited {waited:.0} s, round trip after {after:.0} ns{}",
             one[0],
             two[0],
             ratio[0],
             one[1],
             two[1],
             ratio[1],
-            waited.elapsed().as_secs_f64(),
-            if quiet { "" } else { " (slow: left out)" }
+            if !started_quiet {
+                " (no quiet start: left out)"
+            } else if after >= QUIET_NS {
+                " (ended slow: left out)"
+            } else {
+                ""
+            }
         );
-        if quiet {
+        if kept_round {
             for d in 0..2 {
                 kept[d].push(ratio[d]);
                 best[0][d] = best[0][d].min(one[d]);
@@ -141,14 +143,14 @@ fn main() {
         }
     }
     if kept[0].is_empty() {
-        println!("every round ended slow: no summary");
+        println!("no round started and ended quiet: no summary");
         return;
     }
     for (d, name) in ["forward", "backward"].iter().enumerate() {
         let (med, lo, hi) = spread(kept[d].clone());
         println!(
-            "{name}: two over one, median of {} rounds {med:.3}x ({lo:.3}-{hi:.3}x); \
-             fastest passes {:.4} / {:.4} ms ({:.3}x)",
+            "{name}: two over one, median of {} kept rounds {med:.3}x ({lo:.3}-{hi:.3}x); \
+             their fastest passes {:.4} / {:.4} ms ({:.3}x)",
             kept[d].len(),
             best[0][d],
             best[1][d],

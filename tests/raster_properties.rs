@@ -220,8 +220,8 @@ proptest! {
 /// EWA formula written out independently.
 #[test]
 fn single_gaussian_pixel_values_by_hand() {
-    // Inside the image; and at its right edge, across the last, 8-pixel
-    // wide, tile column.
+    // Inside the image; and reaching into its last tile column, 8 pixels
+    // wide.
     single_gaussian_by_hand(0.15, -0.1, 0.06);
     single_gaussian_by_hand(0.33, 0.05, 0.12);
 }

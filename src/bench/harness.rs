@@ -1,9 +1,11 @@
 //! The benchmark harness shared by `liquid-splat bench` and `benches/`:
 //! timing (untimed warm-up runs, repetitions, median and fastest), the
 //! machine and thread description every measurement is printed with, the
-//! machine's FMA peak, process CPU time, and fixed-width tables.
+//! machine's FMA peak, a cache line's round trip between two workers,
+//! process CPU time, and fixed-width tables.
 
 use crate::error::{Error, Result};
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::time::Instant;
 
 /// Wall-clock times of the repetitions of one measurement, in seconds.
@@ -206,6 +208,40 @@ mod peak {
     }
 }
 
+/// Nanoseconds per round trip of one atomic between workers 0 and 1 of
+/// `pool`, over `trips` round trips timed by worker 0 after one untimed
+/// trip (which both workers reach wherever the pool started them): worker
+/// 0 writes each odd value and waits for the next even one, which worker 1
+/// writes on seeing it. `None` for a pool of fewer than two workers, or
+/// for no trips.
+pub fn round_trip_ns(pool: &rayon::ThreadPool, trips: u32) -> Option<f64> {
+    if pool.current_num_threads() < 2 || trips == 0 {
+        return None;
+    }
+    let flag = AtomicU32::new(0);
+    let times = pool.broadcast(|ctx| {
+        let mut start = Instant::now();
+        if ctx.index() < 2 {
+            for i in 0..=trips {
+                if i == 1 {
+                    start = Instant::now();
+                }
+                let (wait_for, send) = if ctx.index() == 0 {
+                    (2 * i, 2 * i + 1)
+                } else {
+                    (2 * i + 1, 2 * i + 2)
+                };
+                while flag.load(Ordering::Acquire) != wait_for {
+                    std::hint::spin_loop();
+                }
+                flag.store(send, Ordering::Release);
+            }
+        }
+        start.elapsed().as_secs_f64() * 1e9 / trips as f64
+    });
+    Some(times[0])
+}
+
 /// CPU time of the whole process (all threads) in seconds; `None` where not
 /// available. On a shared machine, CPU time ÷ threads estimates the wall
 /// time the same work would take with the cores to itself.
@@ -284,6 +320,24 @@ impl Table {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn round_trip_needs_two_workers_and_returns_a_time() {
+        let one = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .unwrap();
+        assert_eq!(round_trip_ns(&one, 100), None);
+        // Three workers: the third takes no part and does not hold up the
+        // other two.
+        let three = rayon::ThreadPoolBuilder::new()
+            .num_threads(3)
+            .build()
+            .unwrap();
+        let ns = round_trip_ns(&three, 200).expect("a pool of three");
+        assert!(ns.is_finite() && ns > 0.0, "{ns}");
+        assert_eq!(round_trip_ns(&three, 0), None);
+    }
 
     #[test]
     fn median_min_and_table_layout() {

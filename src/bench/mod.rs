@@ -94,9 +94,11 @@ pub fn lpips<T: Real>(w: &lpips::LpipsWeights, size: usize, reps: usize) -> crat
 /// transmittance 3, colour and depth 12; the backward replays the entries
 /// that blend ([`render::RasterizeSaved::pairs_replayed`]: `power`, `exp`,
 /// alpha and transmittance, 34) and adds 35 for the per-pixel gradient
-/// (lane reductions not counted). Rejected pairs, and the pixels of a
-/// replayed entry that do not blend, cost fewer, so the percentages below
-/// are upper bounds on the FMA units' use.
+/// (lane reductions not counted). These count the per-pair work only, per
+/// pixel: the forward's rejected pairs cost fewer FLOPs, and the rest of
+/// each pass (the binning, the backward's per-Gaussian sums and chain rule)
+/// counts none, so the percentages below are not a bound on the whole
+/// pass's use of the FMA units.
 pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 69.0];
 
 /// The rasterizer's forward and backward (f32, SH degree 3, exact

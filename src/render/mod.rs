@@ -201,7 +201,8 @@ impl<T: Real> RasterizeSaved<T> {
     /// it (all of them if none did). Entries a row passes over because they
     /// cannot reach it (`rasterize::candidate_rows`) count too, as pairs
     /// decided without arithmetic; the count does not depend on that
-    /// shortcut. The backward evaluates fewer: [`Self::pairs_replayed`].
+    /// shortcut. The backward usually evaluates fewer
+    /// ([`Self::pairs_replayed`]).
     pub fn pairs_evaluated(&self) -> u64 {
         self.evaluated
     }
