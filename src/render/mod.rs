@@ -212,14 +212,12 @@ impl<T: Real> RasterizeSaved<T> {
     /// row's pixels of the tile at once, and walks back over them).
     pub fn pairs_replayed(&self) -> u64 {
         let grid_x = self.intr.grid[0] as usize;
-        let width = self.intr.width;
+        let (w, h) = (self.intr.width, self.intr.height);
         let mut total = 0u64;
-        for ends in self.blended_end.chunks(grid_x.max(1)) {
-            let mut start = 0;
-            for (tx, &end) in ends.iter().enumerate() {
-                let pixels = BLOCK.min(width - tx * BLOCK);
-                total += (end - start) as u64 * pixels as u64;
-                start = end;
+        for py in 0..h {
+            for tx in 0..grid_x {
+                let entries = rasterize::row_tile_entries(&self.blended_end, grid_x, py, tx).len();
+                total += (entries * BLOCK.min(w - tx * BLOCK)) as u64;
             }
         }
         total

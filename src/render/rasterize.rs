@@ -523,6 +523,21 @@ pub(crate) struct RowOut<'a, T> {
     pub blended_end: &'a mut [MaybeUninit<u32>],
 }
 
+/// The positions in image row `py`'s saved [`Blended`] entries of tile
+/// column `tx`'s, from the rows' per-tile ends (`[H, grid_x]`, as
+/// [`RowOut::blended_end`] writes them: each row's ends restart from 0).
+#[inline(always)]
+pub(crate) fn row_tile_entries(
+    blended_end: &[u32],
+    grid_x: usize,
+    py: usize,
+    tx: usize,
+) -> std::ops::Range<usize> {
+    let ends = &blended_end[py * grid_x..(py + 1) * grid_x];
+    let start = if tx == 0 { 0 } else { ends[tx - 1] as usize };
+    start..ends[tx] as usize
+}
+
 /// What every row of a frame reads.
 pub(crate) struct Frame<'a, T> {
     /// The gathered list of every tile, in list order.

@@ -48,6 +48,7 @@ use super::project::{self, ProjectedGrad};
 use super::rasterize::{
     self as raster, lane_x, replay_row, Blend, Blended, Record, Row, Splat, LANES,
 };
+use super::tiles;
 use super::transpose::RowMover;
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
 use crate::error::{Error, Result};
@@ -187,6 +188,9 @@ fn tile_vjp_body<V: Lanes>(
     let nx = x1 - x0;
     let hw = job.width * job.height;
     for py in y0..y1 {
+        // `raster::row_tile_entries`, written out: through the helper this
+        // loop compiled differently and the 64×64 backward measured 3–5%
+        // slower.
         let ends = &job.blended_end[py * job.grid_x..(py + 1) * job.grid_x];
         let start = if job.tx == 0 {
             0
@@ -485,8 +489,8 @@ fn check_cotangents<T: Real>(
 /// once, so the result buffer is never zeroed and its fresh pages are first
 /// touched in parallel.
 ///
-/// A frame of at most [`FEW_TILES`] tiles with entries and
-/// [`FEW_GAUSSIANS`] Gaussians, on two or more workers, runs in one fixed
+/// A small frame on two or more workers ([`tiles::two_runs_apply`]) with at
+/// most [`FEW_TILES`] tiles with entries runs in one fixed
 /// part per worker of about equal estimated
 /// cost ([`crate::threads::balanced_parts`]: a tile costs in proportion to
 /// the records the forward saved for it, see [`tile_cost`]), each part's
@@ -553,7 +557,7 @@ fn entry_gradients<T: Real>(
             }
         };
     let threads = rayon::current_num_threads();
-    let index = if threads >= 2 && tiles.len() <= FEW_TILES && saved.len() <= FEW_GAUSSIANS {
+    let index = if tiles::two_runs_apply(saved.len()) && tiles.len() <= FEW_TILES {
         let index = Mutex::new(None);
         let mut jobs: Vec<(u64, Step1<T>)> = Vec::with_capacity(tiles.len() + 1);
         jobs.push((entries_cost(saved), Step1::Entries));
@@ -631,14 +635,10 @@ fn tile_cost<T: Real>(saved: &RasterizeSaved<T>, tile: usize) -> u64 {
     let grid_x = saved.intr.grid[0] as usize;
     let tx = tile % grid_x;
     let [_, _, y0, y1] = raster::tile_bounds(tile, grid_x, saved.intr.width, saved.intr.height);
-    let records: u64 = (y0..y1)
-        .map(|py| {
-            let ends = &saved.blended_end[py * grid_x..(py + 1) * grid_x];
-            let start = if tx == 0 { 0 } else { ends[tx - 1] };
-            (ends[tx] - start) as u64
-        })
+    let records: usize = (y0..y1)
+        .map(|py| raster::row_tile_entries(&saved.blended_end, grid_x, py, tx).len())
         .sum();
-    16 * records
+    16 * records as u64
 }
 
 /// The estimated cost of step 2 in nanoseconds, as [`tile_cost`]'s: about
@@ -744,10 +744,13 @@ fn gaussian_gradients<T: Real>(
         rotations: Vec::with_capacity(rot_w * n),
     };
     // Chunks of at most `CHUNK` Gaussians, none across the start of a
-    // fixed part of `part_len` (one part per worker for a small frame, see
-    // `FEW_GAUSSIANS`; else one).
+    // fixed part of `part_len` (one part per worker for a small frame on
+    // two or more workers, `tiles::two_runs_apply`; else one). There, step
+    // 3 runs in one part of consecutive Gaussians per worker, each part's
+    // chunks in turn, the caller waiting for the others' parts by spinning
+    // (`threads::run_parts`); elsewhere in chunks as rayon hands them out.
     let threads = rayon::current_num_threads();
-    let few = threads >= 2 && n <= FEW_GAUSSIANS;
+    let few = tiles::two_runs_apply(n);
     let part_len = if few { n.div_ceil(threads) } else { n }.max(1);
     let mut chunks = Vec::with_capacity(n.div_ceil(CHUNK) + threads);
     {
@@ -846,15 +849,6 @@ fn gaussian_gradients<T: Real>(
     }
     grads
 }
-
-/// At most this many Gaussians, on two or more workers, step 3 runs in one
-/// fixed part of consecutive Gaussians per worker, each part's chunks in
-/// turn, the caller waiting for the others' parts by spinning
-/// ([`crate::threads::run_parts`]); more, in chunks as rayon hands them
-/// out. The bound of the two-half binning (`tiles::two_runs_apply`): the
-/// small frames, where the waits between steps are a large share of a
-/// pass.
-const FEW_GAUSSIANS: usize = 8192;
 
 /// What the chain rule of step 3 reads besides the entry sums.
 struct Ctx<'a, T> {
