@@ -203,6 +203,9 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
 /// mispredicted about half the time. (Merging and writing in one loop with
 /// a branch, as before, took 0.9 µs more per task on the 64×64 bench frame,
 /// benches/README.md.)
+// (Kept out of line: inlined into the forward, it left the blend 1–2%
+// slower on one thread and on two, in a build where nothing else changed.)
+#[inline(never)]
 pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
     runs: [Run<K>; 2],
     payload: &[P],
