@@ -35,6 +35,7 @@
 
 use super::project::Projected;
 use crate::error::{Error, Result};
+use crate::kernels::prefetch_value;
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -229,7 +230,11 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
         || {
             let cut = middle_cut(&runs);
             let mut next: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
-            for &(g, r) in &merged(&runs, [0, 0], cut) {
+            let order = merged(&runs, [0, 0], cut);
+            for (x, &(g, r)) in order.iter().enumerate() {
+                if let Some(&(ahead, _)) = order.get(x + PREFETCH_AHEAD) {
+                    prefetch_value(payload, ahead as usize);
+                }
                 for t in out.tiles(r) {
                     let s = next[t];
                     next[t] += 1;
@@ -245,7 +250,11 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
         || {
             let cut = middle_cut(&runs);
             let mut end: Vec<u32> = ranges.iter().map(|r| r[1]).collect();
-            for &(g, r) in merged(&runs, cut, [a.len(), b.len()]).iter().rev() {
+            let order = merged(&runs, cut, [a.len(), b.len()]);
+            for (x, &(g, r)) in order.iter().enumerate().rev() {
+                if let Some(ahead) = x.checked_sub(PREFETCH_AHEAD) {
+                    prefetch_value(payload, order[ahead].0 as usize);
+                }
                 for t in out.tiles(r) {
                     end[t] -= 1;
                     // SAFETY: see the first task.
@@ -263,6 +272,12 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
     }
     Ok((Binning { list, ranges }, gathered))
 }
+
+/// How many keys ahead in its merged order each task of [`merge_runs`] asks
+/// for a key's payload: half of the payloads were written by the other
+/// core, and the gather reads them in depth order, which the hardware
+/// prefetcher does not follow. (4 and 8 measured alike; 16 less good.)
+const PREFETCH_AHEAD: usize = 8;
 
 /// The cut of the two runs' merged order at its middle (after its first
 /// `k` = half the keys), as the number of keys of each run before it: a
