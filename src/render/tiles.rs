@@ -133,8 +133,7 @@ pub(crate) fn two_runs_apply(n: usize) -> bool {
 }
 
 /// One piece of the Gaussians (consecutive indices) that touch a tile,
-/// sorted by `(depth bits, index)`, with their entries per tile and their
-/// number per coarse depth bucket ([`Key::bucket`]).
+/// sorted by `(depth bits, index)`, with their entries per tile.
 pub(crate) struct Run<K> {
     /// Sorted keys, between a first key below every real one (0: a
     /// Gaussian that touches a tile has depth above 0.2, so non-zero depth
@@ -162,7 +161,6 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
     for (i, p) in piece.iter().enumerate() {
         if touches_a_tile(p) {
             let k = K::new(p.depth.bits(), (first + i) as u32);
-            debug_assert!(k > K::FIRST && k < K::LAST, "a key between the bounds");
             keys.push(k);
             count_tiles(std::iter::once(rect_of(p)), grid[0], &mut counts);
         }
@@ -199,7 +197,7 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
 /// copied as it is written.
 ///
 /// Each task puts its keys in merged order before it writes any entry
-/// ([`merged`]), as two merges at once with no branch on which run the
+/// ([`merged`]), as two merges at once with no branch in the source on which run the
 /// next key comes from: that varies from key to key, so a branch would be
 /// mispredicted about half the time. (Merging and writing in one loop with
 /// a branch, as before, took 0.9 µs more per task on the 64×64 bench frame,
@@ -214,6 +212,16 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
 ) -> Result<(Binning, Vec<P>)> {
     let [a, b] = &runs;
     debug_assert_eq!(a.counts.len(), b.counts.len(), "runs of one grid");
+    // The merges rely on the bounds (a real key equal to one could be
+    // passed over, leaving slots unwritten): checked at the sorted runs'
+    // ends.
+    for r in &runs {
+        let real = &r.keys[1..r.keys.len() - 1];
+        assert!(
+            real.first().is_none_or(|&k| k > K::FIRST) && real.last().is_none_or(|&k| k < K::LAST),
+            "a Gaussian that touches a tile has a key strictly between the bounds"
+        );
+    }
     let totals = a.counts.iter().zip(&b.counts);
     let ranges = tile_ranges(totals.map(|(&ka, &kb)| ka as u64 + kb as u64))?;
     let total = ranges.last().map_or(0, |r| r[1]) as usize;
@@ -302,7 +310,7 @@ fn middle_cut<K: Key>(runs: &[Run<K>; 2]) -> [usize; 2] {
 
 /// One step of a merge upwards: the smaller of the runs' keys at `i` and
 /// `j` (positions in `keys`), its Gaussian and rectangle, and its run's
-/// position moved on; no branch.
+/// position moved on; a select, not a branch, in the source.
 #[inline(always)]
 fn step_up<K: Key>(runs: &[Run<K>; 2], i: &mut usize, j: &mut usize) -> (u32, [u32; 4]) {
     let [a, b] = runs;
@@ -318,7 +326,7 @@ fn step_up<K: Key>(runs: &[Run<K>; 2], i: &mut usize, j: &mut usize) -> (u32, [u
 }
 
 /// One step of a merge downwards: the larger of the runs' keys before `i`
-/// and `j`, and its run's position moved back; no branch.
+/// and `j`, and its run's position moved back; a select, as in [`step_up`].
 #[inline(always)]
 fn step_down<K: Key>(runs: &[Run<K>; 2], i: &mut usize, j: &mut usize) -> (u32, [u32; 4]) {
     let [a, b] = runs;
@@ -333,9 +341,10 @@ fn step_down<K: Key>(runs: &[Run<K>; 2], i: &mut usize, j: &mut usize) -> (u32, 
     e
 }
 
-/// The keys of the runs between the cuts `from` and `to` (keys of each run
-/// before them; `to` not before `from` in either), in merged order, as
-/// each one's Gaussian and tile rectangle.
+/// The keys of the runs between the cuts `from` and `to` of their merged
+/// order (keys of each run before them; `to` not before `from` in either;
+/// each a cut of the merged order, every key before it preceding every key
+/// after it), in merged order, as each one's Gaussian and tile rectangle.
 ///
 /// Two merges at once, half of the keys each: one upwards from `from`,
 /// one downwards from `to`. A merge that has taken all of one run's keys
@@ -825,6 +834,65 @@ mod tests {
             err.contains("Gaussians") && err.contains("4294967295"),
             "{err}"
         );
+    }
+
+    /// Every interleaving of two runs of up to 6 keys each: the middle cut
+    /// holds half the keys, and the two parts' merged orders, one after the
+    /// other, are the sorted order, each key with its own rectangle.
+    fn cut_and_merge_every_interleaving<K: Key>() {
+        for na in 0..=6usize {
+            for nb in 0..=6usize {
+                let n = na + nb;
+                for mask in 0u32..1 << n {
+                    if mask.count_ones() as usize != na {
+                        continue;
+                    }
+                    // Position `p` of the merged order has depth bits
+                    // `p + 1`; the first run holds the lower indices.
+                    let (mut ka, mut kb, mut want) = (vec![], vec![], vec![]);
+                    for p in 0..n {
+                        let (keys, index) = if mask >> p & 1 == 1 {
+                            let i = ka.len();
+                            (&mut ka, i)
+                        } else {
+                            let i = na + kb.len();
+                            (&mut kb, i)
+                        };
+                        keys.push(K::new(p as u64 + 1, index as u32));
+                        want.push((index as u32, [index as u32, p as u32, 7, 9]));
+                    }
+                    let run = |keys: Vec<K>| {
+                        let mut rects = vec![[0; 4]];
+                        rects.extend(
+                            want.iter()
+                                .filter(|w| keys.iter().any(|k| k.index() == w.0))
+                                .map(|w| w.1),
+                        );
+                        rects.push([0; 4]);
+                        let mut padded = vec![K::FIRST];
+                        padded.extend(keys);
+                        padded.push(K::LAST);
+                        Run {
+                            keys: padded,
+                            rects,
+                            counts: Vec::new(),
+                        }
+                    };
+                    let runs = [run(ka), run(kb)];
+                    let cut = middle_cut(&runs);
+                    assert_eq!(cut[0] + cut[1], n / 2, "na {na}, nb {nb}, mask {mask:b}");
+                    let mut got = merged(&runs, [0, 0], cut);
+                    got.extend(merged(&runs, cut, [na, nb]));
+                    assert_eq!(got, want, "na {na}, nb {nb}, mask {mask:b}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn middle_cut_and_merged_on_every_interleaving() {
+        cut_and_merge_every_interleaving::<u64>();
+        cut_and_merge_every_interleaving::<u128>();
     }
 
     /// Two runs merged against the serial definition on imbalanced inputs
