@@ -189,7 +189,7 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
 /// The merge of two runs sorted by `(depth bits, index)`, with distinct
 /// indices, is the one sorted order. After the tiles' ranges (the prefix
 /// sum of the runs' counts), two tasks split that order at its middle
-/// ([`middle_cut`], found by each) with no hand-off: one merges the keys
+/// ([`middle_cut`]) with no hand-off: one merges the keys
 /// before the cut and writes their entries from each tile's first slot
 /// upwards, the other merges the rest and writes their entries from each
 /// tile's last slot downwards, last key first. Every tile's entries are
@@ -234,9 +234,9 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
         payload,
         grid_x: grid[0],
     };
+    let cut = middle_cut(&runs);
     crate::threads::spin_join(
         || {
-            let cut = middle_cut(&runs);
             let mut next: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
             let order = merged(&runs, [0, 0], cut);
             for (x, &(g, r)) in order.iter().enumerate() {
@@ -256,7 +256,6 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
             }
         },
         || {
-            let cut = middle_cut(&runs);
             let mut end: Vec<u32> = ranges.iter().map(|r| r[1]).collect();
             let order = merged(&runs, cut, [a.len(), b.len()]);
             for (x, &(g, r)) in order.iter().enumerate().rev() {
