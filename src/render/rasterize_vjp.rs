@@ -18,14 +18,16 @@
 //! reverse, each lane applying the per-pixel rule above (lanes that did not
 //! blend an entry contribute exactly zero to it and keep their state).
 //!
-//! [`rasterize_vjp`] runs in three named steps: [`entry_gradients`] (per
-//! tile, one [`EntryGrad`] per list entry), [`gaussian_entries`] (each
+//! [`rasterize_vjp`] runs in three named steps: [`Steps::entry_gradients`]
+//! (per tile, one [`EntryGrad`] per list entry), [`gaussian_entries`] (each
 //! Gaussian's entries in ascending list position; serial, run beside the
-//! first step) and [`gaussian_gradients`] (per Gaussian, the sum of its
-//! entries and the chain rule through the projection, the colour and the 3D
-//! covariance; in chunks of [`CHUNK`] Gaussians, each task forming its
-//! chunk's sums first and then writing every output of its chunk once, into
-//! result buffers that are never zeroed beforehand). The chain rule runs
+//! first step) and [`Steps::gaussian_gradients`] (per Gaussian, the sum of
+//! its entries and the chain rule through the projection, the colour and
+//! the 3D covariance; in chunks of [`CHUNK`] Gaussians, each task forming
+//! its chunk's sums first and then writing every output of its chunk once,
+//! into result buffers that are never zeroed beforehand). A small frame on
+//! two or more threads runs the same steps in one fixed part per worker
+//! ([`Steps::in_fixed_parts`]). The chain rule runs
 //! several Gaussians per vector, each lane computing exactly the scalar
 //! operations of its Gaussian ([`crate::math::pack::Arith`]), so the bits do
 //! not depend on the width: in f32, 16 Gaussians in one AVX-512 register or
@@ -50,7 +52,7 @@ use super::rasterize::{
 };
 use super::tiles;
 use super::transpose::RowMover;
-use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved};
+use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved, BLOCK};
 use crate::error::{Error, Result};
 use crate::kernels::{filled, prefetch, prefetch_value};
 use crate::math::covariance::{cov3d_vjp, cov3d_vjp_scaled};
@@ -59,7 +61,7 @@ use crate::math::sh::{coeffs_for_degree, color_vjp};
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
-use std::sync::Mutex;
+use std::sync::OnceLock;
 
 /// The gradient one list entry (a Gaussian in one tile) receives from the
 /// tile's pixels. In [`GradientMode::Inria`] the centre gradient is already
@@ -429,12 +431,35 @@ pub fn rasterize_vjp<T: Real>(
     mode: GradientMode,
 ) -> Result<RasterGrads<T>> {
     check_cotangents(input, saved, grad_color, grad_depth)?;
+    let steps = Steps {
+        input,
+        saved,
+        grad_color,
+        grad_depth,
+        mode,
+        grid_x: saved.intr.grid[0] as usize,
+    };
     // The pool's workers keep polling for work between the steps
     // (`threads::keep_awake`).
     Ok(crate::threads::keep_awake(|| {
-        let (entry, (start, index)) = entry_gradients(input, saved, grad_color, grad_depth, mode);
+        let m = saved.num_rendered();
+        let mut entry: Vec<EntryGrad<T>> = Vec::with_capacity(m);
+        let slots = entry.spare_capacity_mut()[..m].as_mut_ptr();
+        // SAFETY: `slots` points to `entry`'s first `m` spare slots, which
+        // from here on are reached only through it (and `entry` is neither
+        // read nor resized before the last use of the pieces).
+        let tiles = tile_pieces(saved, unsafe { std::slice::from_raw_parts_mut(slots, m) });
+        if tiles::two_runs_apply(saved.len()) && tiles.len() <= FEW_TILES {
+            return steps.in_fixed_parts(tiles, Written(slots.cast_const().cast(), m));
+        }
+        let (start, index) = steps.entry_gradients(tiles);
+        // SAFETY: the tile pieces are consecutive pieces of `entry`'s first
+        // `m` spare slots that together cover all of them (`tile_pieces`),
+        // and every job wrote each slot of its piece; a panic in a job
+        // propagates before this line, leaving `entry` empty.
+        unsafe { entry.set_len(m) };
         super::stages::mark("tiles, entry index");
-        let grads = gaussian_gradients(input, saved, &entry, &start, &index, mode);
+        let grads = steps.gaussian_gradients(&entry, &start, &index);
         super::stages::mark("per Gaussian");
         grads
     }))
@@ -482,34 +507,25 @@ fn check_cotangents<T: Real>(
     Ok(())
 }
 
-/// Step 1, per tile in parallel: the gradient of every list entry, each the
-/// sum over the tile's rows in ascending order (see the module docs); with
-/// step 2 ([`gaussian_entries`], serial) run beside it. Each tile
-/// accumulates in a scratch buffer of its worker and writes its entries
-/// once, so the result buffer is never zeroed and its fresh pages are first
-/// touched in parallel.
-///
-/// A small frame on two or more workers ([`tiles::two_runs_apply`]) with at
-/// most [`FEW_TILES`] tiles with entries runs in one fixed
-/// part per worker of about equal estimated
-/// cost ([`crate::threads::balanced_parts`]: a tile costs in proportion to
-/// the records the forward saved for it, see [`tile_cost`]), each part's
-/// jobs in tile order, step 2 among them; the caller waits for the others'
-/// parts by spinning ([`crate::threads::run_parts`]). Larger frames hand
-/// out pieces of at most 2 tiles as rayon splits them, with step 2 beside.
-/// Which worker computes a tile changes no result.
-fn entry_gradients<T: Real>(
-    input: &RasterInput<T>,
-    saved: &RasterizeSaved<T>,
-    grad_color: &[T],
-    grad_depth: Option<&[T]>,
+/// What the backward's steps read: the forward's input and state, the
+/// cotangents and the mode.
+struct Steps<'a, T> {
+    input: &'a RasterInput<'a, T>,
+    saved: &'a RasterizeSaved<T>,
+    grad_color: &'a [T],
+    grad_depth: Option<&'a [T]>,
     mode: GradientMode,
-) -> (Vec<EntryGrad<T>>, GaussianEntries) {
-    let (w, h) = (saved.intr.width, saved.intr.height);
-    let grid_x = saved.intr.grid[0] as usize;
-    let m = saved.num_rendered();
-    let mut entry: Vec<EntryGrad<T>> = Vec::with_capacity(m);
-    let mut rest: &mut [MaybeUninit<EntryGrad<T>>] = &mut entry.spare_capacity_mut()[..m];
+    /// Tiles per row.
+    grid_x: usize,
+}
+
+/// One piece per tile with entries of `slots` (the whole list's entry
+/// gradients, not yet written), in tile order.
+fn tile_pieces<'a, T: Real>(
+    saved: &RasterizeSaved<T>,
+    mut slots: &'a mut [MaybeUninit<EntryGrad<T>>],
+) -> Vec<TilePiece<'a, T>> {
+    let m = slots.len();
     let mut tiles = Vec::with_capacity(saved.binning.ranges.len());
     let mut pos = 0usize;
     for (tile, r) in saved.binning.ranges.iter().enumerate() {
@@ -519,95 +535,211 @@ fn entry_gradients<T: Real>(
         if e == s {
             continue;
         }
-        let (head, tail) = rest.split_at_mut(e - s);
+        let (head, tail) = std::mem::take(&mut slots).split_at_mut(e - s);
         tiles.push(TilePiece {
             tile,
             start: s,
             out: head,
         });
-        rest = tail;
+        slots = tail;
         pos = e;
     }
     assert!(pos == m, "tile ranges do not cover the list");
-    let tile_job =
-        |rec: &mut Vec<Record<T>>, scratch: &mut Vec<EntryGrad<T>>, t: TilePiece<'_, T>| {
-            let job = TileJob {
-                splats: &saved.splats[t.start..t.start + t.out.len()],
-                blended: &saved.blended,
-                blended_end: &saved.blended_end,
-                grid_x,
-                tx: t.tile % grid_x,
-                bounds: raster::tile_bounds(t.tile, grid_x, w, h),
-                width: w,
-                height: h,
-                bg: input.background,
-                grad_color,
-                grad_depth,
-                mode,
-            };
-            scratch.clear();
-            scratch.resize(t.out.len(), EntryGrad::ZERO);
-            // The rows replay only the entries they blended, a sparse walk the
-            // hardware prefetcher does not follow: ask for the tile's whole
-            // gathered list first.
-            prefetch(job.splats, 0, job.splats.len());
-            tile_vjp(&job, scratch, rec);
-            for (o, g) in t.out.iter_mut().zip(scratch.iter()) {
-                o.write(*g);
-            }
+    tiles
+}
+
+/// The whole list's entry gradients, for step 3 of [`Steps::in_fixed_parts`]
+/// to read once step 1 has written them through its pieces.
+struct Written<T>(*const EntryGrad<T>, usize);
+
+// SAFETY: only read (`Written::get`), and only after every write.
+unsafe impl<T: Sync> Sync for Written<T> {}
+
+impl<T> Written<T> {
+    /// # Safety
+    /// Every one of the slots has been written, and none is written while
+    /// the slice lives.
+    unsafe fn get(&self) -> &[EntryGrad<T>] {
+        // SAFETY: as the caller promises; `self.0` points to `self.1`
+        // slots of one allocation.
+        unsafe { std::slice::from_raw_parts(self.0, self.1) }
+    }
+}
+
+impl<T: Real> Steps<'_, T> {
+    /// Step 1 for one tile: its entries' gradients, written once into its
+    /// piece (accumulated in `scratch`, a buffer of its worker).
+    fn tile(&self, rec: &mut Vec<Record<T>>, scratch: &mut Vec<EntryGrad<T>>, t: TilePiece<'_, T>) {
+        let saved = self.saved;
+        let (w, h) = (saved.intr.width, saved.intr.height);
+        let job = TileJob {
+            splats: &saved.splats[t.start..t.start + t.out.len()],
+            blended: &saved.blended,
+            blended_end: &saved.blended_end,
+            grid_x: self.grid_x,
+            tx: t.tile % self.grid_x,
+            bounds: raster::tile_bounds(t.tile, self.grid_x, w, h),
+            width: w,
+            height: h,
+            bg: self.input.background,
+            grad_color: self.grad_color,
+            grad_depth: self.grad_depth,
+            mode: self.mode,
         };
-    let threads = rayon::current_num_threads();
-    let index = if tiles::two_runs_apply(saved.len()) && tiles.len() <= FEW_TILES {
-        let index = Mutex::new(None);
-        let mut jobs: Vec<(u64, Step1<T>)> = Vec::with_capacity(tiles.len() + 1);
-        jobs.push((entries_cost(saved), Step1::Entries));
-        jobs.extend(
-            tiles
-                .into_iter()
-                .map(|t| (tile_cost(saved, t.tile), Step1::Tile(t))),
-        );
-        let parts = crate::threads::balanced_parts(jobs, threads, |j| match j {
-            Step1::Entries => 0,
-            Step1::Tile(t) => 1 + t.tile,
-        });
-        crate::threads::run_parts(parts, |part| {
-            let (mut rec, mut scratch) = (Vec::new(), Vec::new());
-            for job in part {
-                match job {
-                    Step1::Tile(t) => tile_job(&mut rec, &mut scratch, t),
-                    Step1::Entries => {
-                        let e = gaussian_entries(saved);
-                        *index.lock().unwrap_or_else(|p| p.into_inner()) = Some(e);
-                    }
-                }
-            }
-        });
-        let index = index.into_inner().unwrap_or_else(|p| p.into_inner());
-        index.expect("every part ran")
-    } else {
+        scratch.clear();
+        scratch.resize(t.out.len(), EntryGrad::ZERO);
+        // The rows replay only the entries they blended, a sparse walk the
+        // hardware prefetcher does not follow: ask for the tile's whole
+        // gathered list first.
+        prefetch(job.splats, 0, job.splats.len());
+        tile_vjp(&job, scratch, rec);
+        for (o, g) in t.out.iter_mut().zip(scratch.iter()) {
+            o.write(*g);
+        }
+    }
+
+    /// Step 1, per tile in parallel: the gradient of every list entry, each
+    /// the sum over the tile's rows in ascending order (see the module
+    /// docs); with step 2 ([`gaussian_entries`], serial) run beside it. Each
+    /// tile accumulates in a scratch buffer of its worker and writes its
+    /// entries once into its piece, so the result buffer is never zeroed and
+    /// its fresh pages are first touched in parallel. The tiles go in pieces
+    /// of at most 2 as rayon splits them, step 2 beside them. Which worker
+    /// computes a tile changes no result.
+    fn entry_gradients(&self, tiles: Vec<TilePiece<'_, T>>) -> GaussianEntries {
         // (`for_each_init` starts new scratch buffers for every stealable
         // piece of at most 2 tiles; buffers kept per worker across pieces
         // measured slower on the trained hellwarrior frames.)
         let tiles_in_pieces = || {
             tiles.into_par_iter().with_max_len(2).for_each_init(
                 || (Vec::new(), Vec::new()),
-                |(rec, scratch), t| tile_job(rec, scratch, t),
+                |(rec, scratch), t| self.tile(rec, scratch, t),
             )
         };
-        rayon::join(tiles_in_pieces, || gaussian_entries(saved)).1
-    };
-    // SAFETY: the tile pieces are consecutive pieces of `entry`'s first `m`
-    // spare slots that together cover all of them (the asserts above), and
-    // every job wrote each slot of its piece; a panic in a job propagates
-    // before this line, leaving `entry` empty.
-    unsafe { entry.set_len(m) };
-    (entry, index)
+        rayon::join(tiles_in_pieces, || gaussian_entries(self.saved)).1
+    }
+
+    /// Steps 1 to 3 of a small frame on two or more workers
+    /// ([`tiles::two_runs_apply`]) with at most [`FEW_TILES`] tiles with
+    /// entries, in one fixed part per worker and step
+    /// ([`crate::threads::run_parts_in_two_steps`]: a worker goes on to its
+    /// part of step 3 as soon as every part of steps 1 and 2 has ended,
+    /// with no new job for the pool between them). Steps 1 and 2 are split
+    /// into parts of about equal estimated cost
+    /// ([`crate::threads::balanced_parts`]: a tile costs in proportion to
+    /// the records the forward saved for it, see [`tile_costs`]), each
+    /// part's jobs in tile order, step 2 among them; step 3 into one part
+    /// of consecutive Gaussians per worker of about equal estimated cost
+    /// ([`step3_cuts`]), each part's chunks in turn. Step 2 is handed to
+    /// the pool before the split, so that a worker runs it while the caller
+    /// splits the tiles; it belongs to the last part, and whichever thread
+    /// reaches it first runs it ([`crate::threads::OneJob`]). Which worker
+    /// computes what changes no result.
+    fn in_fixed_parts(&self, tiles: Vec<TilePiece<'_, T>>, entry: Written<T>) -> RasterGrads<T> {
+        let saved = self.saved;
+        let threads = rayon::current_num_threads();
+        let step2: OnceLock<EntriesAndCuts> = OnceLock::new();
+        let entries = crate::threads::OneJob::new(|| {
+            let (start, index) = gaussian_entries(saved);
+            let cuts = step3_cuts(&start, threads);
+            // Set once: the job runs once.
+            let _ = step2.set((start, index, cuts));
+        });
+        let ctx = Ctx::new(self.input, saved, self.mode);
+        let mut grads = ctx.empty_grads();
+        let slots = ctx.out_slots(&mut grads);
+        rayon::scope(|s| {
+            // Step 2 goes to the pool first, so that a worker runs it while
+            // this thread splits the tiles.
+            s.spawn(|_| entries.run());
+            let costs = tile_costs(saved);
+            let mut jobs: Vec<(u64, Step1<T>)> = Vec::with_capacity(tiles.len() + 1);
+            jobs.push((entries_cost(saved), Step1::Entries));
+            jobs.extend(tiles.into_iter().map(|t| (costs[t.tile], Step1::Tile(t))));
+            let mut firsts = crate::threads::balanced_parts(jobs, threads, |j| match j {
+                Step1::Entries => 0,
+                Step1::Tile(t) => 1 + t.tile,
+            });
+            // The part with step 2 last: the caller runs the first.
+            firsts.sort_by_key(|p| p.iter().any(|j| matches!(j, Step1::Entries)));
+            let parts: Vec<_> = firsts.into_iter().zip(0..).collect();
+            let first = |part: Vec<Step1<T>>| {
+                let (mut rec, mut scratch) = (Vec::new(), Vec::new());
+                for job in part {
+                    match job {
+                        Step1::Tile(t) => self.tile(&mut rec, &mut scratch, t),
+                        Step1::Entries => entries.run(),
+                    }
+                }
+            };
+            let second = |part: usize| {
+                entries.wait();
+                let (start, index, cuts) = step2.get().expect("step 2 ran");
+                // SAFETY: every part of step 1 has ended, and the tile
+                // pieces together cover the list (`tile_pieces`), each
+                // slot written by its tile's job; nothing writes them now.
+                let entry = unsafe { entry.get() };
+                let (from, end) = (cuts[part], cuts[part + 1]);
+                let chunks = (from..end).step_by(CHUNK).map(|s| {
+                    // SAFETY: the parts' ranges `cuts[i]..cuts[i + 1]` do
+                    // not overlap, so neither do any two chunks.
+                    unsafe { slots.chunk(s, CHUNK.min(end - s)) }
+                });
+                ctx.chunks(entry, start, index, chunks);
+            };
+            crate::threads::run_parts_in_two_steps(
+                parts,
+                first,
+                || super::stages::mark("tiles, entry index"),
+                second,
+            );
+        });
+        // SAFETY: every part of step 3 ran (a panic in one propagates
+        // before this line), writing every slot of its chunks
+        // (`Ctx::chunk`), which together cover the Gaussians: the parts'
+        // ranges run from `cuts[0] = 0` to `cuts[threads] = n`, and `firsts`
+        // has one part per thread (`balanced_parts`).
+        unsafe { ctx.set_lens(&mut grads) };
+        super::stages::mark("per Gaussian");
+        grads
+    }
+
+    /// Step 3, per Gaussian in parallel ([`Ctx::chunk`]), in chunks of
+    /// at most [`CHUNK`] Gaussians: for a small frame on two or more
+    /// workers ([`tiles::two_runs_apply`]) in one part of consecutive
+    /// Gaussians per worker, each part's chunks in turn, the caller waiting
+    /// for the others' parts by spinning ([`crate::threads::run_parts`]);
+    /// else as rayon hands the chunks out.
+    fn gaussian_gradients(
+        &self,
+        entry: &[EntryGrad<T>],
+        start: &[usize],
+        index: &[u32],
+    ) -> RasterGrads<T> {
+        let ctx = Ctx::new(self.input, self.saved, self.mode);
+        let mut grads = ctx.empty_grads();
+        let threads = rayon::current_num_threads();
+        if tiles::two_runs_apply(self.saved.len()) {
+            let parts = ctx.chunks_in_parts(&mut grads, threads);
+            crate::threads::run_parts(parts, |part| ctx.chunks(entry, start, index, part));
+        } else {
+            let chunks = ctx.chunks_in_parts(&mut grads, 1).pop().unwrap_or_default();
+            chunks.into_par_iter().for_each_init(Vec::new, |acc, out| {
+                ctx.chunk(entry, start, index, acc, out)
+            });
+        }
+        // SAFETY: every chunk ran (a panic in one propagates before this
+        // line), writing every slot of its pieces (`Ctx::chunk`), which
+        // together cover the outputs (`Ctx::chunks_in_parts`).
+        unsafe { ctx.set_lens(&mut grads) };
+        grads
+    }
 }
 
-/// At most this many tiles with entries, step 1 runs in fixed parts (see
-/// [`entry_gradients`]): a 128×128 frame's. At 400×400 (625 tiles) the
-/// parts' tiles, scattered over the image, measured 5 % slower on two
-/// threads than rayon's pieces of neighbouring tiles.
+/// At most this many tiles with entries, a small frame's backward runs in
+/// fixed parts ([`Steps::in_fixed_parts`]): a 128×128 frame's. At 400×400
+/// (625 tiles) the parts' tiles, scattered over the image, measured 5 %
+/// slower on two threads than rayon's pieces of neighbouring tiles.
 const FEW_TILES: usize = 64;
 
 /// One tile's job of step 1: its list from `start`, its entries' gradients
@@ -627,21 +759,31 @@ enum Step1<'a, T> {
 /// Each Gaussian's entries ([`gaussian_entries`]).
 type GaussianEntries = (Vec<usize>, Vec<u32>);
 
-/// The estimated cost of `tile`'s backward in nanoseconds, for balancing
-/// only: 16 per record the forward saved for its rows (a tile replays and
-/// walks back exactly those; measured at 15.9–16.4 ns per record over the
-/// 16 tiles of the 64×64 bench frame on the 2-core AMD EPYC).
-fn tile_cost<T: Real>(saved: &RasterizeSaved<T>, tile: usize) -> u64 {
+/// Step 2's result in fixed parts: each Gaussian's entries and the
+/// starts of step 3's parts ([`step3_cuts`]).
+type EntriesAndCuts = (Vec<usize>, Vec<u32>, Vec<usize>);
+
+/// The estimated cost of every tile's backward in nanoseconds (row-major),
+/// for balancing only: 16 per record the forward saved for its rows (a
+/// tile replays and walks back exactly those; measured at 15.9–16.4 ns per
+/// record over the 16 tiles of the 64×64 bench frame on the 2-core AMD
+/// EPYC). One pass over the rows' per-tile ends.
+fn tile_costs<T: Real>(saved: &RasterizeSaved<T>) -> Vec<u64> {
     let grid_x = saved.intr.grid[0] as usize;
-    let tx = tile % grid_x;
-    let [_, _, y0, y1] = raster::tile_bounds(tile, grid_x, saved.intr.width, saved.intr.height);
-    let records: usize = (y0..y1)
-        .map(|py| raster::row_tile_entries(&saved.blended_end, grid_x, py, tx).len())
-        .sum();
-    16 * records as u64
+    let mut costs = vec![0u64; saved.binning.ranges.len()];
+    for (py, ends) in saved.blended_end.chunks_exact(grid_x).enumerate() {
+        let row = &mut costs[py / BLOCK * grid_x..][..grid_x];
+        // Each row's ends restart from 0 (`raster::row_tile_entries`).
+        let mut prev = 0;
+        for (c, &end) in row.iter_mut().zip(ends) {
+            *c += 16 * u64::from(end - prev);
+            prev = end;
+        }
+    }
+    costs
 }
 
-/// The estimated cost of step 2 in nanoseconds, as [`tile_cost`]'s: about
+/// The estimated cost of step 2 in nanoseconds, as [`tile_costs`]': about
 /// 1 per list entry and a third per Gaussian (4.9–5.0 µs for the 64×64
 /// bench frame's 2,600 Gaussians and their entries on the same machine).
 fn entries_cost<T: Real>(saved: &RasterizeSaved<T>) -> u64 {
@@ -650,7 +792,7 @@ fn entries_cost<T: Real>(saved: &RasterizeSaved<T>) -> u64 {
 
 /// Step 2: each Gaussian's entries in ascending list position (so ascending
 /// tile), as `index[start[g]..start[g + 1]]`. A serial counting sort (about
-/// 1.2 ns per entry); [`entry_gradients`] runs it beside step 1.
+/// 1.2 ns per entry), run beside step 1.
 fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> GaussianEntries {
     let n = saved.len();
     let list = &saved.binning.list;
@@ -668,6 +810,37 @@ fn gaussian_entries<T: Real>(saved: &RasterizeSaved<T>) -> GaussianEntries {
         fill[g as usize] += 1;
     }
     (start, index)
+}
+
+/// The starts of `parts` ranges of consecutive Gaussians, and the end `n`,
+/// for step 3 in fixed parts: ranges of about equal estimated cost, 13 per
+/// Gaussian and 1 per entry (each Gaussian's entries `start[g]..start[g +
+/// 1]`, [`gaussian_entries`]). A least-squares fit of step 3's chunks over
+/// four bench frames (64×64 with 1,000, 2,600 and 8,000 Gaussians, 96×96
+/// with 6,000) on the 2-core development machine, one thread: 38 ns per
+/// Gaussian and 3.0 per entry, within 2.7 % (rms).
+fn step3_cuts(start: &[usize], parts: usize) -> Vec<usize> {
+    let n = start.len() - 1;
+    let cost = |g: usize| 13 * g + start[g];
+    let total = cost(n);
+    let mut cuts: Vec<usize> = (0..parts)
+        .map(|k| {
+            // The first Gaussian whose preceding ones cost the target.
+            let target = total * k / parts;
+            let (mut lo, mut hi) = (0, n);
+            while lo < hi {
+                let mid = (lo + hi) / 2;
+                if cost(mid) < target {
+                    lo = mid + 1;
+                } else {
+                    hi = mid;
+                }
+            }
+            lo
+        })
+        .collect();
+    cuts.push(n);
+    cuts
 }
 
 /// The most colour values of a Gaussian (SH degree 3: 16 coefficients × RGB).
@@ -702,90 +875,204 @@ fn take<'a, T>(rest: &mut &'a mut [T], len: usize) -> &'a mut [T] {
     head
 }
 
-/// Step 3, per Gaussian in parallel: the sum of its entries in ascending
-/// list position, then the chain rule through the projection, the colour
-/// (SH or precomputed) and the 3D covariance (scale and rotation or
-/// precomputed). The Gaussians go in chunks of [`CHUNK`]; a task first
-/// forms the sums of its chunk (so the scattered reads of the entries of
-/// several Gaussians are in flight at once) and then applies the chain rule,
-/// writing each output once (zeros for culled Gaussians) into its own
-/// contiguous pieces of the never-zeroed result buffers.
-fn gaussian_gradients<T: Real>(
-    input: &RasterInput<T>,
-    saved: &RasterizeSaved<T>,
-    entry: &[EntryGrad<T>],
-    start: &[usize],
-    index: &[u32],
+/// The spare slots of every output buffer ([`Ctx::out_slots`]), from which
+/// step 3 in fixed parts takes its chunks once it knows its part's range.
+struct OutSlots<T> {
+    /// means3d, means2d, colors, opacities, scales_or_cov, rotations.
+    slots: [*mut MaybeUninit<T>; 6],
+    /// Values per Gaussian of each.
+    widths: [usize; 6],
+}
+
+// SAFETY: the slots are only reached through `OutSlots::chunk`, whose
+// callers take disjoint chunks.
+unsafe impl<T: Send> Sync for OutSlots<T> {}
+
+impl<T> OutSlots<T> {
+    /// The chunk of `len` Gaussians from `s`.
+    ///
+    /// # Safety
+    /// Within the Gaussians the buffers have room for, and no other chunk
+    /// taken overlaps it while it lives.
+    unsafe fn chunk(&self, s: usize, len: usize) -> OutChunk<'_, T> {
+        // SAFETY: as the caller promises.
+        let piece = |k: usize| unsafe {
+            std::slice::from_raw_parts_mut(
+                self.slots[k].add(self.widths[k] * s),
+                self.widths[k] * len,
+            )
+        };
+        OutChunk {
+            start: s,
+            means3d: piece(0),
+            means2d: piece(1),
+            colors: piece(2),
+            opacities: piece(3),
+            scales_or_cov: piece(4),
+            rotations: piece(5),
+        }
+    }
+}
+
+/// What step 3 reads besides the entries' gradients, and the widths of its
+/// outputs.
+struct Ctx<'a, T> {
+    input: &'a RasterInput<'a, T>,
+    saved: &'a RasterizeSaved<T>,
     mode: GradientMode,
-) -> RasterGrads<T> {
-    let n = saved.len();
-    let (cstride, sh) = match input.colors {
-        Colors::Sh {
-            coeffs,
-            stride,
-            degree,
-        } => (3 * stride, Some((coeffs, degree))),
-        Colors::Precomputed(_) => (3, None),
-    };
-    let (cov_w, rot_w, scale_rot) = match input.covariances {
-        Covariances::ScaleRotation {
-            scales,
-            rotations,
-            scale_modifier,
-        } => (3, 4, Some((scales, rotations, scale_modifier))),
-        Covariances::Precomputed(_) => (6, 0, None),
-    };
-    let mut grads = RasterGrads {
-        means3d: Vec::with_capacity(3 * n),
-        means2d: Vec::with_capacity(3 * n),
-        colors: Vec::with_capacity(cstride * n),
-        opacities: Vec::with_capacity(n),
-        scales_or_cov: Vec::with_capacity(cov_w * n),
-        rotations: Vec::with_capacity(rot_w * n),
-    };
-    // Chunks of at most `CHUNK` Gaussians, none across the start of a
-    // fixed part of `part_len` (one part per worker for a small frame on
-    // two or more workers, `tiles::two_runs_apply`; else one). There, step
-    // 3 runs in one part of consecutive Gaussians per worker, each part's
-    // chunks in turn, the caller waiting for the others' parts by spinning
-    // (`threads::run_parts`); elsewhere in chunks as rayon hands them out.
-    let threads = rayon::current_num_threads();
-    let few = tiles::two_runs_apply(n);
-    let part_len = if few { n.div_ceil(threads) } else { n }.max(1);
-    let mut chunks = Vec::with_capacity(n.div_ceil(CHUNK) + threads);
-    {
+    /// Colour values per Gaussian (`3·stride` for SH, 3 precomputed).
+    cstride: usize,
+    /// Covariance gradient values per Gaussian (3 scales or 6 slots).
+    cov_w: usize,
+    /// Rotation gradient values per Gaussian (4, or 0 for precomputed
+    /// covariances).
+    rot_w: usize,
+    /// SH coefficients and degree, `None` for precomputed colours.
+    sh: Option<(&'a [T], usize)>,
+    /// Scales, rotations and scale modifier, `None` for precomputed
+    /// covariances.
+    scale_rot: Option<(&'a [T], &'a [T], T)>,
+}
+
+impl<'a, T: Real> Ctx<'a, T> {
+    fn new(
+        input: &'a RasterInput<'a, T>,
+        saved: &'a RasterizeSaved<T>,
+        mode: GradientMode,
+    ) -> Self {
+        let (cstride, sh) = match input.colors {
+            Colors::Sh {
+                coeffs,
+                stride,
+                degree,
+            } => (3 * stride, Some((coeffs, degree))),
+            Colors::Precomputed(_) => (3, None),
+        };
+        let (cov_w, rot_w, scale_rot) = match input.covariances {
+            Covariances::ScaleRotation {
+                scales,
+                rotations,
+                scale_modifier,
+            } => (3, 4, Some((scales, rotations, scale_modifier))),
+            Covariances::Precomputed(_) => (6, 0, None),
+        };
+        Ctx {
+            input,
+            saved,
+            mode,
+            cstride,
+            cov_w,
+            rot_w,
+            sh,
+            scale_rot,
+        }
+    }
+
+    /// Empty output buffers with room for every Gaussian's gradients.
+    fn empty_grads(&self) -> RasterGrads<T> {
+        let n = self.saved.len();
+        RasterGrads {
+            means3d: Vec::with_capacity(3 * n),
+            means2d: Vec::with_capacity(3 * n),
+            colors: Vec::with_capacity(self.cstride * n),
+            opacities: Vec::with_capacity(n),
+            scales_or_cov: Vec::with_capacity(self.cov_w * n),
+            rotations: Vec::with_capacity(self.rot_w * n),
+        }
+    }
+
+    /// The spare slots of `grads` ([`Ctx::empty_grads`]) as chunks of at
+    /// most [`CHUNK`] consecutive Gaussians covering every Gaussian, in
+    /// `parts` parts of `⌈n / parts⌉` Gaussians (the last may be shorter,
+    /// and there are fewer where that leaves nothing), no chunk across the
+    /// start of a part.
+    fn chunks_in_parts<'g>(
+        &self,
+        grads: &'g mut RasterGrads<T>,
+        parts: usize,
+    ) -> Vec<Vec<OutChunk<'g, T>>> {
+        let n = self.saved.len();
+        let part_len = n.div_ceil(parts.max(1)).max(1);
         let mut m3 = spare(&mut grads.means3d, 3 * n);
         let mut m2 = spare(&mut grads.means2d, 3 * n);
-        let mut col = spare(&mut grads.colors, cstride * n);
+        let mut col = spare(&mut grads.colors, self.cstride * n);
         let mut op = spare(&mut grads.opacities, n);
-        let mut cov = spare(&mut grads.scales_or_cov, cov_w * n);
-        let mut rot = spare(&mut grads.rotations, rot_w * n);
+        let mut cov = spare(&mut grads.scales_or_cov, self.cov_w * n);
+        let mut rot = spare(&mut grads.rotations, self.rot_w * n);
+        let mut out: Vec<Vec<OutChunk<'g, T>>> = Vec::with_capacity(parts);
         let mut s = 0;
         while s < n {
+            if s % part_len == 0 {
+                out.push(Vec::with_capacity(part_len.div_ceil(CHUNK)));
+            }
             let part_end = (s / part_len + 1) * part_len;
             let len = CHUNK.min(part_end.min(n) - s);
-            chunks.push(OutChunk {
+            out.last_mut().expect("a part starts at 0").push(OutChunk {
                 start: s,
                 means3d: take(&mut m3, 3 * len),
                 means2d: take(&mut m2, 3 * len),
-                colors: take(&mut col, cstride * len),
+                colors: take(&mut col, self.cstride * len),
                 opacities: take(&mut op, len),
-                scales_or_cov: take(&mut cov, cov_w * len),
-                rotations: take(&mut rot, rot_w * len),
+                scales_or_cov: take(&mut cov, self.cov_w * len),
+                rotations: take(&mut rot, self.rot_w * len),
             });
             s += len;
         }
+        out
     }
-    let ctx = Ctx {
-        input,
-        saved,
-        mode,
-        cstride,
-        cov_w,
-        sh,
-        scale_rot,
-    };
-    let chunk_job = |acc: &mut Vec<EntryGrad<T>>, out: OutChunk<'_, T>| {
+
+    /// The spare slots of `grads` ([`Ctx::empty_grads`]), for chunks to
+    /// be taken later.
+    fn out_slots(&self, grads: &mut RasterGrads<T>) -> OutSlots<T> {
+        let n = self.saved.len();
+        let widths = [3, 3, self.cstride, 1, self.cov_w, self.rot_w];
+        OutSlots {
+            slots: [
+                spare(&mut grads.means3d, widths[0] * n).as_mut_ptr(),
+                spare(&mut grads.means2d, widths[1] * n).as_mut_ptr(),
+                spare(&mut grads.colors, widths[2] * n).as_mut_ptr(),
+                spare(&mut grads.opacities, widths[3] * n).as_mut_ptr(),
+                spare(&mut grads.scales_or_cov, widths[4] * n).as_mut_ptr(),
+                spare(&mut grads.rotations, widths[5] * n).as_mut_ptr(),
+            ],
+            widths,
+        }
+    }
+
+    /// Set the lengths of `grads` to every Gaussian's gradients.
+    ///
+    /// # Safety
+    /// Every slot of the chunks of [`Ctx::chunks_in_parts`] of `grads` was
+    /// written.
+    unsafe fn set_lens(&self, grads: &mut RasterGrads<T>) {
+        let n = self.saved.len();
+        // SAFETY: as the caller promises; `empty_grads` gave each buffer
+        // room for these lengths.
+        unsafe {
+            grads.means3d.set_len(3 * n);
+            grads.means2d.set_len(3 * n);
+            grads.colors.set_len(self.cstride * n);
+            grads.opacities.set_len(n);
+            grads.scales_or_cov.set_len(self.cov_w * n);
+            grads.rotations.set_len(self.rot_w * n);
+        }
+    }
+
+    /// Step 3 for one chunk: each Gaussian's sum of its entries (`entry`
+    /// at `index[start[g]..start[g + 1]]`) in ascending list position, then
+    /// the chain rule through the projection, the colour (SH or
+    /// precomputed) and the 3D covariance (scale and rotation or
+    /// precomputed), writing every slot of `out` once (zeros for culled
+    /// Gaussians). The sums of the whole chunk come first, so the
+    /// scattered reads of several Gaussians' entries are in flight at once.
+    fn chunk(
+        &self,
+        entry: &[EntryGrad<T>],
+        start: &[usize],
+        index: &[u32],
+        acc: &mut Vec<EntryGrad<T>>,
+        out: OutChunk<'_, T>,
+    ) {
         let s = out.start;
         let len = out.opacities.len();
         // The chunk's entries lie scattered over the list: ask for all of
@@ -799,7 +1086,7 @@ fn gaussian_gradients<T: Real>(
         acc.clear();
         acc.extend((s..s + len).map(|i| {
             let mut a = EntryGrad::ZERO;
-            if saved.proj[i].radius > 0 {
+            if self.saved.proj[i].radius > 0 {
                 for &pos in &index[start[i]..start[i + 1]] {
                     a.add(&entry[pos as usize]);
                 }
@@ -814,56 +1101,24 @@ fn gaussian_gradients<T: Real>(
             scales_or_cov: filled(out.scales_or_cov, T::ZERO),
             rotations: filled(out.rotations, T::ZERO),
         };
-        chain_rule(&ctx, s, acc, &mut o);
-    };
-    if few {
-        let mut parts: Vec<Vec<OutChunk<T>>> = Vec::with_capacity(threads);
-        for c in chunks {
-            if c.start % part_len == 0 {
-                parts.push(Vec::new());
-            }
-            parts.last_mut().expect("a part starts at 0").push(c);
-        }
-        crate::threads::run_parts(parts, |part| {
-            let mut acc = Vec::new();
-            for out in part {
-                chunk_job(&mut acc, out);
-            }
-        });
-    } else {
-        chunks
-            .into_par_iter()
-            .for_each_init(Vec::new, |acc, out| chunk_job(acc, out));
+        chain_rule(self, s, acc, &mut o);
     }
-    // SAFETY: the chunks are consecutive pieces of each buffer's first
-    // `w·n` spare slots (`w` its width) that together cover all of them, and
-    // every task wrote every slot of its pieces (`filled`); a panic in a
-    // task propagates before these lines, leaving the buffers empty.
-    unsafe {
-        grads.means3d.set_len(3 * n);
-        grads.means2d.set_len(3 * n);
-        grads.colors.set_len(cstride * n);
-        grads.opacities.set_len(n);
-        grads.scales_or_cov.set_len(cov_w * n);
-        grads.rotations.set_len(rot_w * n);
-    }
-    grads
-}
 
-/// What the chain rule of step 3 reads besides the entry sums.
-struct Ctx<'a, T> {
-    input: &'a RasterInput<'a, T>,
-    saved: &'a RasterizeSaved<T>,
-    mode: GradientMode,
-    /// Colour values per Gaussian (`3·stride` for SH, 3 precomputed).
-    cstride: usize,
-    /// Covariance gradient values per Gaussian (3 scales or 6 slots).
-    cov_w: usize,
-    /// SH coefficients and degree, `None` for precomputed colours.
-    sh: Option<(&'a [T], usize)>,
-    /// Scales, rotations and scale modifier, `None` for precomputed
-    /// covariances.
-    scale_rot: Option<(&'a [T], &'a [T], T)>,
+    /// Step 3 for one task's chunks in turn ([`Ctx::chunk`]).
+    fn chunks<'o>(
+        &self,
+        entry: &[EntryGrad<T>],
+        start: &[usize],
+        index: &[u32],
+        chunks: impl IntoIterator<Item = OutChunk<'o, T>>,
+    ) where
+        T: 'o,
+    {
+        let mut acc = Vec::new();
+        for out in chunks {
+            self.chunk(entry, start, index, &mut acc, out);
+        }
+    }
 }
 
 /// One task's pieces of the outputs of step 3, zeroed.
@@ -1190,6 +1445,62 @@ fn chain_rule_lanes<T: Real, const L: usize, N: ChainLanes<L, Elem = T>>(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn tile_costs_count_each_tiles_records_row_by_row() {
+        // 40×24: partial tiles in the last column and row.
+        let spec = crate::render::scene::SceneSpec::bench(40, 24, 300, 3);
+        let s = crate::render::scene::random_scene(&spec).unwrap();
+        let input = s.input(
+            crate::render::scene::ColorSource::Sh,
+            crate::render::scene::CovSource::ScaleRotation,
+        );
+        let (_, saved) = crate::render::rasterize(&input).unwrap();
+        let grid_x = saved.intr.grid[0] as usize;
+        let costs = tile_costs(&saved);
+        assert_eq!(costs.len(), 3 * 2);
+        for (tile, &c) in costs.iter().enumerate() {
+            let [_, _, y0, y1] = raster::tile_bounds(tile, grid_x, 40, 24);
+            let records: usize = (y0..y1)
+                .map(|py| {
+                    raster::row_tile_entries(&saved.blended_end, grid_x, py, tile % grid_x).len()
+                })
+                .sum();
+            assert_eq!(c, 16 * records as u64, "tile {tile}");
+        }
+        assert!(costs.iter().filter(|&&c| c > 0).count() >= 4, "{costs:?}");
+    }
+
+    #[test]
+    fn step3_cuts_split_the_cost_evenly_at_gaussians() {
+        // Entries per Gaussian, uneven: 0, 1, ..., 9, then 40 of 50 each.
+        let counts: Vec<usize> = (0..10).chain(std::iter::repeat_n(50, 40)).collect();
+        let mut start = vec![0];
+        for c in &counts {
+            start.push(start.last().unwrap() + c);
+        }
+        let n = counts.len();
+        let cost = |a: usize, b: usize| 13 * (b - a) + start[b] - start[a];
+        for parts in 1..=7 {
+            let cuts = step3_cuts(&start, parts);
+            assert_eq!(cuts.len(), parts + 1);
+            assert_eq!((cuts[0], cuts[parts]), (0, n), "{parts} parts");
+            assert!(cuts.windows(2).all(|w| w[0] <= w[1]), "{cuts:?}");
+            // Each cut is the first Gaussian at which the cost before it
+            // reaches its share: one Gaussian earlier it had not.
+            let total = cost(0, n);
+            for (k, &c) in cuts.iter().enumerate().take(parts).skip(1) {
+                let share = total * k / parts;
+                assert!(cost(0, c) >= share, "{parts} parts, cut {k}");
+                assert!(c == 0 || cost(0, c - 1) < share, "{parts} parts, cut {k}");
+            }
+        }
+        // Two parts: the 10 cheap Gaussians (13·10 + 45) and 40 of 63
+        // each, 2,695 in all; half (rounded down) is 1,347, first reached
+        // after 10 + 19 (1,309 after 10 + 18).
+        assert_eq!(step3_cuts(&start, 2), vec![0, 29, n]);
+        assert_eq!(step3_cuts(&[0], 2), vec![0, 0, 0]);
+    }
 
     /// An entry whose every value is distinct: value `f` is `f + 1`.
     fn numbered() -> EntryGrad<f64> {
