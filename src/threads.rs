@@ -293,11 +293,7 @@ pub(crate) fn run_parts_in_two_steps<A: Send, B: Send>(
     let firsts_ended = || {
         for (i, p) in parts.iter().enumerate() {
             run_first(i);
-            let ended = || p.state.load(Ordering::Acquire) >= FIRST_ENDED;
-            spin_while(|| !ended());
-            while !ended() {
-                std::thread::yield_now();
-            }
+            wait_until(|| p.state.load(Ordering::Acquire) >= FIRST_ENDED);
         }
         !failed.load(Ordering::Acquire)
     };
@@ -352,14 +348,11 @@ impl<F: FnOnce()> OneJob<F> {
     }
 
     /// Run the job here if no thread has started it, else wait until it
-    /// has ended (or its panic has unwound), spinning and then yielding.
+    /// has ended (or its panic has unwound; [`wait_until`]).
     /// Its writes are seen once this returns.
     pub(crate) fn wait(&self) {
         self.run();
-        spin_until(&self.ended);
-        while !self.ended.load(Ordering::Acquire) {
-            std::thread::yield_now();
-        }
+        wait_until(|| self.ended.load(Ordering::Acquire));
     }
 }
 
@@ -506,6 +499,15 @@ fn spin_while(busy: impl Fn() -> bool) {
             return;
         }
         std::hint::spin_loop();
+    }
+}
+
+/// Wait until `done()`: spin as [`spin_while`] does, then yield the CPU
+/// between checks, for as long as it takes.
+fn wait_until(done: impl Fn() -> bool) {
+    spin_while(|| !done());
+    while !done() {
+        std::thread::yield_now();
     }
 }
 

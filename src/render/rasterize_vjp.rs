@@ -437,7 +437,6 @@ pub fn rasterize_vjp<T: Real>(
         grad_color,
         grad_depth,
         mode,
-        grid_x: saved.intr.grid[0] as usize,
     };
     // The pool's workers keep polling for work between the steps
     // (`threads::keep_awake`).
@@ -515,8 +514,6 @@ struct Steps<'a, T> {
     grad_color: &'a [T],
     grad_depth: Option<&'a [T]>,
     mode: GradientMode,
-    /// Tiles per row.
-    grid_x: usize,
 }
 
 /// One piece per tile with entries of `slots` (the whole list's entry
@@ -572,13 +569,14 @@ impl<T: Real> Steps<'_, T> {
     fn tile(&self, rec: &mut Vec<Record<T>>, scratch: &mut Vec<EntryGrad<T>>, t: TilePiece<'_, T>) {
         let saved = self.saved;
         let (w, h) = (saved.intr.width, saved.intr.height);
+        let grid_x = saved.intr.grid[0] as usize;
         let job = TileJob {
             splats: &saved.splats[t.start..t.start + t.out.len()],
             blended: &saved.blended,
             blended_end: &saved.blended_end,
-            grid_x: self.grid_x,
-            tx: t.tile % self.grid_x,
-            bounds: raster::tile_bounds(t.tile, self.grid_x, w, h),
+            grid_x,
+            tx: t.tile % grid_x,
+            bounds: raster::tile_bounds(t.tile, grid_x, w, h),
             width: w,
             height: h,
             bg: self.input.background,
@@ -679,12 +677,9 @@ impl<T: Real> Steps<'_, T> {
                 // pieces together cover the list (`tile_pieces`), each
                 // slot written by its tile's job; nothing writes them now.
                 let entry = unsafe { entry.get() };
-                let (from, end) = (cuts[part], cuts[part + 1]);
-                let chunks = (from..end).step_by(CHUNK).map(|s| {
-                    // SAFETY: the parts' ranges `cuts[i]..cuts[i + 1]` do
-                    // not overlap, so neither do any two chunks.
-                    unsafe { slots.chunk(s, CHUNK.min(end - s)) }
-                });
+                // SAFETY: the parts' ranges `cuts[i]..cuts[i + 1]` do not
+                // overlap.
+                let chunks = unsafe { slots.chunks(cuts[part], cuts[part + 1]) };
                 ctx.chunks(entry, start, index, chunks);
             };
             crate::threads::run_parts_in_two_steps(
@@ -868,33 +863,48 @@ fn spare<T>(v: &mut Vec<T>, len: usize) -> &mut [MaybeUninit<T>] {
     &mut v.spare_capacity_mut()[..len]
 }
 
-/// Split off the first `len` elements of `*rest`.
-fn take<'a, T>(rest: &mut &'a mut [T], len: usize) -> &'a mut [T] {
-    let (head, tail) = std::mem::take(rest).split_at_mut(len);
-    *rest = tail;
-    head
-}
-
-/// The spare slots of every output buffer ([`Ctx::out_slots`]), from which
-/// step 3 in fixed parts takes its chunks once it knows its part's range.
-struct OutSlots<T> {
+/// The spare slots of every output buffer ([`Ctx::out_slots`], borrowed for
+/// `'g`), from which step 3 takes its chunks (in fixed parts, once a part
+/// knows its range).
+struct OutSlots<'g, T> {
     /// means3d, means2d, colors, opacities, scales_or_cov, rotations.
     slots: [*mut MaybeUninit<T>; 6],
     /// Values per Gaussian of each.
     widths: [usize; 6],
+    /// The Gaussians the buffers have room for.
+    n: usize,
+    buffers: std::marker::PhantomData<&'g mut [MaybeUninit<T>]>,
 }
 
 // SAFETY: the slots are only reached through `OutSlots::chunk`, whose
 // callers take disjoint chunks.
-unsafe impl<T: Send> Sync for OutSlots<T> {}
+unsafe impl<T: Send> Sync for OutSlots<'_, T> {}
 
-impl<T> OutSlots<T> {
+impl<'g, T> OutSlots<'g, T> {
+    /// The chunks of at most [`CHUNK`] Gaussians, in turn, of the Gaussians
+    /// `from..end`.
+    ///
+    /// # Safety
+    /// No chunk taken from another range overlaps `from..end` while they
+    /// live.
+    unsafe fn chunks(&self, from: usize, end: usize) -> impl Iterator<Item = OutChunk<'g, T>> + '_ {
+        assert!(
+            from <= end && end <= self.n,
+            "Gaussians {from}..{end} of {}",
+            self.n
+        );
+        // SAFETY: within the buffers (asserted), and as the caller promises.
+        (from..end)
+            .step_by(CHUNK)
+            .map(move |s| unsafe { self.chunk(s, CHUNK.min(end - s)) })
+    }
+
     /// The chunk of `len` Gaussians from `s`.
     ///
     /// # Safety
     /// Within the Gaussians the buffers have room for, and no other chunk
     /// taken overlaps it while it lives.
-    unsafe fn chunk(&self, s: usize, len: usize) -> OutChunk<'_, T> {
+    unsafe fn chunk(&self, s: usize, len: usize) -> OutChunk<'g, T> {
         // SAFETY: as the caller promises.
         let piece = |k: usize| unsafe {
             std::slice::from_raw_parts_mut(
@@ -993,37 +1003,17 @@ impl<'a, T: Real> Ctx<'a, T> {
     ) -> Vec<Vec<OutChunk<'g, T>>> {
         let n = self.saved.len();
         let part_len = n.div_ceil(parts.max(1)).max(1);
-        let mut m3 = spare(&mut grads.means3d, 3 * n);
-        let mut m2 = spare(&mut grads.means2d, 3 * n);
-        let mut col = spare(&mut grads.colors, self.cstride * n);
-        let mut op = spare(&mut grads.opacities, n);
-        let mut cov = spare(&mut grads.scales_or_cov, self.cov_w * n);
-        let mut rot = spare(&mut grads.rotations, self.rot_w * n);
-        let mut out: Vec<Vec<OutChunk<'g, T>>> = Vec::with_capacity(parts);
-        let mut s = 0;
-        while s < n {
-            if s % part_len == 0 {
-                out.push(Vec::with_capacity(part_len.div_ceil(CHUNK)));
-            }
-            let part_end = (s / part_len + 1) * part_len;
-            let len = CHUNK.min(part_end.min(n) - s);
-            out.last_mut().expect("a part starts at 0").push(OutChunk {
-                start: s,
-                means3d: take(&mut m3, 3 * len),
-                means2d: take(&mut m2, 3 * len),
-                colors: take(&mut col, self.cstride * len),
-                opacities: take(&mut op, len),
-                scales_or_cov: take(&mut cov, self.cov_w * len),
-                rotations: take(&mut rot, self.rot_w * len),
-            });
-            s += len;
-        }
-        out
+        let slots = self.out_slots(grads);
+        (0..n)
+            .step_by(part_len)
+            // SAFETY: the parts' ranges do not overlap.
+            .map(|s| unsafe { slots.chunks(s, (s + part_len).min(n)) }.collect())
+            .collect()
     }
 
     /// The spare slots of `grads` ([`Ctx::empty_grads`]), for chunks to
     /// be taken later.
-    fn out_slots(&self, grads: &mut RasterGrads<T>) -> OutSlots<T> {
+    fn out_slots<'g>(&self, grads: &'g mut RasterGrads<T>) -> OutSlots<'g, T> {
         let n = self.saved.len();
         let widths = [3, 3, self.cstride, 1, self.cov_w, self.rot_w];
         OutSlots {
@@ -1036,6 +1026,8 @@ impl<'a, T: Real> Ctx<'a, T> {
                 spare(&mut grads.rotations, widths[5] * n).as_mut_ptr(),
             ],
             widths,
+            n,
+            buffers: std::marker::PhantomData,
         }
     }
 
