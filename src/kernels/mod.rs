@@ -126,6 +126,47 @@ pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
     let _ = (v, start, len);
 }
 
+/// Ask the CPU to bring `len` values of `v` from `start` into its caches
+/// for writing (`prefetchw`, one per 64-byte line they span), so that lines
+/// another core holds are taken over before the stores reach them; only a
+/// hint, clipped to `v`.
+#[inline(always)]
+pub(crate) fn prefetch_write<T>(v: &[T], start: usize, len: usize) {
+    #[cfg(target_arch = "x86_64")]
+    {
+        let end = (start.saturating_add(len)).min(v.len());
+        if start >= end {
+            return;
+        }
+        let size = std::mem::size_of::<T>();
+        let base = v.as_ptr() as *const u8;
+        let mut b = start * size;
+        while b < end * size {
+            // SAFETY: `b < end·size`, a byte inside `v`; `prefetchw` never
+            // faults, changes no value (a NOP on CPUs without it).
+            prefetch_write_at(base.wrapping_add(b));
+            b += 64;
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (v, start, len);
+}
+
+/// Ask the CPU to bring the line of address `p` into its caches for
+/// writing (`prefetchw`); only a hint (a prefetch never faults and changes
+/// no value; a NOP on CPUs without the instruction). Callers pass
+/// addresses inside their buffers.
+#[inline(always)]
+pub(crate) fn prefetch_write_at(p: *const u8) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: `prefetchw` reads no value, writes none and never faults.
+    unsafe {
+        std::arch::asm!("prefetchw [{0}]", in(reg) p, options(nostack, preserves_flags, readonly));
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = p;
+}
+
 /// Ask the CPU to bring the value `v[i]` into its caches: the lines of its
 /// first and last bytes (one line or two); only a hint, nothing when `i` is
 /// outside `v`.

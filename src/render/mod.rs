@@ -617,6 +617,7 @@ fn forward_stages<T: Real>(
                     blended,
                     blended_end,
                 };
+                row.prefetch_write();
                 let mut ev = 0u64;
                 rasterize::forward_row(&frame, py, &mut row, &mut ev);
                 ev

@@ -182,6 +182,7 @@ pub(crate) fn preprocess_in_halves<T: Real, R: Send>(
         let mut start = 0;
         while start < out.proj.len() {
             let len = BATCH.min(out.proj.len() - start);
+            out.prefetch_write(start + BATCH, BATCH);
             batch(
                 k,
                 input,
@@ -214,6 +215,23 @@ unsafe fn assume_init<X>(s: &[MaybeUninit<X>]) -> &[X] {
 }
 
 impl<'a, T> BatchOut<'a, T> {
+    /// Ask for the lines of the outputs of the `len` Gaussians from
+    /// `start` for writing (clipped; only a hint). The other core read
+    /// them in the pass before, and in the machine's slow periods each
+    /// such line costs a long round trip between the CPUs: asked for one
+    /// batch ahead, the round trips overlap the batch's arithmetic
+    /// (benches/README.md, "Lines the other core read, asked for before
+    /// writing").
+    fn prefetch_write(&self, start: usize, len: usize) {
+        use crate::kernels::prefetch_write as pw;
+        pw(self.proj, start, len);
+        pw(self.colors, start, len);
+        pw(self.cov3d, start, len);
+        pw(self.splats, start, len);
+        pw(self.radii, start, len);
+        pw(self.means2d, 2 * start, 2 * len);
+    }
+
     /// The outputs of the Gaussians before `mid` and from `mid`.
     fn split_at(self, mid: usize) -> (BatchOut<'a, T>, BatchOut<'a, T>) {
         let (proj, proj2) = self.proj.split_at_mut(mid);

@@ -523,6 +523,23 @@ pub(crate) struct RowOut<'a, T> {
     pub blended_end: &'a mut [MaybeUninit<u32>],
 }
 
+impl<T> RowOut<'_, T> {
+    /// Ask for the lines of the row's pixel outputs and tile ends for
+    /// writing (only a hint), so that lines the other core read in the
+    /// pass before come over while the row is computed
+    /// ([`crate::kernels::prefetch_write`]).
+    pub(crate) fn prefetch_write(&self) {
+        use crate::kernels::prefetch_write as pw;
+        for c in &self.color {
+            pw(c, 0, c.len());
+        }
+        pw(self.depth, 0, self.depth.len());
+        pw(self.final_t, 0, self.final_t.len());
+        pw(self.n_contrib, 0, self.n_contrib.len());
+        pw(self.blended_end, 0, self.blended_end.len());
+    }
+}
+
 /// The positions in image row `py`'s saved [`Blended`] entries of tile
 /// column `tx`'s, from the rows' per-tile ends (`[H, grid_x]`, as
 /// [`RowOut::blended_end`] writes them: each row's ends restart from 0).

@@ -54,7 +54,7 @@ use super::tiles;
 use super::transpose::RowMover;
 use super::{Colors, Covariances, GradientMode, RasterGrads, RasterInput, RasterizeSaved, BLOCK};
 use crate::error::{Error, Result};
-use crate::kernels::{filled, prefetch, prefetch_value};
+use crate::kernels::{filled, prefetch, prefetch_value, prefetch_write};
 use crate::math::covariance::{cov3d_vjp, cov3d_vjp_scaled};
 use crate::math::pack::Pack;
 use crate::math::sh::{coeffs_for_degree, color_vjp};
@@ -590,6 +590,9 @@ impl<T: Real> Steps<'_, T> {
         // hardware prefetcher does not follow: ask for the tile's whole
         // gathered list first.
         prefetch(job.splats, 0, job.splats.len());
+        // The tile's entries' lines, to be written once it is done (the
+        // other core may have read them last).
+        prefetch_write(t.out, 0, t.out.len());
         tile_vjp(&job, scratch, rec);
         for (o, g) in t.out.iter_mut().zip(scratch.iter()) {
             o.write(*g);
@@ -1073,6 +1076,18 @@ impl<'a, T: Real> Ctx<'a, T> {
         // data-dependent count).
         for &pos in &index[start[s]..start[s + len]] {
             prefetch_value(entry, pos as usize);
+        }
+        // And for the outputs' lines, to be written (the other core may
+        // have read them last).
+        for p in [
+            &out.means3d,
+            &out.means2d,
+            &out.colors,
+            &out.opacities,
+            &out.scales_or_cov,
+            &out.rotations,
+        ] {
+            prefetch_write(p, 0, p.len());
         }
         // The sums first: the reads of different Gaussians are independent.
         acc.clear();

@@ -233,6 +233,7 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
         payload_out: Slots(gathered.spare_capacity_mut().as_mut_ptr()),
         payload,
         grid_x: grid[0],
+        len: total,
     };
     let cut = middle_cut(&runs);
     crate::threads::spin_join(
@@ -246,6 +247,7 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
                 for t in out.tiles(r) {
                     let s = next[t];
                     next[t] += 1;
+                    out.prefetch_write(s as usize + WRITE_AHEAD);
                     // SAFETY: the keys before the cut write upwards from
                     // each tile's first slot, the others (the other task)
                     // downwards from its end, and the runs counted each
@@ -264,6 +266,7 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
                 }
                 for t in out.tiles(r) {
                     end[t] -= 1;
+                    out.prefetch_write((end[t] as usize).wrapping_sub(WRITE_AHEAD));
                     // SAFETY: see the first task.
                     unsafe { out.write(end[t] as usize, g) };
                 }
@@ -285,6 +288,11 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
 /// core, and the gather reads them in depth order, which the hardware
 /// prefetcher does not follow. (4 and 8 measured alike; 16 less good.)
 const PREFETCH_AHEAD: usize = 8;
+
+/// How many slots ahead of each write [`merge_runs`] asks for the lines it
+/// will write: the other core read them in the pass before (benches/README.md,
+/// "Lines the other core read, asked for before writing").
+const WRITE_AHEAD: usize = 4;
 
 /// The cut of the two runs' merged order at its middle (after its first
 /// `k` = half the keys), as the number of keys of each run before it: a
@@ -400,6 +408,8 @@ struct Entries<'a, P> {
     payload_out: Slots<P>,
     payload: &'a [P],
     grid_x: u32,
+    /// The slots the vectors have room for.
+    len: usize,
 }
 
 impl<P: Copy> Entries<'_, P> {
@@ -408,6 +418,16 @@ impl<P: Copy> Entries<'_, P> {
     fn tiles(&self, r: [u32; 4]) -> impl Iterator<Item = usize> {
         let gx = self.grid_x;
         (r[1]..r[3]).flat_map(move |y| (y * gx + r[0]) as usize..(y * gx + r[2]) as usize)
+    }
+
+    /// Ask for slot `slot`'s lines for writing, if the vectors have room
+    /// for it (only a hint).
+    #[inline(always)]
+    fn prefetch_write(&self, slot: usize) {
+        if slot < self.len {
+            crate::kernels::prefetch_write_at(self.list.0.wrapping_add(slot) as *const u8);
+            crate::kernels::prefetch_write_at(self.payload_out.0.wrapping_add(slot) as *const u8);
+        }
     }
 
     /// Write Gaussian `g` and its payload at `slot`.
