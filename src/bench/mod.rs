@@ -104,10 +104,10 @@ pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 69.0];
 /// The rasterizer's forward and backward (f32, SH degree 3, exact
 /// gradients) at 800x800/50k, 400x400/20k and 64x64/2.6k Gaussians on each
 /// of `thread_counts`: the fastest of `reps` runs, pairs evaluated, pairs/s
-/// and % of the FMA peak; on two or more threads, the round trip of a cache
-/// line between two workers before and after the runs
-/// ([`harness::round_trip_ns`]), which on a shared machine tells a slow
-/// period from a quiet one.
+/// and % of the FMA peak; on two or more threads (at most one per core),
+/// the round trip of a cache line between workers 0 and 1 before the
+/// timed runs and after the stage runs ([`harness::round_trip_ns`]), which
+/// on a shared machine tells a slow period from a quiet one.
 pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
     let reps = reps.max(1);
     println!("machine threads: {}", harness::available_cores());
@@ -138,7 +138,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
         ("bwd pair/s", 11),
         ("fwd %", 6),
         ("bwd %", 6),
-        ("x-CPU ns", 9),
+        ("x-CPU ns", 11),
     ]);
     table.print_header();
     let mut stage_lines = Vec::new();
@@ -159,7 +159,13 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
         };
         for (&threads, peak) in thread_counts.iter().zip(&peaks) {
             let pool = harness::thread_pool(threads)?;
-            let round_trip = || harness::round_trip_ns(&pool, 2_000);
+            // (Only where each worker can have a CPU: the round trip spins
+            // on both sides.)
+            let round_trip = || {
+                (threads <= harness::available_cores())
+                    .then(|| harness::round_trip_ns(&pool, 2_000))
+                    .flatten()
+            };
             let trip_before = round_trip();
             let (fwd, bwd, pairs) = pool.install(|| -> crate::Result<_> {
                 let mut f = harness::Samples::new();
@@ -226,8 +232,8 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
          pairs over the pass's time; bwd replayed: the pairs the backward evaluates, each row's \
          pixels of a tile times the entries that blend in one of them; %: FLOP/s over the FMA \
          peak, {} FLOP per pair evaluated (forward) or {} per pair replayed (backward); \
-         x-CPU ns: one cache line's round trip between workers 0 and 1, before / after the row's \
-         runs, which tells a shared machine's slow periods from its quiet minutes: on the \
+         x-CPU ns: one cache line's round trip between workers 0 and 1, before the row's timed \
+         runs / after its stage runs, which tells a shared machine's slow periods from its quiet minutes: on the \
          2-core development VM 40-50 ns quiet and 320-450 ns slow, when small frames on 2 \
          threads take up to half as long again (benches/README.md, \"The machine's slow \
          periods\"))",

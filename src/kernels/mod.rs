@@ -142,8 +142,7 @@ pub(crate) fn prefetch_write<T>(v: &[T], start: usize, len: usize) {
         let base = v.as_ptr() as *const u8;
         let mut b = start * size;
         while b < end * size {
-            // SAFETY: `b < end·size`, a byte inside `v`; `prefetchw` never
-            // faults, changes no value (a NOP on CPUs without it).
+            // (`b < end·size`: a byte inside `v`.)
             prefetch_write_at(base.wrapping_add(b));
             b += 64;
         }
@@ -153,15 +152,20 @@ pub(crate) fn prefetch_write<T>(v: &[T], start: usize, len: usize) {
 }
 
 /// Ask the CPU to bring the line of address `p` into its caches for
-/// writing (`prefetchw`); only a hint (a prefetch never faults and changes
-/// no value; a NOP on CPUs without the instruction). Callers pass
-/// addresses inside their buffers.
+/// writing (`prefetchw`); only a hint, which changes no value. Callers pass
+/// addresses inside their buffers. Every x86-64 CPU runs the instruction:
+/// AMD's have had it since their first x86-64 ones, Intel's since
+/// Broadwell (the PRFCHW feature), and earlier Intel ones execute its
+/// encoding as a no-op.
 #[inline(always)]
+// The pointer is only a hint's address: nothing is read or written there.
+#[allow(clippy::pointers_in_nomem_asm_block)]
 pub(crate) fn prefetch_write_at(p: *const u8) {
     #[cfg(target_arch = "x86_64")]
-    // SAFETY: `prefetchw` reads no value, writes none and never faults.
+    // SAFETY: a prefetch reads no value, writes none and does not fault on
+    // any address; to the program it is a no-op (`nomem`).
     unsafe {
-        std::arch::asm!("prefetchw [{0}]", in(reg) p, options(nostack, preserves_flags, readonly));
+        std::arch::asm!("prefetchw [{0}]", in(reg) p, options(nostack, preserves_flags, nomem));
     }
     #[cfg(not(target_arch = "x86_64"))]
     let _ = p;

@@ -591,6 +591,9 @@ fn forward_stages<T: Real>(
     stages::mark("allocate");
     let (c0, rest) = out.color.spare_capacity_mut()[..3 * hw].split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
+    // On a small frame's path each row asks for its outputs' lines first
+    // ([`rasterize::RowOut::prefetch_write`]; measured there only).
+    let small = tiles::two_runs_apply(n);
     let evaluated: u64 = (
         c0.par_chunks_mut(w),
         c1.par_chunks_mut(w),
@@ -617,7 +620,9 @@ fn forward_stages<T: Real>(
                     blended,
                     blended_end,
                 };
-                row.prefetch_write();
+                if small {
+                    row.prefetch_write();
+                }
                 let mut ev = 0u64;
                 rasterize::forward_row(&frame, py, &mut row, &mut ev);
                 ev

@@ -180,6 +180,7 @@ pub(crate) fn preprocess_in_halves<T: Real, R: Send>(
     let (lo, hi) = all.split_at(half);
     let task = |first: usize, mut out: BatchOut<'_, T>| {
         let mut start = 0;
+        out.prefetch_write(0, BATCH);
         while start < out.proj.len() {
             let len = BATCH.min(out.proj.len() - start);
             out.prefetch_write(start + BATCH, BATCH);
@@ -216,10 +217,12 @@ unsafe fn assume_init<X>(s: &[MaybeUninit<X>]) -> &[X] {
 
 impl<'a, T> BatchOut<'a, T> {
     /// Ask for the lines of the outputs of the `len` Gaussians from
-    /// `start` for writing (clipped; only a hint). The other core read
-    /// them in the pass before, and in the machine's slow periods each
-    /// such line costs a long round trip between the CPUs: asked for one
-    /// batch ahead, the round trips overlap the batch's arithmetic
+    /// `start` for writing (clipped; only a hint). The other core may have
+    /// read them in the pass before (when the allocator hands back the
+    /// same blocks, as it usually does for a frame rendered again), and in
+    /// the machine's slow periods each such line costs a long round trip
+    /// between the CPUs: asked for one batch ahead, the round trips
+    /// overlap the batch's arithmetic
     /// (benches/README.md, "Lines the other core read, asked for before
     /// writing").
     fn prefetch_write(&self, start: usize, len: usize) {

@@ -525,8 +525,8 @@ pub(crate) struct RowOut<'a, T> {
 
 impl<T> RowOut<'_, T> {
     /// Ask for the lines of the row's pixel outputs and tile ends for
-    /// writing (only a hint), so that lines the other core read in the
-    /// pass before come over while the row is computed
+    /// writing (only a hint), so that lines the other core may have read
+    /// in the pass before come over while the row is computed
     /// ([`crate::kernels::prefetch_write`]).
     pub(crate) fn prefetch_write(&self) {
         use crate::kernels::prefetch_write as pw;

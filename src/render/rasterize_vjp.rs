@@ -590,9 +590,12 @@ impl<T: Real> Steps<'_, T> {
         // hardware prefetcher does not follow: ask for the tile's whole
         // gathered list first.
         prefetch(job.splats, 0, job.splats.len());
-        // The tile's entries' lines, to be written once it is done (the
-        // other core may have read them last).
-        prefetch_write(t.out, 0, t.out.len());
+        // On a small frame's path, the tile's entries' lines too, to be
+        // written once it is done (the other core may have read them in the
+        // pass before, when the allocator hands back the same block).
+        if tiles::two_runs_apply(saved.len()) {
+            prefetch_write(t.out, 0, t.out.len());
+        }
         tile_vjp(&job, scratch, rec);
         for (o, g) in t.out.iter_mut().zip(scratch.iter()) {
             o.write(*g);
@@ -1077,17 +1080,19 @@ impl<'a, T: Real> Ctx<'a, T> {
         for &pos in &index[start[s]..start[s + len]] {
             prefetch_value(entry, pos as usize);
         }
-        // And for the outputs' lines, to be written (the other core may
-        // have read them last).
-        for p in [
-            &out.means3d,
-            &out.means2d,
-            &out.colors,
-            &out.opacities,
-            &out.scales_or_cov,
-            &out.rotations,
-        ] {
-            prefetch_write(p, 0, p.len());
+        // On a small frame's path, for the outputs' lines too, to be
+        // written (the other core may have read them in the pass before).
+        if tiles::two_runs_apply(self.saved.len()) {
+            for p in [
+                &out.means3d,
+                &out.means2d,
+                &out.colors,
+                &out.opacities,
+                &out.scales_or_cov,
+                &out.rotations,
+            ] {
+                prefetch_write(p, 0, p.len());
+            }
         }
         // The sums first: the reads of different Gaussians are independent.
         acc.clear();

@@ -290,8 +290,9 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
 const PREFETCH_AHEAD: usize = 8;
 
 /// How many slots ahead of each write [`merge_runs`] asks for the lines it
-/// will write: the other core read them in the pass before (benches/README.md,
-/// "Lines the other core read, asked for before writing").
+/// will write: the other core may have read them in the pass before
+/// (benches/README.md, "Lines the other core read, asked for before
+/// writing").
 const WRITE_AHEAD: usize = 4;
 
 /// The cut of the two runs' merged order at its middle (after its first
