@@ -101,27 +101,35 @@ where
     unsafe { &mut *(buf as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
+/// `hint(p)` for one address `p` in each 64-byte line that the `len` values
+/// of `v` from `start` span (clipped to `v`): the first byte of the range,
+/// then every 64th byte after it, all inside `v`.
+#[inline(always)]
+fn each_line<T>(v: &[T], start: usize, len: usize, mut hint: impl FnMut(*const u8)) {
+    let end = (start.saturating_add(len)).min(v.len());
+    if start >= end {
+        return;
+    }
+    let size = std::mem::size_of::<T>();
+    let base = v.as_ptr() as *const u8;
+    let mut b = start * size;
+    while b < end * size {
+        hint(base.wrapping_add(b));
+        b += 64;
+    }
+}
+
 /// Ask the CPU to bring `len` values of `v` from `start` into its caches
 /// (one hint per 64-byte line they span); only a hint, clipped to `v`.
 #[inline(always)]
 pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
     #[cfg(target_arch = "x86_64")]
-    {
+    each_line(v, start, len, |p| {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let end = (start.saturating_add(len)).min(v.len());
-        if start >= end {
-            return;
-        }
-        let size = std::mem::size_of::<T>();
-        let base = v.as_ptr() as *const i8;
-        let mut b = start * size;
-        while b < end * size {
-            // SAFETY: `b < end·size`, a byte inside `v` (`end <= v.len()`);
-            // a prefetch never faults and changes no value.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(base.add(b)) };
-            b += 64;
-        }
-    }
+        // SAFETY: `p` is a byte inside `v` (`each_line`); a prefetch never
+        // faults and changes no value.
+        unsafe { _mm_prefetch::<_MM_HINT_T0>(p as *const i8) }
+    });
     #[cfg(not(target_arch = "x86_64"))]
     let _ = (v, start, len);
 }
@@ -132,23 +140,7 @@ pub(crate) fn prefetch<T>(v: &[T], start: usize, len: usize) {
 /// hint, clipped to `v`.
 #[inline(always)]
 pub(crate) fn prefetch_write<T>(v: &[T], start: usize, len: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        let end = (start.saturating_add(len)).min(v.len());
-        if start >= end {
-            return;
-        }
-        let size = std::mem::size_of::<T>();
-        let base = v.as_ptr() as *const u8;
-        let mut b = start * size;
-        while b < end * size {
-            // (`b < end·size`: a byte inside `v`.)
-            prefetch_write_at(base.wrapping_add(b));
-            b += 64;
-        }
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (v, start, len);
+    each_line(v, start, len, prefetch_write_at);
 }
 
 /// Ask the CPU to bring the line of address `p` into its caches for

@@ -540,7 +540,10 @@ fn forward_stages<T: Real>(
 
     // 1. Per-Gaussian preprocessing, and 2. binning, with the splat data
     //    of every entry in list order.
-    let (pre, binning, splats) = if tiles::two_runs_apply(n) {
+    // A small frame on two or more threads: the halves' path, and the rows'
+    // write hints ([`rasterize::RowOut::prefetch_write`]).
+    let small = tiles::two_runs_apply(n);
+    let (pre, binning, splats) = if small {
         if std::mem::size_of::<T>() <= 4 {
             project_and_bin_in_halves::<T, u64>(&intr, input, n, ndc_offset)?
         } else {
@@ -591,9 +594,6 @@ fn forward_stages<T: Real>(
     stages::mark("allocate");
     let (c0, rest) = out.color.spare_capacity_mut()[..3 * hw].split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
-    // On a small frame's path each row asks for its outputs' lines first
-    // ([`rasterize::RowOut::prefetch_write`]; measured there only).
-    let small = tiles::two_runs_apply(n);
     let evaluated: u64 = (
         c0.par_chunks_mut(w),
         c1.par_chunks_mut(w),
