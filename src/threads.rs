@@ -27,7 +27,7 @@
 //! as long as a whole parallel stage of a small frame.
 
 use std::cell::{Cell, RefCell, UnsafeCell};
-use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -355,6 +355,90 @@ impl<F: FnOnce()> OneJob<F> {
         wait_until(|| self.ended.load(Ordering::Acquire));
     }
 }
+
+/// The index of the current thread in its rayon pool (0 outside one).
+pub(crate) fn worker_index() -> usize {
+    rayon::current_thread_index().unwrap_or(0)
+}
+
+/// `work(&mut state, job)` for every job, on the workers of the current
+/// pool, each job first offered to the worker named with it: each task
+/// takes the jobs named for its own worker ([`worker_index`], modulo the
+/// pool's size) in their order, then helps with the other workers' jobs,
+/// which also go in their order; `state` is made once per task by `init`.
+/// The caller runs `beside` first and returns its result. For steps that
+/// read what an earlier step wrote on a known worker: what one core wrote
+/// is read fastest on that core, the more so when the machine's two CPUs
+/// are far apart (benches/README.md, "The backward's tiles on the workers
+/// that blended their rows"). Which worker runs a job changes no result;
+/// a panic in any job or in `beside` propagates once every task has ended.
+pub(crate) fn run_on_named_workers<J: Send, S, R: Send>(
+    jobs: Vec<(usize, J)>,
+    init: impl Fn() -> S + Sync,
+    work: impl Fn(&mut S, J) + Sync,
+    beside: impl FnOnce() -> R + Send,
+) -> R {
+    let threads = rayon::current_num_threads();
+    if threads < 2 || jobs.len() < 2 {
+        let r = beside();
+        let mut state = init();
+        jobs.into_iter().for_each(|(_, j)| work(&mut state, j));
+        return r;
+    }
+    let mut queues: Vec<Vec<usize>> = vec![Vec::new(); threads];
+    for (i, (w, _)) in jobs.iter().enumerate() {
+        queues[w % threads].push(i);
+    }
+    let jobs = Claimed(
+        jobs.into_iter()
+            .map(|(_, j)| UnsafeCell::new(Some(j)))
+            .collect(),
+    );
+    let next: Vec<Padded<AtomicUsize>> =
+        (0..threads).map(|_| Padded(AtomicUsize::new(0))).collect();
+    let run = || {
+        let me = worker_index() % threads;
+        let mut state = init();
+        for q in (0..threads).map(|k| (me + k) % threads) {
+            loop {
+                let k = next[q].0.fetch_add(1, Ordering::Relaxed);
+                let Some(&i) = queues[q].get(k) else { break };
+                // SAFETY: each job index is in one queue, at one place,
+                // and the `fetch_add` hands each place to one task only.
+                let job = unsafe { jobs.take(i) };
+                job.into_iter().for_each(|j| work(&mut state, j));
+            }
+        }
+    };
+    rayon::scope(|s| {
+        for _ in 1..threads {
+            s.spawn(|_| run());
+        }
+        let r = beside();
+        run();
+        r
+    })
+}
+
+/// The jobs of [`run_on_named_workers`], each taken by one task only.
+struct Claimed<J>(Vec<UnsafeCell<Option<J>>>);
+
+// SAFETY: a job is taken (moved out) only by the task whose `fetch_add`
+// claimed its place, so no two threads touch one cell.
+unsafe impl<J: Send> Sync for Claimed<J> {}
+
+impl<J> Claimed<J> {
+    /// # Safety
+    /// No other thread takes job `i`, now or later.
+    unsafe fn take(&self, i: usize) -> Option<J> {
+        // SAFETY: as the caller promises.
+        unsafe { (*self.0[i].get()).take() }
+    }
+}
+
+/// A value on a cache line of its own.
+#[repr(align(128))]
+struct Padded<T>(T);
 
 /// One part of [`run_parts_in_two_steps`], on a cache line of its own:
 /// whoever moves `state` on from a step's start state owns that step.
@@ -974,6 +1058,66 @@ mod parts_tests {
             seen.sort_unstable();
             let want: Vec<usize> = (0..5).flat_map(|p| 10 * p..10 * p + 3).collect();
             assert_eq!(seen, want, "{threads} threads");
+        }
+    }
+
+    #[test]
+    fn named_workers_run_each_job_once_and_return_beside() {
+        for threads in 1..=3 {
+            let (seen, inits, r) = within_a_minute(move || {
+                pool(threads).unwrap().install(|| {
+                    let seen = Mutex::new(Vec::new());
+                    let inits = AtomicUsize::new(0);
+                    // Names beyond the pool's size wrap around.
+                    let jobs: Vec<(usize, usize)> = (0..40).map(|j| (j % 5, j)).collect();
+                    let r = run_on_named_workers(
+                        jobs,
+                        || inits.fetch_add(1, Ordering::Relaxed),
+                        |_, j| seen.lock().unwrap().push(j),
+                        || 7u32,
+                    );
+                    (seen.into_inner().unwrap(), inits.into_inner(), r)
+                })
+            });
+            let mut seen = seen;
+            seen.sort_unstable();
+            assert_eq!(seen, (0..40).collect::<Vec<_>>(), "{threads} threads");
+            assert_eq!(inits, threads, "one state per task, {threads} threads");
+            assert_eq!(r, 7);
+        }
+    }
+
+    #[test]
+    fn named_workers_propagate_a_panic_without_hanging() {
+        for threads in 1..=3 {
+            let (job, beside, ran) = within_a_minute(move || {
+                pool(threads).unwrap().install(|| {
+                    let ran = AtomicUsize::new(0);
+                    let jobs: Vec<(usize, usize)> = (0..12).map(|j| (j % 2, j)).collect();
+                    let job = catch_unwind(AssertUnwindSafe(|| {
+                        run_on_named_workers(
+                            jobs,
+                            || (),
+                            |_, j| {
+                                if j == 5 {
+                                    panic!("job 5");
+                                }
+                                ran.fetch_add(1, Ordering::Relaxed);
+                            },
+                            || (),
+                        )
+                    }));
+                    let jobs: Vec<(usize, usize)> = (0..12).map(|j| (j % 2, j)).collect();
+                    let beside = catch_unwind(AssertUnwindSafe(|| {
+                        run_on_named_workers(jobs, || (), |_, _| {}, || -> u32 { panic!("beside") })
+                    }));
+                    (job.is_err(), beside.is_err(), ran.into_inner())
+                })
+            });
+            assert!(job && beside, "{threads} threads");
+            // On one thread the jobs after the panicking one never start;
+            // on more, the other tasks go on with theirs.
+            assert!((5..=11).contains(&ran), "{ran} jobs ran, {threads} threads");
         }
     }
 

@@ -168,6 +168,10 @@ pub struct RasterizeSaved<T> {
     /// `[H, grid_x]`: per image row and tile, the end of the tile's entries
     /// in the row's `blended`.
     blended_end: Vec<u32>,
+    /// Per image row: the pool worker that blended it
+    /// ([`crate::threads::worker_index`]), for the backward to offer each
+    /// tile first to the worker that wrote its rows' records (speed only).
+    row_worker: Vec<u16>,
 }
 
 impl<T: Real> RasterizeSaved<T> {
@@ -183,6 +187,22 @@ impl<T: Real> RasterizeSaved<T> {
     pub fn num_rendered(&self) -> usize {
         self.binning.list.len()
     }
+
+    /// Per row of tiles: the pool worker that blended most of its image
+    /// rows (the lowest-numbered on a tie).
+    fn tile_row_workers(&self) -> Vec<usize> {
+        self.row_worker
+            .chunks(BLOCK)
+            .map(|rows| {
+                let count = |w: u16| rows.iter().filter(|&&x| x == w).count();
+                rows.iter()
+                    .copied()
+                    .max_by_key(|&w| (count(w), std::cmp::Reverse(w)))
+                    .unwrap_or(0) as usize
+            })
+            .collect()
+    }
+
     /// (pixel, Gaussian) pairs the tile lists put in front of pixels:
     /// Σ over tiles of (pixels in the tile × entries in its list). Pixels that
     /// stop early evaluate fewer; this is the work measure benchmarks report.
@@ -591,6 +611,7 @@ fn forward_stages<T: Real>(
     };
     let mut blended: Vec<Vec<Blended>> = vec![Vec::new(); h];
     let mut blended_end: Vec<u32> = Vec::with_capacity(h * grid_x);
+    let mut row_worker: Vec<u16> = vec![0; h];
     stages::mark("allocate");
     let (c0, rest) = out.color.spare_capacity_mut()[..3 * hw].split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
@@ -603,6 +624,7 @@ fn forward_stages<T: Real>(
         out.n_contrib.spare_capacity_mut()[..hw].par_chunks_mut(w),
         blended.par_iter_mut(),
         blended_end.spare_capacity_mut()[..h * grid_x].par_chunks_mut(grid_x),
+        row_worker.par_iter_mut(),
     )
         .into_par_iter()
         // Stealable pieces of at most half a tile row: the rows' costs are
@@ -611,7 +633,8 @@ fn forward_stages<T: Real>(
         .with_max_len(8)
         .enumerate()
         .map(
-            |(py, (c0, c1, c2, depth, final_t, n_contrib, blended, blended_end))| {
+            |(py, (c0, c1, c2, depth, final_t, n_contrib, blended, blended_end, rw))| {
+                *rw = crate::threads::worker_index() as u16;
                 let mut row = rasterize::RowOut {
                     color: [c0, c1, c2],
                     depth,
@@ -653,6 +676,7 @@ fn forward_stages<T: Real>(
         evaluated,
         blended,
         blended_end,
+        row_worker,
     };
     Ok((out, state))
 }

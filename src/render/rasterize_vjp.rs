@@ -604,23 +604,33 @@ impl<T: Real> Steps<'_, T> {
 
     /// Step 1, per tile in parallel: the gradient of every list entry, each
     /// the sum over the tile's rows in ascending order (see the module
-    /// docs); with step 2 ([`gaussian_entries`], serial) run beside it. Each
-    /// tile accumulates in a scratch buffer of its worker and writes its
-    /// entries once into its piece, so the result buffer is never zeroed and
-    /// its fresh pages are first touched in parallel. The tiles go in pieces
-    /// of at most 2 as rayon splits them, step 2 beside them. Which worker
-    /// computes a tile changes no result.
+    /// docs); with step 2 ([`gaussian_entries`], serial) run beside it on
+    /// the caller. Each tile accumulates in a scratch buffer of its task and
+    /// writes its entries once into its piece, so the result buffer is
+    /// never zeroed and its fresh pages are first touched in parallel.
+    /// Each tile is offered first to the worker that blended most of its
+    /// rows in the forward ([`crate::threads::run_on_named_workers`]): the
+    /// tile pass reads the rows' saved records, which that worker wrote.
+    /// On the trained hellwarrior frames (2 threads, 2-core development
+    /// machine) the step took 8.1–8.6 ms for 10 cameras against 9.0–10.0
+    /// with rayon's split in quiet minutes, and 9.8–10.2 against 17.9–20.6
+    /// in slow periods (benches/README.md, "The backward's tiles on the
+    /// workers that blended their rows"). Which worker computes a tile
+    /// changes no result.
     fn entry_gradients(&self, tiles: Vec<TilePiece<'_, T>>) -> GaussianEntries {
-        // (`for_each_init` starts new scratch buffers for every stealable
-        // piece of at most 2 tiles; buffers kept per worker across pieces
-        // measured slower on the trained hellwarrior frames.)
-        let tiles_in_pieces = || {
-            tiles.into_par_iter().with_max_len(2).for_each_init(
-                || (Vec::new(), Vec::new()),
-                |(rec, scratch), t| self.tile(rec, scratch, t),
-            )
-        };
-        rayon::join(tiles_in_pieces, || gaussian_entries(self.saved)).1
+        let owners = self.saved.tile_row_workers();
+        let grid_x = self.saved.intr.grid[0] as usize;
+        let most = tiles.iter().map(|t| t.out.len()).max().unwrap_or(0);
+        let jobs = tiles
+            .into_iter()
+            .map(|t| (owners[t.tile / grid_x], t))
+            .collect();
+        crate::threads::run_on_named_workers(
+            jobs,
+            || (Vec::with_capacity(most), Vec::with_capacity(most)),
+            |(rec, scratch), t| self.tile(rec, scratch, t),
+            || gaussian_entries(self.saved),
+        )
     }
 
     /// Steps 1 to 3 of a small frame on two or more workers
@@ -668,7 +678,8 @@ impl<T: Real> Steps<'_, T> {
             firsts.sort_by_key(|p| p.iter().any(|j| matches!(j, Step1::Entries)));
             let parts: Vec<_> = firsts.into_iter().zip(0..).collect();
             let first = |part: Vec<Step1<T>>| {
-                let (mut rec, mut scratch) = (Vec::new(), Vec::new());
+                let most = part.iter().map(Step1::len).max().unwrap_or(0);
+                let (mut rec, mut scratch) = (Vec::with_capacity(most), Vec::with_capacity(most));
                 for job in part {
                     match job {
                         Step1::Tile(t) => self.tile(&mut rec, &mut scratch, t),
@@ -755,6 +766,16 @@ struct TilePiece<'a, T> {
 enum Step1<'a, T> {
     Tile(TilePiece<'a, T>),
     Entries,
+}
+
+impl<T> Step1<'_, T> {
+    /// The tile's entries (none for step 2).
+    fn len(&self) -> usize {
+        match self {
+            Step1::Tile(t) => t.out.len(),
+            Step1::Entries => 0,
+        }
+    }
 }
 
 /// Each Gaussian's entries ([`gaussian_entries`]).
