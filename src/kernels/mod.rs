@@ -103,7 +103,8 @@ where
 
 /// `hint(p)` for one address `p` in each 64-byte line that the `len` values
 /// of `v` from `start` span (clipped to `v`): the first byte of the range,
-/// then every 64th byte after it, all inside `v`.
+/// then the first byte of each later line the range reaches, all inside
+/// `v`.
 #[inline(always)]
 fn each_line<T>(v: &[T], start: usize, len: usize, mut hint: impl FnMut(*const u8)) {
     let end = (start.saturating_add(len)).min(v.len());
@@ -112,8 +113,12 @@ fn each_line<T>(v: &[T], start: usize, len: usize, mut hint: impl FnMut(*const u
     }
     let size = std::mem::size_of::<T>();
     let base = v.as_ptr() as *const u8;
-    let mut b = start * size;
-    while b < end * size {
+    let (first, stop) = (start * size, end * size);
+    hint(base.wrapping_add(first));
+    // The offset of the next line's first byte: `base` need not be on a
+    // line's start.
+    let mut b = first + 64 - (base as usize + first) % 64;
+    while b < stop {
         hint(base.wrapping_add(b));
         b += 64;
     }
@@ -214,6 +219,30 @@ pub(crate) unsafe fn as_slots<T>(v: &mut [T]) -> &mut [MaybeUninit<T>] {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn each_line_hints_every_line_a_range_spans_once_inside_it() {
+        let v = vec![0u8; 400];
+        let (lo, hi) = (v.as_ptr() as usize, v.as_ptr() as usize + v.len());
+        for start in 0..140 {
+            for len in 0..200 {
+                let mut got = Vec::new();
+                each_line(&v, start, len, |p| got.push(p as usize));
+                let end = (start + len).min(v.len());
+                let want: Vec<usize> = if start >= end {
+                    Vec::new()
+                } else {
+                    ((lo + start) / 64..=(lo + end - 1) / 64).collect()
+                };
+                let lines: Vec<usize> = got.iter().map(|p| p / 64).collect();
+                assert_eq!(lines, want, "start {start}, len {len}");
+                assert!(
+                    got.iter().all(|&p| p >= lo + start && p < hi),
+                    "start {start}, len {len}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn blocks_are_written_in_place_once_each() {

@@ -565,7 +565,7 @@ impl<T> Written<T> {
 
 impl<T: Real> Steps<'_, T> {
     /// Step 1 for one tile: its entries' gradients, written once into its
-    /// piece (accumulated in `scratch`, a buffer of its worker).
+    /// piece (accumulated in `scratch`, a buffer of its task).
     fn tile(&self, rec: &mut Vec<Record<T>>, scratch: &mut Vec<EntryGrad<T>>, t: TilePiece<'_, T>) {
         let saved = self.saved;
         let (w, h) = (saved.intr.width, saved.intr.height);
@@ -612,10 +612,10 @@ impl<T: Real> Steps<'_, T> {
     /// rows in the forward ([`crate::threads::run_on_named_workers`]): the
     /// tile pass reads the rows' saved records, which that worker wrote.
     /// On the trained hellwarrior frames (2 threads, 2-core development
-    /// machine) the step took 8.1–8.6 ms for 10 cameras against 9.0–10.0
-    /// with rayon's split in quiet minutes, and 9.8–10.2 against 17.9–20.6
-    /// in slow periods (benches/README.md, "The backward's tiles on the
-    /// workers that blended their rows"). Which worker computes a tile
+    /// machine) the step took 8.1–8.6 ms for 10 cameras against 9.0–10.1
+    /// with rayon's split in quiet minutes, and 8.2–8.5 in slow periods,
+    /// where rayon's split had taken 16.7–20.6 (benches/README.md, "The
+    /// backward's tiles on the workers that blended their rows"). Which worker computes a tile
     /// changes no result.
     fn entry_gradients(&self, tiles: Vec<TilePiece<'_, T>>) -> GaussianEntries {
         let owners = self.saved.tile_row_workers();
