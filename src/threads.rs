@@ -386,15 +386,11 @@ pub(crate) fn run_on_named_workers<J: Send, S, R: Send>(
         jobs.into_iter().for_each(|(_, j)| work(&mut state, j));
         return r;
     }
-    let mut queues: Vec<Vec<usize>> = vec![Vec::new(); threads];
-    for (i, (w, _)) in jobs.iter().enumerate() {
-        queues[w % threads].push(i);
+    let mut queues: Vec<Vec<UnsafeCell<Option<J>>>> = (0..threads).map(|_| Vec::new()).collect();
+    for (w, j) in jobs {
+        queues[w % threads].push(UnsafeCell::new(Some(j)));
     }
-    let jobs = Claimed(
-        jobs.into_iter()
-            .map(|(_, j)| UnsafeCell::new(Some(j)))
-            .collect(),
-    );
+    let queues = Claimed(queues);
     let next: Vec<Padded<AtomicUsize>> =
         (0..threads).map(|_| Padded(AtomicUsize::new(0))).collect();
     let run = || {
@@ -403,10 +399,11 @@ pub(crate) fn run_on_named_workers<J: Send, S, R: Send>(
         for q in (0..threads).map(|k| (me + k) % threads) {
             loop {
                 let k = next[q].0.fetch_add(1, Ordering::Relaxed);
-                let Some(&i) = queues[q].get(k) else { break };
-                // SAFETY: each job index is in one queue, at one place,
-                // and the `fetch_add` hands each place to one task only.
-                let job = unsafe { jobs.take(i) };
+                // SAFETY: the `fetch_add` hands each place of queue `q` to
+                // one task only.
+                let Some(job) = (unsafe { queues.take(q, k) }) else {
+                    break;
+                };
                 job.into_iter().for_each(|j| work(&mut state, j));
             }
         }
@@ -421,19 +418,22 @@ pub(crate) fn run_on_named_workers<J: Send, S, R: Send>(
     })
 }
 
-/// The jobs of [`run_on_named_workers`], each taken by one task only.
-struct Claimed<J>(Vec<UnsafeCell<Option<J>>>);
+/// The jobs of [`run_on_named_workers`], a queue per worker, each job
+/// taken by one task only.
+struct Claimed<J>(Vec<Vec<UnsafeCell<Option<J>>>>);
 
 // SAFETY: a job is taken (moved out) only by the task whose `fetch_add`
 // claimed its place, so no two threads touch one cell.
 unsafe impl<J: Send> Sync for Claimed<J> {}
 
 impl<J> Claimed<J> {
+    /// Place `k` of queue `q`: `None` past the queue's end, else its job.
+    ///
     /// # Safety
-    /// No other thread takes job `i`, now or later.
-    unsafe fn take(&self, i: usize) -> Option<J> {
+    /// No other thread takes place `k` of queue `q`, now or later.
+    unsafe fn take(&self, q: usize, k: usize) -> Option<Option<J>> {
         // SAFETY: as the caller promises.
-        unsafe { (*self.0[i].get()).take() }
+        self.0[q].get(k).map(|c| unsafe { (*c.get()).take() })
     }
 }
 

@@ -615,8 +615,8 @@ impl<T: Real> Steps<'_, T> {
     /// machine) the step took 8.1–8.6 ms for 10 cameras against 9.0–10.1
     /// with rayon's split in quiet minutes, and 8.2–8.5 in slow periods,
     /// where rayon's split had taken 16.7–20.6 (benches/README.md, "The
-    /// backward's tiles on the workers that blended their rows"). Which worker computes a tile
-    /// changes no result.
+    /// backward's tiles on the workers that blended their rows"). Which
+    /// worker computes a tile changes no result.
     fn entry_gradients(&self, tiles: Vec<TilePiece<'_, T>>) -> GaussianEntries {
         let owners = self.saved.tile_row_workers();
         let grid_x = self.saved.intr.grid[0] as usize;
