@@ -106,5 +106,12 @@ for kind in wall cpu; do
     done
 done
 echo
+echo "round trip of one cache line between liquid-splat's two workers just before / after its two-thread timed runs (40-50 ns in the development VM's quiet minutes, 320-450 ns in its slow periods; benches/README.md):"
+for steps in $steps_list; do
+    dir="$tmp/state$steps"
+    label=$([ "$steps" -eq 0 ] && echo initial || echo "after $steps training steps")
+    echo "  $label: $(field "$dir.ls.txt" "liquid-splat threads=2" xcpu_before_ns) / $(field "$dir.ls.txt" "liquid-splat threads=2" xcpu_after_ns) ns"
+done
+echo
 echo "agreement: $([ "$status" -eq 0 ] && echo "ok in every state" || echo "FAILED (see the per-camera tables above)")"
 exit "$status"

@@ -38,7 +38,12 @@
 //! time divided by the thread count estimates the wall time the same work
 //! takes with the cores to itself. Before each such line, a `stages` line:
 //! the rasterizer's stages (`render::stages`) of one more run per camera,
-//! wall (CPU) milliseconds summed over the cameras.
+//! wall (CPU) milliseconds summed over the cameras. The two-thread line
+//! ends with `xcpu_before_ns=A xcpu_after_ns=B`: one cache line's round
+//! trip between the pool's workers 0 and 1 just before and just after its
+//! timed runs (the median of 5 batches of 2,000), which tells a shared
+//! machine's slow periods from its quiet minutes (benches/README.md, "The
+//! machine's slow periods").
 
 use liquid_splat::dataset::{self, LoadOptions, Splits};
 use liquid_splat::deform::{CfcConfig, FieldConfig};
@@ -67,6 +72,16 @@ fn write_f32(path: &Path, parts: &[&[f32]]) {
 /// (`CLOCK_PROCESS_CPUTIME_ID`, as the OpenSplat harness reads it: one
 /// system call, so the wall times it sits between barely include it);
 /// 0 where not available.
+/// Nanoseconds per round trip of one cache line between workers 0 and 1
+/// of `pool` (the median of 5 batches of 2,000), or `None` for a pool of one.
+fn round_trip_ns(pool: &rayon::ThreadPool) -> Option<f64> {
+    let mut v = (0..5)
+        .map(|_| liquid_splat::bench::harness::round_trip_ns(pool, 2_000))
+        .collect::<Option<Vec<f64>>>()?;
+    v.sort_by(f64::total_cmp);
+    Some(v[2])
+}
+
 fn cpu_ns() -> u64 {
     liquid_splat::bench::harness::process_cpu_seconds().map_or(0, |s| (s * 1e9) as u64)
 }
@@ -230,6 +245,7 @@ fn main() {
         let pool = liquid_splat::threads::pool(threads).expect("thread pool");
         let (mut fwd, mut bwd, mut fwd_cpu, mut bwd_cpu) = (0.0, 0.0, 0u64, 0u64);
         let reps = reps.max(1);
+        let before = round_trip_ns(&pool);
         pool.install(|| {
             for (k, grad) in grads.iter().enumerate() {
                 let (mut f, mut b) = (f64::INFINITY, f64::INFINITY);
@@ -249,6 +265,7 @@ fn main() {
                 bwd += b;
             }
         });
+        let after = round_trip_ns(&pool);
         // One more run per camera with the stage clock on: each stage's wall
         // (CPU) milliseconds summed over the cameras.
         let mut sums: Vec<(&'static str, f64, f64)> = Vec::new();
@@ -276,8 +293,12 @@ fn main() {
             "stages threads={threads}, ms wall (CPU), one run, sum over the cameras: {}",
             list.join(", ")
         );
+        let trips = match (before, after) {
+            (Some(b), Some(a)) => format!(" xcpu_before_ns={b:.0} xcpu_after_ns={a:.0}"),
+            _ => String::new(),
+        };
         println!(
-            "liquid-splat threads={threads} fwd_ms={:.1} bwd_ms={:.1} fwd_cpu_ms={:.1} bwd_cpu_ms={:.1}",
+            "liquid-splat threads={threads} fwd_ms={:.1} bwd_ms={:.1} fwd_cpu_ms={:.1} bwd_cpu_ms={:.1}{trips}",
             fwd * 1e3,
             bwd * 1e3,
             fwd_cpu as f64 / reps as f64 * 1e-6,
