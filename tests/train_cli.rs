@@ -37,6 +37,37 @@ fn train_render_eval_on_the_fixture_scene() {
     assert!(r.status.success(), "{}", text(&r));
     let stdout = String::from_utf8_lossy(&r.stdout);
     assert!(stdout.contains("test PSNR"), "{stdout}");
+    // Not a terminal: a log line every 40 / 20 = 2 iterations, each
+    // followed by the stages' milliseconds per iteration since the last.
+    let stderr = String::from_utf8_lossy(&r.stderr);
+    let lines: Vec<&str> = stderr.lines().collect();
+    let logged: Vec<usize> = (0..lines.len())
+        .filter(|&i| lines[i].starts_with("iteration "))
+        .collect();
+    assert_eq!(logged.len(), 20, "{stderr}");
+    assert!(
+        lines[logged[19]].starts_with("iteration     40/40 "),
+        "{stderr}"
+    );
+    for &i in &logged {
+        let next = lines.get(i + 1).copied().unwrap_or("");
+        assert!(
+            next.starts_with("  ms/iteration over the last 2: field forward ")
+                && [
+                    "raster forward",
+                    "loss",
+                    "raster backward",
+                    "field backward",
+                    "densify",
+                    "optimizer",
+                    "all stages",
+                    "wall"
+                ]
+                .iter()
+                .all(|s| next.contains(s)),
+            "{stderr}"
+        );
+    }
     let results = json(&out.join("results.json"));
     let per_view = json(&out.join("per_view.json"));
     assert_eq!(results["views"], 8);

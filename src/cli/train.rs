@@ -11,7 +11,7 @@ use crate::experiment::{
 };
 use crate::lpips;
 use crate::math::Real;
-use crate::train::{self, run::file_stem, Event, RunOptions, View, ViewMetrics};
+use crate::train::{self, run::file_stem, Event, RunOptions, StageTimes, View, ViewMetrics};
 use clap::Args;
 use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
@@ -250,7 +250,9 @@ pub fn train(a: TrainArgs) -> Result<Outcome> {
     Ok(Outcome::Success)
 }
 
-/// Progress: a one-line bar on a terminal, plain log lines otherwise.
+/// Progress: a one-line bar on a terminal, plain log lines otherwise,
+/// each followed by the milliseconds per iteration of every stage since the
+/// line before.
 struct Progress {
     total: u64,
     quiet: bool,
@@ -259,6 +261,9 @@ struct Progress {
     last_draw: Option<Instant>,
     loss_ema: Option<f64>,
     psnr_ema: Option<f64>,
+    /// The stages' seconds, the steps and the time of the last log line
+    /// (or of the start) since then.
+    since: (StageTimes, u64, Instant),
 }
 
 impl Progress {
@@ -271,7 +276,28 @@ impl Progress {
             last_draw: None,
             loss_ema: None,
             psnr_ema: None,
+            since: (StageTimes::default(), 0, Instant::now()),
         }
+    }
+
+    /// The milliseconds per iteration of every stage since the last log
+    /// line, and of the wall clock (which includes checkpoints and
+    /// evaluations); starts the next interval.
+    fn stage_line(&mut self) -> String {
+        let (times, steps, lap) =
+            std::mem::replace(&mut self.since, (StageTimes::default(), 0, Instant::now()));
+        let per = |sec: f64| 1e3 * sec / steps.max(1) as f64;
+        let stages: Vec<String> = StageTimes::NAMES
+            .iter()
+            .zip(times.values())
+            .map(|(name, sec)| format!("{name} {:.2}", per(sec)))
+            .collect();
+        format!(
+            "  ms/iteration over the last {steps}: {}; all stages {:.2}, wall {:.2}",
+            stages.join(", "),
+            per(times.values().iter().sum()),
+            per(lap.elapsed().as_secs_f64())
+        )
     }
 
     fn event(&mut self, e: Event) {
@@ -279,8 +305,13 @@ impl Progress {
             return;
         }
         match e {
-            Event::Resumed { iteration } => eprintln!("resumed from iteration {iteration}"),
+            Event::Resumed { iteration } => {
+                eprintln!("resumed from iteration {iteration}");
+                self.since = (StageTimes::default(), 0, Instant::now());
+            }
             Event::Step(r) => {
+                self.since.0.add(&r.times);
+                self.since.1 += 1;
                 let ema = |old: Option<f64>, v: f64| Some(old.map_or(v, |o| 0.6 * v + 0.4 * o));
                 self.loss_ema = ema(self.loss_ema, r.loss);
                 if r.psnr.is_finite() {
@@ -313,6 +344,7 @@ impl Progress {
                     }
                 } else if r.iteration % (self.total / 20).max(1) == 0 || r.iteration == self.total {
                     eprintln!("{line}  {:.1}s", self.start.elapsed().as_secs_f64());
+                    eprintln!("{}", self.stage_line());
                 }
             }
             Event::Eval {
