@@ -68,10 +68,6 @@ fn write_f32(path: &Path, parts: &[&[f32]]) {
     }
 }
 
-/// CPU time of every thread of this process so far, in nanoseconds
-/// (`CLOCK_PROCESS_CPUTIME_ID`, as the OpenSplat harness reads it: one
-/// system call, so the wall times it sits between barely include it);
-/// 0 where not available.
 /// Nanoseconds per round trip of one cache line between workers 0 and 1
 /// of `pool` (the median of 5 batches of 2,000), or `None` for a pool of one.
 fn round_trip_ns(pool: &rayon::ThreadPool) -> Option<f64> {
@@ -82,6 +78,10 @@ fn round_trip_ns(pool: &rayon::ThreadPool) -> Option<f64> {
     Some(v[2])
 }
 
+/// CPU time of every thread of this process so far, in nanoseconds
+/// (`CLOCK_PROCESS_CPUTIME_ID`, as the OpenSplat harness reads it: one
+/// system call, so the wall times it sits between barely include it);
+/// 0 where not available.
 fn cpu_ns() -> u64 {
     liquid_splat::bench::harness::process_cpu_seconds().map_or(0, |s| (s * 1e9) as u64)
 }
