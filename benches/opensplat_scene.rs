@@ -68,16 +68,6 @@ fn write_f32(path: &Path, parts: &[&[f32]]) {
     }
 }
 
-/// Nanoseconds per round trip of one cache line between workers 0 and 1
-/// of `pool` (the median of 5 batches of 2,000), or `None` for a pool of one.
-fn round_trip_ns(pool: &rayon::ThreadPool) -> Option<f64> {
-    let mut v = (0..5)
-        .map(|_| liquid_splat::bench::harness::round_trip_ns(pool, 2_000))
-        .collect::<Option<Vec<f64>>>()?;
-    v.sort_by(f64::total_cmp);
-    Some(v[2])
-}
-
 /// CPU time of every thread of this process so far, in nanoseconds
 /// (`CLOCK_PROCESS_CPUTIME_ID`, as the OpenSplat harness reads it: one
 /// system call, so the wall times it sits between barely include it);
@@ -245,7 +235,7 @@ fn main() {
         let pool = liquid_splat::threads::pool(threads).expect("thread pool");
         let (mut fwd, mut bwd, mut fwd_cpu, mut bwd_cpu) = (0.0, 0.0, 0u64, 0u64);
         let reps = reps.max(1);
-        let before = round_trip_ns(&pool);
+        let before = liquid_splat::bench::harness::round_trip_median_ns(&pool);
         pool.install(|| {
             for (k, grad) in grads.iter().enumerate() {
                 let (mut f, mut b) = (f64::INFINITY, f64::INFINITY);
@@ -265,7 +255,7 @@ fn main() {
                 bwd += b;
             }
         });
-        let after = round_trip_ns(&pool);
+        let after = liquid_splat::bench::harness::round_trip_median_ns(&pool);
         // One more run per camera with the stage clock on: each stage's wall
         // (CPU) milliseconds summed over the cameras.
         let mut sums: Vec<(&'static str, f64, f64)> = Vec::new();

@@ -33,10 +33,7 @@ const QUIET_NS: f64 = 100.0;
 /// The ns per round trip of one atomic between the pool's two workers: the
 /// median of 5 batches' means, 2,000 round trips a batch.
 fn round_trip_ns(pool: &rayon::ThreadPool) -> f64 {
-    let batches = (0..5)
-        .map(|_| harness::round_trip_ns(pool, 2_000).expect("a pool of 2 threads"))
-        .collect();
-    spread(batches).0
+    harness::round_trip_median_ns(pool).expect("a pool of 2 threads")
 }
 
 /// The median (of an even count, the mean of the middle two), smallest and

@@ -53,18 +53,10 @@ fn train_render_eval_on_the_fixture_scene() {
         let next = lines.get(i + 1).copied().unwrap_or("");
         assert!(
             next.starts_with("  ms/iteration over the last 2: field forward ")
-                && [
-                    "raster forward",
-                    "loss",
-                    "raster backward",
-                    "field backward",
-                    "densify",
-                    "optimizer",
-                    "all stages",
-                    "wall"
-                ]
-                .iter()
-                .all(|s| next.contains(s)),
+                && liquid_splat::train::StageTimes::NAMES
+                    .iter()
+                    .chain(&["all stages", "wall"])
+                    .all(|s| next.contains(s)),
             "{stderr}"
         );
     }

@@ -242,6 +242,16 @@ pub fn round_trip_ns(pool: &rayon::ThreadPool, trips: u32) -> Option<f64> {
     Some(times[0])
 }
 
+/// [`round_trip_ns`] as the benches report it: the median of 5 batches of
+/// 2,000 round trips. `None` for a pool of fewer than two workers.
+pub fn round_trip_median_ns(pool: &rayon::ThreadPool) -> Option<f64> {
+    let mut v = (0..5)
+        .map(|_| round_trip_ns(pool, 2_000))
+        .collect::<Option<Vec<f64>>>()?;
+    v.sort_by(f64::total_cmp);
+    Some(v[2])
+}
+
 /// CPU time of the whole process (all threads) in seconds; `None` where not
 /// available. On a shared machine, CPU time ÷ threads estimates the wall
 /// time the same work would take with the cores to itself.
