@@ -556,7 +556,14 @@ fn degenerate_cameras_and_times_are_refused() {
         }
     });
     let bottom = edit_frame("bottom", &|f| m(f, 3, 3, 2.0));
-    for data in [zero, scaled, bottom] {
+    // A reflection: orthonormal, determinant -1.
+    let reflected = edit_frame("reflected", &|f| {
+        for r in 0..3 {
+            let v = f["transform_matrix"][r][0].as_f64().unwrap();
+            m(f, r, 0, -v)
+        }
+    });
+    for data in [zero, scaled, bottom, reflected] {
         refused(
             &["inspect", s(&data)],
             &["transforms_train.json", "frames[0].transform_matrix"],
@@ -584,10 +591,22 @@ fn degenerate_cameras_and_times_are_refused() {
     refused(&["inspect", s(&n)], &["00000.json", "orientation"]);
     std::fs::write(&cam, &original).unwrap();
     let scene = n.join("scene.json");
-    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&scene).unwrap()).unwrap();
+    let scene_original = std::fs::read(&scene).unwrap();
+    let mut v: serde_json::Value = serde_json::from_slice(&scene_original).unwrap();
     v["scale"] = (-1.0).into();
     std::fs::write(&scene, serde_json::to_vec(&v).unwrap()).unwrap();
     refused(&["inspect", s(&n)], &["scene.json", "scale"]);
+    std::fs::write(&scene, &scene_original).unwrap();
+    // A negative time_id, named by its view.
+    let meta = n.join("metadata.json");
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(&meta).unwrap()).unwrap();
+    let id = v.as_object().unwrap().keys().next().unwrap().clone();
+    v[&id]["time_id"] = (-1).into();
+    std::fs::write(&meta, serde_json::to_vec(&v).unwrap()).unwrap();
+    refused(
+        &["inspect", s(&n)],
+        &["metadata.json", &format!("{id}.time_id"), ">= 0"],
+    );
 }
 
 // ---- 9: failing before the work ----
