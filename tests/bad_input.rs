@@ -260,6 +260,160 @@ fn counters_and_sizes_that_overflowed_or_aborted_are_refused() {
     );
 }
 
+/// Sizes that reached an allocation or an overflow before any check: the
+/// gsplat stages' image sizes and tile grids, the oracle rasterizer's zero
+/// side, sweeps and benchmark sizes. Each is refused at once.
+#[test]
+fn sizes_checked_before_the_allocation() {
+    let d = tmp("sizes2");
+    let quick = Duration::from_secs(20);
+    for (stage, meta, needle) in [
+        (
+            "gsplat_rasterization",
+            [("width", "60000"), ("height", "60000")],
+            "2^26 pixels",
+        ),
+        (
+            "gsplat_rasterization",
+            [("width", "8"), ("height", "4294967296")],
+            "each side",
+        ),
+        (
+            "gsplat_rasterize_to_pixels",
+            [("image_width", "1000000"), ("image_height", "8")],
+            "each side",
+        ),
+        (
+            "gsplat_rasterize_to_pixels",
+            [("image_width", "60000"), ("image_height", "60000")],
+            "2^26 pixels",
+        ),
+        (
+            "gsplat_isect_tiles",
+            [("tile_width", "4294967296"), ("tile_height", "4294967296")],
+            "31 bits",
+        ),
+        (
+            "rasterize",
+            [
+                ("image_width", "0"),
+                ("image_height", "7000000000000000000"),
+            ],
+            "image_width",
+        ),
+    ] {
+        let name = format!("{stage}_{}.safetensors", meta[1].1);
+        // Forward-only: the cotangents' zeros were what was allocated.
+        let p = case(d.as_path(), &name, &[stage, "--count", "4"], |f| {
+            for (k, v) in meta {
+                f.set_meta(k, v);
+            }
+            f.tensors
+                .retain(|k, _| !k.starts_with("v_") && !k.starts_with("grad_"));
+        });
+        refused_within(
+            &["case", "run", s(&p), s(&d.join("o"))],
+            quick,
+            &[s(&p), needle],
+        );
+    }
+    // A radius box over 2^31 tiles of one pixel.
+    let p = case(
+        d.as_path(),
+        "isect_all.safetensors",
+        &["gsplat_isect_tiles", "--count", "4"],
+        |f| {
+            f.set_meta("tile_size", "1");
+            f.set_meta("tile_width", "65536");
+            f.set_meta("tile_height", "32768");
+            f.set_meta("n_images", "1");
+            // (Without conics and opacities: the radius box, not AccuTile.)
+            for k in ["image_ids", "conics", "opacities"] {
+                f.tensors.remove(k);
+            }
+            let m = f.shape("radii").unwrap()[0];
+            f.insert_i32("image_ids", vec![m], vec![0; m]);
+            f.insert_i32("radii", vec![m, 2], vec![i32::MAX; 2 * m]);
+        },
+    );
+    refused_within(
+        &["case", "run", s(&p), s(&d.join("o"))],
+        quick,
+        &[s(&p), "intersections"],
+    );
+
+    let run = d.join("run");
+    train(SWING, &run, &[]);
+    for (flag, value) in [
+        ("--sweep-frames", "18446744073709551615"),
+        ("--times", "1e300"),
+        ("--times", "0.0000001,0.0000002"),
+    ] {
+        refused_within(&["render", s(&run), flag, value], quick, &[flag]);
+    }
+    refused_within(&["export", s(&run), "--times", "nan"], quick, &["--times"]);
+    for args in [
+        &["bench", "deform", "--n", "18446744073709551615"][..],
+        &["bench", "lpips", "--size", "4294967296"],
+        &["bench", "raster", "--reps", "0"],
+    ] {
+        refused_within(args, quick, &["is not in"]);
+    }
+    for (flag, value) in [("--sweep-times", "1"), ("--sweep-gaussians", "0")] {
+        refused_within(
+            &[
+                "experiment",
+                "--scenes",
+                "swing",
+                "--out",
+                s(&d.join("ex")),
+                flag,
+                value,
+            ],
+            quick,
+            &[flag],
+        );
+    }
+}
+
+/// Output written to a closed pipe ends the tool quietly (SIGPIPE), not with
+/// a panic.
+#[test]
+#[cfg(target_os = "linux")]
+fn a_closed_pipe_is_not_a_panic() {
+    use std::io::Read;
+    use std::process::{Command, Stdio};
+    let cases = concat!(env!("CARGO_MANIFEST_DIR"), "/fixtures/cases");
+    let e = format!("{cases}/step_f64.expected.safetensors");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
+        .args(["case", "compare", &e, &e])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let mut err = String::new();
+    child
+        .stderr
+        .take()
+        .unwrap()
+        .read_to_string(&mut err)
+        .unwrap();
+    let status = child.wait().unwrap();
+    assert!(!err.contains("panicked"), "{err}");
+    use std::os::unix::process::ExitStatusExt;
+    assert!(
+        status.success() || status.signal() == Some(libc_sigpipe()),
+        "{status:?}: {err}"
+    );
+}
+
+/// SIGPIPE's number on Linux.
+#[cfg(target_os = "linux")]
+fn libc_sigpipe() -> i32 {
+    13
+}
+
 // ---- 3: the PLY element guard ----
 
 #[test]

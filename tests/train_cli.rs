@@ -215,4 +215,22 @@ fn experiment_writes_a_report_and_resumes_per_configuration() {
     assert_eq!(std::fs::read(&cfc).unwrap(), cfc_before);
     let again = json(&mlp);
     assert_eq!(again["test_psnr"], rec["test_psnr"]);
+    assert_eq!(again["smoothness_sweep"], serde_json::json!([9, 1000]));
+
+    // A kept record made with other settings is refused, not mixed into the
+    // report.
+    for (flag, value, needle) in [
+        ("--iterations", "7", "6 iterations, not 7"),
+        ("--resolution", "8", "16x16, not 8x8"),
+        ("--sweep-times", "5", "[9, 1000]"),
+    ] {
+        let mut other = args.to_vec();
+        let i = other.iter().position(|a| *a == flag).unwrap();
+        other[i + 1] = value;
+        let r = cli(&other);
+        assert_eq!(r.status.code(), Some(2), "{flag}: {}", text(&r));
+        assert!(text(&r).contains(needle), "{flag}: {}", text(&r));
+        assert!(!text(&r).contains(": training"), "{flag}: {}", text(&r));
+    }
+    assert_eq!(std::fs::read(&cfc).unwrap(), cfc_before);
 }

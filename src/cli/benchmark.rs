@@ -7,6 +7,16 @@ use crate::error::Outcome;
 use crate::lpips;
 use clap::Subcommand;
 
+/// A clap parser for a count in `LO..=HI` (refused with exit 2 otherwise).
+fn count_in<const LO: usize, const HI: usize>(s: &str) -> Result<usize, String> {
+    let v: usize = s.parse().map_err(|e| format!("{s:?}: {e}"))?;
+    if (LO..=HI).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("{v} is not in {LO}..={HI}"))
+    }
+}
+
 /// Subcommands of `bench`.
 #[derive(Subcommand)]
 pub enum BenchWhat {
@@ -14,7 +24,7 @@ pub enum BenchWhat {
     /// on 1 thread and all cores: ms, pairs evaluated, pairs/s and % of the FMA peak.
     Raster {
         /// Repetitions per measurement (the minimum is reported).
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = 3, value_parser = count_in::<1, 1_000_000>)]
         reps: usize,
     },
     /// Milliseconds per training iteration split by stage, on a dataset or built-in scene.
@@ -25,11 +35,11 @@ pub enum BenchWhat {
     },
     /// Deformation fields forward and forward+backward (MLP D8 W256, CfC D6 W128), f32.
     Deform {
-        /// Number of Gaussians.
-        #[arg(long, default_value_t = 20_000)]
+        /// Number of Gaussians (at most 2^24).
+        #[arg(long, default_value_t = 20_000, value_parser = count_in::<1, 16_777_216>)]
         n: usize,
         /// Repetitions per measurement (the median is reported).
-        #[arg(long, default_value_t = 5)]
+        #[arg(long, default_value_t = 5, value_parser = count_in::<1, 1_000_000>)]
         reps: usize,
         /// Run in f64 instead of f32.
         #[arg(long)]
@@ -40,11 +50,11 @@ pub enum BenchWhat {
     },
     /// LPIPS (VGG16) of one image pair: milliseconds per pair and the convolutions' GFLOP/s.
     Lpips {
-        /// Image width and height.
-        #[arg(long, default_value_t = 800)]
+        /// Image width and height (16 to 4096).
+        #[arg(long, default_value_t = 800, value_parser = count_in::<16, 4096>)]
         size: usize,
         /// Repetitions (the median is reported).
-        #[arg(long, default_value_t = 3)]
+        #[arg(long, default_value_t = 3, value_parser = count_in::<1, 1_000_000>)]
         reps: usize,
         /// Run in f64 instead of f32.
         #[arg(long)]

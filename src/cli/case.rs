@@ -11,8 +11,11 @@ use crate::Error;
 use clap::{Args, Subcommand};
 use std::path::{Path, PathBuf};
 
+/// The most pixels `case new --width × --height` writes.
+pub use crate::oracle::new::MAX_CASE_PIXELS as MAX_PIXELS;
+
 /// The most Gaussians or points `case new --count` writes.
-pub const MAX_COUNT: usize = 1 << 22;
+pub use crate::oracle::new::MAX_CASE_COUNT as MAX_COUNT;
 
 /// Subcommands of `case`.
 #[derive(Subcommand)]
@@ -151,19 +154,24 @@ fn run_new(a: NewArgs) -> crate::Result<Outcome> {
         }
         Ok(())
     };
+    use crate::oracle::gsplat::{ISECT, PROJECTION, RASTERIZATION, RASTERIZE};
     let gs = crate::oracle::gsplat::STAGES;
     let with_gs =
         |base: &[&'static str]| -> Vec<&'static str> { base.iter().copied().chain(gs).collect() };
-    uses(
-        "--width",
-        a.width.is_some(),
-        &with_gs(&["rasterize", "loss", "step"]),
-    )?;
-    uses(
-        "--height",
-        a.height.is_some(),
-        &with_gs(&["rasterize", "loss", "step"]),
-    )?;
+    // (The gsplat stages without a camera or image, the covariance and SH
+    // stages, use none of the image options.)
+    let imaged = [PROJECTION, ISECT, RASTERIZE, RASTERIZATION];
+    let sized = [
+        "rasterize",
+        "loss",
+        "step",
+        PROJECTION,
+        ISECT,
+        RASTERIZE,
+        RASTERIZATION,
+    ];
+    uses("--width", a.width.is_some(), &sized)?;
+    uses("--height", a.height.is_some(), &sized)?;
     uses(
         "--count",
         a.count.is_some(),
@@ -171,8 +179,8 @@ fn run_new(a: NewArgs) -> crate::Result<Outcome> {
     )?;
     uses("--gradient", a.gradient.is_some(), &with_gs(&["rasterize"]))?;
     uses("--gsplat-version", a.gsplat_version.is_some(), &gs)?;
-    uses("--antialiased", a.antialiased, &gs)?;
-    uses("--dense", a.dense, &gs)?;
+    uses("--antialiased", a.antialiased, &imaged)?;
+    uses("--dense", a.dense, &[PROJECTION, RASTERIZATION])?;
     uses("--field", a.field.is_some(), &["deform", "step"])?;
     uses("--depth", a.depth.is_some(), &["deform", "step"])?;
     uses("--hidden", a.hidden.is_some(), &["deform", "step"])?;
@@ -181,14 +189,12 @@ fn run_new(a: NewArgs) -> crate::Result<Outcome> {
     spec.width = a.width.unwrap_or(spec.width);
     spec.height = a.height.unwrap_or(spec.height);
     spec.count = a.count.unwrap_or(spec.count);
-    if spec.width.saturating_mul(spec.height) > crate::render::MAX_PIXELS {
+    if spec.width == 0 || spec.height == 0 || spec.width.saturating_mul(spec.height) > MAX_PIXELS {
         return Err(Error::invalid(
             "--width/--height",
             format!(
-                "{}x{} pixels, more than the limit {}",
-                spec.width,
-                spec.height,
-                crate::render::MAX_PIXELS
+                "{}x{} pixels (each side at least 1, at most {MAX_PIXELS} pixels)",
+                spec.width, spec.height,
             ),
         ));
     }

@@ -380,18 +380,21 @@ impl Progress {
     }
 }
 
+/// The most frames of `render`'s time sweep.
+pub const MAX_SWEEP_FRAMES: usize = 100_000;
+
 /// Arguments of `render`.
 #[derive(Args)]
 pub struct RenderArgs {
     /// Output folder of a `train` run.
     pub out: PathBuf,
-    /// Frames of the time sweep (0: no sweep).
+    /// Frames of the time sweep (0: no sweep; at most 100000).
     #[arg(long, default_value_t = 30)]
     pub sweep_frames: usize,
     /// Test view (index) the time sweep and --times are rendered from.
     #[arg(long, default_value_t = 0)]
     pub sweep_view: usize,
-    /// Also render these times (comma-separated, any finite value; the dataset's span
+    /// Also render these times (comma-separated, finite, |t| at most 1e9; the dataset's span
     /// is 0..1) into OUT/times/.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub times: Vec<f64>,
@@ -414,7 +417,14 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
         ..
     } = experiment::open_run::<T>(&a.out)?;
     let test: Vec<View<T>> = train::run::views(train::run::eval_frames(&data));
-    // The sweep view before any rendering: a bad index fails at once.
+    // The options before any rendering: a bad one fails at once.
+    if a.sweep_frames > MAX_SWEEP_FRAMES {
+        return Err(Error::invalid(
+            "--sweep-frames",
+            format!("{} (at most {MAX_SWEEP_FRAMES})", a.sweep_frames),
+        ));
+    }
+
     let sweep_view = if a.sweep_frames == 0 && a.times.is_empty() {
         None
     } else {
@@ -425,6 +435,11 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
             )
         })?)
     };
+    let time_name = |stem: &str, t: f64| format!("{stem}_t{t:.6}.png");
+    if let Some(v) = sweep_view {
+        let stem = file_stem(&v.name);
+        check_times(&a.times, |t| time_name(&stem, t))?;
+    }
     let per_view = train::run::render_views(&trainer, &test, &a.out.join("test"), None)?;
     eprintln!(
         "rendered {} test views from {} into {}",
@@ -459,7 +474,7 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
         let dir = a.out.join("times");
         let stem = file_stem(&v.name);
         let files = train::run::render_times(&trainer, v, &a.times, &dir, |_, t| {
-            format!("{stem}_t{t:.6}")
+            time_name(&stem, t).trim_end_matches(".png").to_string()
         })?;
         for f in files {
             println!("{}", f.display());
@@ -473,7 +488,7 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
 pub struct ExportArgs {
     /// Output folder of a `train` run.
     pub out: PathBuf,
-    /// Times to export (comma-separated, any finite value; the dataset's span is 0..1).
+    /// Times to export (comma-separated, finite, |t| at most 1e9; the dataset's span is 0..1).
     #[arg(
         long,
         value_delimiter = ',',
@@ -484,6 +499,29 @@ pub struct ExportArgs {
     /// Folder for the PLY files (default OUT/export).
     #[arg(long)]
     pub dir: Option<PathBuf>,
+}
+
+/// The largest `|t|` of `--times`.
+pub const MAX_TIME: f64 = 1e9;
+
+/// Checks `--times` before anything is rendered or written: finite, within
+/// ±[`MAX_TIME`], and no two giving the same file name (`name`).
+fn check_times(times: &[f64], name: impl Fn(f64) -> String) -> Result<()> {
+    if let Some(t) = times.iter().find(|t| !t.is_finite() || t.abs() > MAX_TIME) {
+        return Err(Error::invalid(
+            "--times",
+            format!("{t} (finite, at most {MAX_TIME:e} in magnitude)"),
+        ));
+    }
+    let mut names: Vec<String> = times.iter().map(|&t| name(t)).collect();
+    names.sort();
+    if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
+        return Err(Error::invalid(
+            "--times",
+            format!("two times give the same file name {} (6 decimals)", w[0]),
+        ));
+    }
+    Ok(())
 }
 
 /// `export OUT --times ...`: the deformed Gaussians at each time as an Inria PLY.
@@ -500,6 +538,7 @@ fn export_as<T: Real>(a: &ExportArgs) -> Result<Outcome> {
         trainer,
         ..
     } = experiment::open_run::<T>(&a.out)?;
+    check_times(&a.times, train::export::file_name)?;
     let dir = a.dir.clone().unwrap_or_else(|| a.out.join("export"));
     let reports = train::export::export_times(&trainer, &a.times, &dir)?;
     eprintln!(

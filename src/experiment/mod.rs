@@ -35,6 +35,9 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::sync::Arc;
 
+/// The most uniform times and Gaussians of the smoothness sweep.
+pub const MAX_SWEEP: usize = 100_000;
+
 /// The settings of an experiment: which scenes, how long, which seeds,
 /// and the smoothness sweep.
 #[derive(Clone)]
@@ -141,6 +144,25 @@ impl Experiment {
                 "need at least one iteration and one seed",
             ));
         }
+        // Settings used after the first run trains, refused before it.
+        if !(2..=MAX_SWEEP).contains(&self.sweep_times) {
+            return Err(Error::invalid(
+                "--sweep-times",
+                format!("{} (2 to {MAX_SWEEP} uniform times)", self.sweep_times),
+            ));
+        }
+        if !(1..=MAX_SWEEP).contains(&self.sweep_gaussians) {
+            return Err(Error::invalid(
+                "--sweep-gaussians",
+                format!("{} (1 to {MAX_SWEEP})", self.sweep_gaussians),
+            ));
+        }
+        if let Some(d) = self.data.iter().find(|d| !d.is_dir()) {
+            return Err(Error::invalid(
+                "dataset folder",
+                format!("{}: not found", d.display()),
+            ));
+        }
         let scenes: Vec<(String, RunSpec)> = if self.data.is_empty() {
             self.scenes
                 .iter()
@@ -203,6 +225,43 @@ impl Experiment {
         }
     }
 
+    /// Refuses a finished run's record made with other settings than this
+    /// experiment's (its iterations, training image size or smoothness
+    /// sweep): the report would mix them.
+    fn check_kept(&self, path: &std::path::Path, data: &crate::dataset::Dataset) -> Result<()> {
+        let r = report::read_record(path)?;
+        let size = [data.train[0].width, data.train[0].height];
+        let sweep = [self.sweep_times, self.sweep_gaussians];
+        let differs = if r.iterations as u64 != self.iterations {
+            Some(format!(
+                "{} iterations, not {}",
+                r.iterations, self.iterations
+            ))
+        } else if r.resolution != size {
+            Some(format!(
+                "training images of {}x{}, not {}x{}",
+                r.resolution[0], r.resolution[1], size[0], size[1]
+            ))
+        } else if r.smoothness_sweep.is_some_and(|s| s != sweep) {
+            Some(format!(
+                "a smoothness sweep of {:?} (times, Gaussians), not {sweep:?}",
+                r.smoothness_sweep.unwrap_or_default()
+            ))
+        } else {
+            None
+        };
+        match differs {
+            Some(why) => Err(Error::format(
+                path,
+                format!(
+                    "this finished run was made with {why}; use another --out, or remove \
+                     the record to train the run again"
+                ),
+            )),
+            None => Ok(()),
+        }
+    }
+
     /// Run the plan into `out`: train every run without a record (resuming
     /// from its newest checkpoint), write its record, and rewrite the report
     /// after each run and at the end. Returns the path of `report.md`.
@@ -216,7 +275,11 @@ impl Experiment {
             let config = s.train_config(&data)?;
             s.check_eval_split(&data)?;
             let label = report::field_label(&config.field);
-            let kept = report::record_path(&self.out, &run.scene, &label, s.seed).exists();
+            let record = report::record_path(&self.out, &run.scene, &label, s.seed);
+            let kept = record.exists();
+            if kept {
+                self.check_kept(&record, &data)?;
+            }
             on_event(ExperimentEvent::Run {
                 index,
                 runs: plan.len(),
@@ -284,6 +347,7 @@ impl Experiment {
             .collect();
         let mut record = self.record(run, data, config, label, &summary, stage_ms)?;
         record.temporal_smoothness = Some(smoothness);
+        record.smoothness_sweep = Some([self.sweep_times, self.sweep_gaussians]);
         record.wall_seconds = clock.elapsed().as_secs_f64();
         Ok(record)
     }
@@ -348,6 +412,7 @@ impl Experiment {
             ms_per_iteration: 1e3 * summary.train_seconds / summary.iterations_run.max(1) as f64,
             stage_ms,
             temporal_smoothness: None,
+            smoothness_sweep: None,
             curves,
             wall_seconds: 0.0,
         })

@@ -95,6 +95,19 @@ fn sat_u32<T: Real>(v: T) -> i64 {
     }
 }
 
+/// The most intersections `isect_tiles` lists (2^28; `isect_offsets` and
+/// `flatten_ids` are int32 in gsplat, so lists above 2^31 cannot be indexed
+/// at all).
+pub const MAX_ISECTS: usize = 1 << 28;
+
+/// Tiles `first + i · stride` for `i` in `0..len`, in that order.
+#[derive(Clone, Copy)]
+struct Run {
+    first: i64,
+    len: i64,
+    stride: i64,
+}
+
 /// Tiles of the radius box, row-major.
 fn radius_box<T: Real>(
     mean: [T; 2],
@@ -102,7 +115,7 @@ fn radius_box<T: Real>(
     tile_size: usize,
     tw: usize,
     th: usize,
-    out: &mut Vec<u32>,
+    out: &mut dyn FnMut(Run),
 ) {
     let ts = T::from_usize(tile_size);
     let trx = T::from_f64(radii[0] as f64) / ts;
@@ -114,9 +127,11 @@ fn radius_box<T: Real>(
     let x1 = sat_u32((tx + trx).ceil()).min(tw as i64);
     let y1 = sat_u32((ty + try_).ceil()).min(th as i64);
     for y in y0..y1 {
-        for x in x0..x1 {
-            out.push((y as usize * tw + x as usize) as u32);
-        }
+        out(Run {
+            first: y * tw as i64 + x0,
+            len: (x1 - x0).max(0),
+            stride: 1,
+        });
     }
 }
 
@@ -141,7 +156,7 @@ fn accutile<T: Real>(
     tile_size: usize,
     tw: usize,
     th: usize,
-    out: &mut Vec<u32>,
+    out: &mut dyn FnMut(Run),
 ) {
     let [a, b, c] = conic;
     let disc = b * b - a * c;
@@ -211,14 +226,19 @@ fn accutile<T: Real>(
         };
         let v0 = rmin[1].max(rmax[1].min(to_int(e_min / ts)));
         let v1 = rmax[1].min(rmin[1].max(to_int(e_max / ts + T::ONE)));
-        for v in v0..v1 {
-            let tile = if is_y {
-                u * tw as i64 + v
-            } else {
-                v * tw as i64 + u
-            };
-            out.push(tile as u32);
-        }
+        out(if is_y {
+            Run {
+                first: u * tw as i64 + v0,
+                len: (v1 - v0).max(0),
+                stride: 1,
+            }
+        } else {
+            Run {
+                first: v0 * tw as i64 + u,
+                len: (v1 - v0).max(0),
+                stride: tw as i64,
+            }
+        });
         inter_min = inter_max;
         min_line = max_line;
     }
@@ -245,7 +265,7 @@ pub fn isect_tiles<T: Real>(
             format!("tile_size {tile_size}, grid {tile_width}x{tile_height}, {n_images} images: each must be positive"),
         ));
     }
-    let n_tiles = tile_width * tile_height;
+    let n_tiles = tile_width.saturating_mul(tile_height);
     let tile_bits = key_bits(version, n_tiles);
     let image_bits = key_bits(version, n_images);
     if tile_bits + image_bits > 31 {
@@ -287,35 +307,56 @@ pub fn isect_tiles<T: Real>(
     }
     let alpha_threshold = T::ONE / T::from_f64(255.0);
     let extend = T::from_f64(3.33);
+    // Entry `e`'s tiles, each passed to `out`.
+    let tiles_of = |e: usize, out: &mut dyn FnMut(Run)| {
+        let r = [input.radii[2 * e], input.radii[2 * e + 1]];
+        if r[0] <= 0 || r[1] <= 0 {
+            return;
+        }
+        let mean = [input.means2d[2 * e], input.means2d[2 * e + 1]];
+        match rule {
+            TileRule::RadiusBox => radius_box(mean, r, tile_size, tile_width, tile_height, out),
+            TileRule::AccuTile => {
+                let c = input.conics.unwrap_or_default();
+                let o = input.opacities.unwrap_or_default();
+                accutile(
+                    mean,
+                    [c[3 * e], c[3 * e + 1], c[3 * e + 2]],
+                    o[e],
+                    alpha_threshold,
+                    extend,
+                    tile_size,
+                    tile_width,
+                    tile_height,
+                    out,
+                )
+            }
+        }
+    };
+    // Counted first, so that a list too long to index is refused before it
+    // is allocated (a radius or tile grid of up to 2^31 tiles per entry).
+    let counts: Vec<u64> = (0..m)
+        .into_par_iter()
+        .map(|e| {
+            let mut k = 0u64;
+            tiles_of(e, &mut |r| k += r.len as u64);
+            k
+        })
+        .collect();
+    let total: u64 = counts.iter().sum();
+    if total > MAX_ISECTS as u64 {
+        return Err(Error::invalid(
+            "isect_tiles",
+            format!("{total} intersections, more than the {MAX_ISECTS} allowed"),
+        ));
+    }
     let per: Vec<Vec<u32>> = (0..m)
         .into_par_iter()
         .map(|e| {
-            let mut tiles = Vec::new();
-            let r = [input.radii[2 * e], input.radii[2 * e + 1]];
-            if r[0] <= 0 || r[1] <= 0 {
-                return tiles;
-            }
-            let mean = [input.means2d[2 * e], input.means2d[2 * e + 1]];
-            match rule {
-                TileRule::RadiusBox => {
-                    radius_box(mean, r, tile_size, tile_width, tile_height, &mut tiles)
-                }
-                TileRule::AccuTile => {
-                    let c = input.conics.unwrap_or_default();
-                    let o = input.opacities.unwrap_or_default();
-                    accutile(
-                        mean,
-                        [c[3 * e], c[3 * e + 1], c[3 * e + 2]],
-                        o[e],
-                        alpha_threshold,
-                        extend,
-                        tile_size,
-                        tile_width,
-                        tile_height,
-                        &mut tiles,
-                    )
-                }
-            }
+            let mut tiles = Vec::with_capacity(counts[e] as usize);
+            tiles_of(e, &mut |r| {
+                tiles.extend((0..r.len).map(|i| (r.first + i * r.stride) as u32))
+            });
             tiles
         })
         .collect();
@@ -370,4 +411,71 @@ pub fn isect_offset_encode(
         *off = pos as i32;
     }
     offsets
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn isect(
+        radii: [i32; 2],
+        conic: Option<[f64; 3]>,
+        tile_size: usize,
+        grid: [usize; 2],
+    ) -> Result<Isects> {
+        let conics = conic.map(|c| c.to_vec());
+        isect_tiles(
+            &IsectInput {
+                means2d: &[16.0, 16.0],
+                radii: &radii,
+                depths: &[1.0f64],
+                conics: conics.as_deref(),
+                opacities: conic.map(|_| [0.9][..].to_owned()).as_deref(),
+                image_ids: None,
+                n: 1,
+            },
+            tile_size,
+            grid[0],
+            grid[1],
+            1,
+            Version::V1_6,
+            if conic.is_some() {
+                TileRule::AccuTile
+            } else {
+                TileRule::RadiusBox
+            },
+        )
+    }
+
+    #[test]
+    fn a_grid_whose_tile_count_overflows_is_refused() {
+        let err = isect([4, 4], None, 16, [1 << 32, 1 << 32]).unwrap_err();
+        assert!(err.to_string().contains("31 bits"), "{err}");
+    }
+
+    #[test]
+    fn a_list_past_the_limit_is_refused_before_it_is_allocated() {
+        // 2^31 tiles of 1 pixel, one entry covering all of them.
+        let err = isect([i32::MAX, i32::MAX], None, 1, [1 << 16, 1 << 15]).unwrap_err();
+        assert!(err.to_string().contains("268435456"), "{err}");
+        // The same entry on a grid of 2^20 tiles is listed on every tile.
+        let is = isect([i32::MAX, i32::MAX], None, 1, [1 << 10, 1 << 10]).unwrap();
+        assert_eq!(is.tiles_per_gauss, [1 << 20]);
+        assert_eq!(is.flatten_ids.len(), 1 << 20);
+    }
+
+    #[test]
+    fn counted_runs_list_the_tiles_in_order() {
+        // Radius box: tiles (0..2) × (0..2) of a 4×4 grid, row-major.
+        let is = isect([8, 8], None, 16, [4, 4]).unwrap();
+        let tiles: Vec<i64> = is.isect_ids.iter().map(|k| (k >> 32) & 0xf).collect();
+        assert_eq!(tiles, [0, 1, 4, 5]);
+        // AccuTile of a round splat, taller than wide: column runs.
+        let is = isect([8, 8], Some([0.02, 0.0, 0.005]), 16, [4, 4]).unwrap();
+        assert_eq!(is.tiles_per_gauss[0] as usize, is.flatten_ids.len());
+        let mut tiles: Vec<i64> = is.isect_ids.iter().map(|k| (k >> 32) & 0xf).collect();
+        tiles.sort();
+        tiles.dedup();
+        assert_eq!(tiles.len(), is.flatten_ids.len());
+    }
 }

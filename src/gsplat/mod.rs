@@ -199,6 +199,40 @@ impl<T: Real> Constants<T> {
     }
 }
 
+/// The most values (`images · height · width · channels`) an image tensor
+/// of the rasterizing stages may have: 2^30, 4 GiB in f32.
+pub const MAX_IMAGE_VALUES: usize = 1 << 30;
+
+/// Checks the size of `images` images of `width × height` pixels and
+/// `channels` channels before any buffer of that size is allocated: each
+/// side 1 to 65536 (the projection's limit), at most
+/// [`crate::render::MAX_PIXELS`] pixels over all images and at most
+/// [`MAX_IMAGE_VALUES`] values.
+pub(crate) fn check_frame(
+    images: usize,
+    width: usize,
+    height: usize,
+    channels: usize,
+) -> Result<()> {
+    let pixels = images
+        .checked_mul(width)
+        .and_then(|p| p.checked_mul(height));
+    let values = pixels.and_then(|p| p.checked_mul(channels));
+    let why = if !(1..=65536).contains(&width) || !(1..=65536).contains(&height) {
+        "each side 1 to 65536"
+    } else if pixels.is_none_or(|p| p > crate::render::MAX_PIXELS) {
+        "at most 2^26 pixels over all images"
+    } else if values.is_none_or(|v| v > MAX_IMAGE_VALUES) {
+        "at most 2^30 values (images · pixels · channels)"
+    } else {
+        return Ok(());
+    };
+    Err(Error::invalid(
+        "image size",
+        format!("{images} images of {width}x{height} pixels and {channels} channels ({why})"),
+    ))
+}
+
 /// Checks `len == want` for the tensor `what`.
 pub(crate) fn check_len(what: &str, len: usize, want: usize) -> Result<()> {
     if len != want {
@@ -257,4 +291,26 @@ pub fn camera_tensors<T: Real>(cam: &crate::camera::Camera) -> ([T; 16], [T; 9])
         1.0,
     ];
     (view, k.map(T::from_f64))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn frames_are_bounded_without_overflow() {
+        assert!(check_frame(1, 65536, 1024, 3).is_ok());
+        assert!(check_frame(4, 2048, 2048, 64).is_ok());
+        for (i, w, h, d, why) in [
+            (1, 0, 8, 3, "each side"),
+            (1, 65537, 8, 3, "each side"),
+            (1, 1 << 16, 1 << 16, 3, "2^26 pixels"),
+            (1 << 40, 1 << 16, 1 << 16, 3, "2^26 pixels"),
+            (1, 8192, 8192, 17, "2^30 values"),
+            (1, 8, 8, usize::MAX, "2^30 values"),
+        ] {
+            let err = check_frame(i, w, h, d).unwrap_err().to_string();
+            assert!(err.contains(why), "{err}");
+        }
+    }
 }

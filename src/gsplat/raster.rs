@@ -110,6 +110,12 @@ impl<T: Real> RasterInput<'_, T> {
                 ),
             ));
         }
+        if self.tile_size > 1024 {
+            return Err(Error::invalid(
+                "tile_size",
+                format!("{} (1 to 1024)", self.tile_size),
+            ));
+        }
         let m = self.opacities.len();
         check_len("means2d", self.means2d.len(), 2 * m)?;
         check_len("conics", self.conics.len(), 3 * m)?;
@@ -126,6 +132,7 @@ impl<T: Real> RasterInput<'_, T> {
             ));
         }
         let images = self.isect_offsets.len() / (tw * th);
+        super::check_frame(images, self.width, self.height, d)?;
         if let Some(bg) = self.backgrounds {
             check_len("backgrounds", bg.len(), images * d)?;
         }

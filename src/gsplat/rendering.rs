@@ -241,6 +241,7 @@ impl<T: Real> RasterizationInput<'_, T> {
                 check_len("colors", coeffs.len(), n * k * 3)?
             }
         }
+        super::check_frame(c, s.width, s.height, self.colors.channels())?;
         if let Some(bg) = self.backgrounds {
             check_len("backgrounds", bg.len(), c * self.colors.channels())?;
         }

@@ -52,8 +52,27 @@ impl Image8 {
     }
 }
 
-/// Decode a PNG held in `bytes` (`path` names it in errors).
+/// Decode a PNG held in `bytes` (`path` names it in errors). An image of
+/// more than [`crate::render::MAX_PIXELS`] pixels is refused from its
+/// header, before it is decoded.
 pub fn decode(path: &Path, bytes: &[u8]) -> Result<Image8> {
+    let mut header =
+        ::image::ImageReader::with_format(std::io::Cursor::new(bytes), ImageFormat::Png);
+    // (The decoder's own memory limit would refuse the largest sizes
+    // without naming them.)
+    header.no_limits();
+    let (w, h) = header
+        .into_dimensions()
+        .map_err(|e| Error::format(path, format!("cannot decode PNG: {e}")))?;
+    if w as u64 * h as u64 > crate::render::MAX_PIXELS as u64 {
+        return Err(Error::format(
+            path,
+            format!(
+                "{w}x{h} pixels, more than the {} an image may have",
+                crate::render::MAX_PIXELS
+            ),
+        ));
+    }
     let img = ::image::load_from_memory_with_format(bytes, ImageFormat::Png)
         .map_err(|e| Error::format(path, format!("cannot decode PNG: {e}")))?;
     let channels = match img.color() {
@@ -160,5 +179,43 @@ mod tests {
         assert!(encode(2, 2, 5, &[0; 20]).is_err());
         // Too few bytes for the stated size.
         assert!(encode(2, 2, 3, &[0; 5]).is_err());
+    }
+
+    /// CRC-32 (ISO 3309, as PNG chunks use it), bit by bit.
+    fn crc32(bytes: &[u8]) -> u32 {
+        let mut c = !0u32;
+        for &b in bytes {
+            c ^= b as u32;
+            for _ in 0..8 {
+                c = if c & 1 == 1 {
+                    (c >> 1) ^ 0xedb8_8320
+                } else {
+                    c >> 1
+                };
+            }
+        }
+        !c
+    }
+
+    #[test]
+    fn an_image_past_the_pixel_limit_is_refused_from_its_header() {
+        let mut png = encode(1, 1, 3, &[1, 2, 3]).unwrap();
+        // IHDR: length (4), "IHDR" (4), width, height (4 each): bytes 8..33.
+        let sizes = [
+            (8192, 8192, true),
+            (8193, 8192, false),
+            (1 << 30, 1 << 30, false),
+        ];
+        for (w, h, ok) in sizes {
+            png[16..20].copy_from_slice(&(w as u32).to_be_bytes());
+            png[20..24].copy_from_slice(&(h as u32).to_be_bytes());
+            let crc = crc32(&png[12..29]);
+            png[29..33].copy_from_slice(&crc.to_be_bytes());
+            let err = decode(Path::new("big.png"), &png).unwrap_err().to_string();
+            // An image within the limit gets past the header to the
+            // (truncated) pixel data.
+            assert_eq!(err.contains("more than the 67108864"), !ok, "{err}");
+            assert!(err.starts_with("big.png: "), "{err}");
+        }
     }
 }

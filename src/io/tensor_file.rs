@@ -158,6 +158,52 @@ pub struct TensorFile {
     pub tensors: BTreeMap<String, Tensor>,
 }
 
+/// Refuses a header whose tensors' `data_offsets` reach past the file's
+/// data before the `safetensors` crate reads it: the crate checks each
+/// tensor's size with checked arithmetic but then adds the last offset to
+/// the header's length unchecked, which overflows (a panic) for offsets near
+/// `u64::MAX`. Headers that are not JSON objects of this shape are left to
+/// the crate, which refuses them.
+fn check_offsets(path: &Path, bytes: &[u8]) -> Result<()> {
+    let bad = |why: String| Error::format(path, format!("not a valid safetensors file: {why}"));
+    let Some(head) = bytes.first_chunk::<8>() else {
+        return Err(bad(format!(
+            "{} bytes, shorter than the 8-byte header length",
+            bytes.len()
+        )));
+    };
+    let n = u64::from_le_bytes(*head);
+    let rest = (bytes.len() - 8) as u64;
+    if n > rest {
+        return Err(bad(format!(
+            "header length {n} reaches past the file's {} bytes",
+            bytes.len()
+        )));
+    }
+    let data = rest - n;
+    let Ok(header) = serde_json::from_slice::<serde_json::Map<String, serde_json::Value>>(
+        &bytes[8..8 + n as usize],
+    ) else {
+        return Ok(());
+    };
+    for (name, info) in header.iter().filter(|(k, _)| *k != "__metadata__") {
+        let Some(offsets) = info.get("data_offsets").and_then(|o| o.as_array()) else {
+            continue;
+        };
+        for o in offsets.iter().filter_map(|o| o.as_u64()) {
+            if o > data {
+                return Err(Error::Tensor {
+                    context: path.display().to_string(),
+                    name: name.clone(),
+                    expected: format!("data_offsets within the file's {data} bytes of data"),
+                    found: format!("offset {o}"),
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
 impl TensorFile {
     /// An empty file for `path` (nothing is read or written).
     pub fn new(path: impl Into<PathBuf>) -> Self {
@@ -180,6 +226,7 @@ impl TensorFile {
     /// Parse safetensors `bytes` (F32, F64 and I32 tensors); `path` names
     /// the file in errors.
     pub fn from_bytes(path: &Path, bytes: &[u8]) -> Result<Self> {
+        check_offsets(path, bytes)?;
         let (_, meta) = SafeTensors::read_metadata(bytes)
             .map_err(|e| Error::format(path, format!("not a valid safetensors file: {e}")))?;
         let st = SafeTensors::deserialize(bytes)
@@ -252,6 +299,14 @@ impl TensorFile {
     /// of 8 bytes. (The `safetensors` crate's own writer emits metadata in
     /// hash-map order, which changes from run to run.)
     pub fn to_bytes(&self) -> Result<Vec<u8>> {
+        // (The header's key for the metadata: a tensor of that name would
+        // make a file no reader accepts.)
+        if self.tensors.contains_key("__metadata__") {
+            return Err(Error::invalid(
+                format!("{}: tensor name", self.ctx()),
+                "`__metadata__` is the safetensors header's metadata key, not a tensor name",
+            ));
+        }
         fn align(t: &Tensor) -> u8 {
             match t {
                 Tensor::F64(_) => 0,
@@ -712,5 +767,37 @@ mod tests {
         for cut in [0, 4, 8, 20, bytes.len() - 1] {
             assert!(TensorFile::from_bytes(Path::new("x"), &bytes[..cut]).is_err());
         }
+    }
+
+    #[test]
+    fn offsets_past_the_data_are_refused_before_the_crate_adds_them() {
+        // An F64 tensor of 2^61 - 1 elements whose byte size, 2^64 - 8, is
+        // consistent with its offsets: the crate's size check passes it and
+        // its sum of the offset and the header's length overflows.
+        let header = br#"{"t":{"dtype":"F64","shape":[2305843009213693951],"data_offsets":[0,18446744073709551608]}}"#;
+        let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
+        bytes.extend_from_slice(header);
+        let err = TensorFile::from_bytes(Path::new("x.safetensors"), &bytes)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("x.safetensors") && err.contains("18446744073709551608"),
+            "{err}"
+        );
+        // Offsets within the data pass the check and the crate reads them.
+        let mut f = TensorFile::new("x");
+        f.insert_real::<f32>("a", vec![2], &[1.0, 2.0]);
+        assert!(check_offsets(Path::new("x"), &f.to_bytes().unwrap()).is_ok());
+    }
+
+    #[test]
+    fn a_tensor_named_like_the_metadata_key_is_not_written() {
+        let mut f = TensorFile::new("m.safetensors");
+        f.insert_real::<f32>("__metadata__", vec![1], &[0.0]);
+        let err = f.to_bytes().unwrap_err().to_string();
+        assert!(
+            err.contains("__metadata__") && err.contains("m.safetensors"),
+            "{err}"
+        );
     }
 }

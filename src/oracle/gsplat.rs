@@ -457,6 +457,9 @@ fn image_tensors<T: Real>(
     [images, h, w, d]: [usize; 4],
 ) -> Result<ImageTensors<T>> {
     known.extend(["backgrounds", "v_render_colors", "v_render_alphas"]);
+    // (Before the absent cotangents' zeros are allocated.)
+    crate::gsplat::check_frame(images, w, h, d)
+        .map_err(|e| Error::field(&case.path, "__metadata__.image_width", e.to_string()))?;
     let backgrounds = if case.contains("backgrounds") {
         Some(case.get_real::<T>("backgrounds", &[images, d])?)
     } else {

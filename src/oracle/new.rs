@@ -108,20 +108,29 @@ pub fn new_case(spec: &CaseSpec) -> Result<TensorFile> {
     }
 }
 
+/// The most pixels a generated case's image has (2^22).
+pub const MAX_CASE_PIXELS: usize = 1 << 22;
+
+/// The most Gaussians or points a generated case has (2^20).
+pub const MAX_CASE_COUNT: usize = 1 << 20;
+
 fn new_typed<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
-    if spec.width == 0 || spec.height == 0 || spec.width * spec.height > 1 << 22 {
+    if spec.width == 0
+        || spec.height == 0
+        || spec.width.saturating_mul(spec.height) > MAX_CASE_PIXELS
+    {
         return Err(Error::invalid(
             "image size",
             format!(
-                "{}x{} (each side at least 1, at most 4 Mpixel)",
+                "{}x{} (each side at least 1, at most {MAX_CASE_PIXELS} pixels)",
                 spec.width, spec.height
             ),
         ));
     }
-    if spec.count > 1 << 20 {
+    if spec.count > MAX_CASE_COUNT {
         return Err(Error::invalid(
             "count",
-            format!("{} (at most 1048576)", spec.count),
+            format!("{} (at most {MAX_CASE_COUNT})", spec.count),
         ));
     }
     let mut f = match spec.stage.as_str() {

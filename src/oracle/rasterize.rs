@@ -54,12 +54,12 @@ fn array<T: Real, const K: usize>(
 pub fn read_camera<T: Real>(case: &TensorFile) -> Result<RasterCamera<T>> {
     let width: usize = case.meta_parse("image_width")?;
     let height: usize = case.meta_parse("image_height")?;
-    if width.saturating_mul(height) > crate::render::MAX_PIXELS {
+    if width == 0 || height == 0 || width.saturating_mul(height) > crate::render::MAX_PIXELS {
         return Err(Error::field(
             &case.path,
             "__metadata__.image_width",
             format!(
-                "{width}x{height} pixels, more than the {} an image may have",
+                "{width}x{height} pixels: each side at least 1, at most {} pixels",
                 crate::render::MAX_PIXELS
             ),
         ));

@@ -379,25 +379,29 @@ fn merged<K: Key>(runs: &[Run<K>; 2], from: [usize; 2], to: [usize; 2]) -> Vec<(
     order
 }
 
+/// The most entries a frame's list may hold (2^28: with each entry's splat
+/// copy about 16 GiB in f32), refused before the list is allocated.
+pub const MAX_LIST_ENTRIES: u64 = 1 << 28;
+
 /// Each tile's `[start, end)` in the list from its number of entries
 /// (`totals`, row-major). Fails when the list would hold more than
-/// `u32::MAX` entries (a frame where many Gaussians cover many tiles).
+/// [`MAX_LIST_ENTRIES`] (a frame where many Gaussians cover many tiles).
 fn tile_ranges(totals: impl IntoIterator<Item = u64>) -> Result<Vec<[u32; 2]>> {
     let mut ranges = Vec::new();
     let mut start = 0u64;
     for k in totals {
         let end = start + k;
-        let (Ok(s), Ok(e)) = (u32::try_from(start), u32::try_from(end)) else {
+        if end > MAX_LIST_ENTRIES {
             return Err(Error::invalid(
                 "Gaussians",
                 format!(
-                    "their tile rectangles hold more than {} list entries in all; \
-                     render fewer or smaller Gaussians, or a smaller image",
-                    u32::MAX
+                    "their tile rectangles hold more than {MAX_LIST_ENTRIES} list entries in \
+                     all; render fewer or smaller Gaussians, or a smaller image"
                 ),
             ));
-        };
-        ranges.push([s, e]);
+        }
+        // (Below 2^28.)
+        ranges.push([start as u32, end as u32]);
         start = end;
     }
     Ok(ranges)
@@ -839,21 +843,23 @@ mod tests {
     }
 
     #[test]
-    fn tile_ranges_refuse_a_list_past_u32() {
+    fn tile_ranges_refuse_a_list_past_the_limit() {
         assert_eq!(
             tile_ranges([1, 0, 2]).unwrap(),
             vec![[0, 1], [1, 1], [1, 3]]
         );
-        let max = u32::MAX as u64;
+        let max = MAX_LIST_ENTRIES;
         assert_eq!(
             tile_ranges([max - 1, 1]).unwrap(),
-            vec![[0, u32::MAX - 1], [u32::MAX - 1, u32::MAX]]
+            vec![[0, max as u32 - 1], [max as u32 - 1, max as u32]]
         );
-        let err = tile_ranges([max, 1]).unwrap_err().to_string();
-        assert!(
-            err.contains("Gaussians") && err.contains("4294967295"),
-            "{err}"
-        );
+        for totals in [[max, 1], [u64::MAX / 2, u64::MAX / 2]] {
+            let err = tile_ranges(totals).unwrap_err().to_string();
+            assert!(
+                err.contains("Gaussians") && err.contains("268435456"),
+                "{err}"
+            );
+        }
     }
 
     /// Every interleaving of two runs of up to 6 keys each: the middle cut

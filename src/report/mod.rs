@@ -157,6 +157,10 @@ pub struct RunRecord {
     pub stage_ms: BTreeMap<String, f64>,
     /// [`temporal_smoothness`] of the learned field, when measured.
     pub temporal_smoothness: Option<f64>,
+    /// The smoothness sweep's uniform times and Gaussians, when measured
+    /// (absent in records written before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub smoothness_sweep: Option<[usize; 2]>,
     /// The training curve: loss, and test metrics where evaluated.
     pub curves: Vec<CurvePoint>,
     /// Wall-clock seconds of the run in the process that finished it
@@ -279,14 +283,14 @@ pub fn read_records(dir: &Path) -> Result<Vec<RunRecord>> {
         .collect::<Result<_>>()?;
     paths.retain(|p| p.extension().is_some_and(|x| x == "json"));
     paths.sort();
-    paths
-        .iter()
-        .map(|p| {
-            let bytes = crate::io::read(p)?;
-            serde_json::from_slice(&bytes)
-                .map_err(|e| Error::format(p, format!("not a run record: {e}")))
-        })
-        .collect()
+    paths.iter().map(|p| read_record(p)).collect()
+}
+
+/// Read one run record.
+pub fn read_record(path: &Path) -> Result<RunRecord> {
+    let bytes = crate::io::read(path)?;
+    serde_json::from_slice(&bytes)
+        .map_err(|e| Error::format(path, format!("not a run record: {e}")))
 }
 
 /// The machine a report was measured on.
@@ -768,6 +772,7 @@ pub(crate) mod tests {
             ms_per_iteration: 10.0 + width as f64 / 64.0,
             stage_ms: BTreeMap::new(),
             temporal_smoothness: None,
+            smoothness_sweep: None,
             curves: (0..5)
                 .map(|i| CurvePoint {
                     iteration: 50 * i,

@@ -127,12 +127,21 @@ fn nice_step(span: f64) -> (f64, usize) {
     (step, decimals)
 }
 
-/// Axis range rounded out to whole ticks, and the ticks.
-fn axis(lo: f64, hi: f64) -> (f64, f64, Vec<f64>, usize) {
-    let (lo, hi) = if hi > lo {
+/// Axis range rounded out to whole ticks, and the ticks. A range too
+/// narrow for its ticks (equal ends, or a span below 1e-300) is widened
+/// around its middle; one wider than `f64` can hold is an error.
+fn axis(lo: f64, hi: f64) -> Result<(f64, f64, Vec<f64>, usize)> {
+    if !(hi - lo).is_finite() {
+        return Err(Error::invalid(
+            "plot axis",
+            format!("values from {lo:e} to {hi:e}: the range is too wide to draw"),
+        ));
+    }
+    let (lo, hi) = if hi - lo > 1e-300 {
         (lo, hi)
     } else {
-        let pad = if lo == 0.0 { 1.0 } else { lo.abs() * 0.05 };
+        let pad = (lo.abs() * 0.05).max(1e-300);
+        let pad = if lo == 0.0 { 1.0 } else { pad };
         (lo - pad, hi + pad)
     };
     let (step, decimals) = nice_step(hi - lo);
@@ -140,7 +149,7 @@ fn axis(lo: f64, hi: f64) -> (f64, f64, Vec<f64>, usize) {
     let ticks = (0..=(b - a) as i64)
         .map(|k| (a + k as f64) * step)
         .collect();
-    (a * step, b * step, ticks, decimals)
+    Ok((a * step, b * step, ticks, decimals))
 }
 
 /// Draw a line plot and return PNG bytes of `WIDTH`×`HEIGHT` pixels.
@@ -165,11 +174,11 @@ pub fn line_plot_png(title: &str, x_label: &str, series: &[Series]) -> Result<Ve
     };
     let (x0, x1, xt, xd) = {
         let (a, b) = min_max(|p| p.0);
-        axis(a, b)
+        axis(a, b)?
     };
     let (y0, y1, yt, yd) = {
         let (a, b) = min_max(|p| p.1);
-        axis(a, b)
+        axis(a, b)?
     };
     let (w, h) = (WIDTH as i64, HEIGHT as i64);
     let mut cv = Canvas {
@@ -302,13 +311,27 @@ mod tests {
         let (s, d) = nice_step(0.03);
         assert!((s - 0.01).abs() < 1e-15 && d == 2, "{s} {d}");
         // Span 0.187: step 0.05, range rounded out to [0, 0.2], ticks 0, 0.05, …, 0.2.
-        let (lo, hi, ticks, d) = axis(0.013, 0.2);
+        let (lo, hi, ticks, d) = axis(0.013, 0.2).unwrap();
         assert!(
             lo == 0.0 && (hi - 0.2).abs() < 1e-15 && d == 2 && ticks.len() == 5,
             "{lo} {hi} {ticks:?}"
         );
-        let (lo, hi, _, _) = axis(5.0, 5.0);
+        let (lo, hi, _, _) = axis(5.0, 5.0).unwrap();
         assert!(lo < 5.0 && hi > 5.0);
+        // Ranges whose ticks could not be stepped: tiny, subnormal, huge.
+        for (a, b) in [
+            (1e-323, 1e-323),
+            (0.0, 5e-324),
+            (1.0, 1.0 + 1e-16),
+            (1e300, 1e300),
+        ] {
+            let (lo, hi, ticks, _) = axis(a, b).unwrap();
+            assert!(
+                lo <= a && hi >= b && (2..=12).contains(&ticks.len()),
+                "{a} {b}: {ticks:?}"
+            );
+        }
+        assert!(axis(-1e308, 1e308).is_err());
     }
 
     #[test]

@@ -377,6 +377,20 @@ pub fn render_times<T: Real>(
         if !t.is_finite() {
             return Err(Error::invalid("render time", format!("{t} is not finite")));
         }
+        // (Far outside the trained span the field can overflow; such a frame
+        // would render as background.)
+        let d = trainer.deformed(t)?;
+        let parts = [&d.means, &d.scales, &d.rotations, &d.opacities];
+        if let Some(v) = parts.iter().flat_map(|p| p.iter()).find(|v| !v.is_finite()) {
+            return Err(Error::invalid(
+                "render time",
+                format!(
+                    "{t}: the deformed Gaussians are not all finite (e.g. {}); the field \
+                     overflows at this time",
+                    v.to_f64()
+                ),
+            ));
+        }
         let img = trainer.render(&view.camera, t)?;
         let n = name(k, t);
         let png = dir.join(format!("{n}.png"));
