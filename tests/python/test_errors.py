@@ -64,7 +64,7 @@ def test_run_case_bad_inputs():
         ls.run_case({**t, "gt": 1.0}, m)
     with pytest.raises(TypeError, match=r"metadata\['lambda_dssim'\]: expected str, bool, int or float, found list"):
         ls.run_case(t, {**m, "lambda_dssim": [0.2]})
-    with pytest.raises(ValueError, match="threads: expected a positive number"):
+    with pytest.raises(ValueError, match=r"run_case\(\): argument `threads`: expected an integer in 1..=1024, found 0"):
         ls.run_case(t, m, threads=0)
     with pytest.raises(ValueError, match="lambda_dssim"):
         ls.loss(t["image"], t["gt"], lambda_dssim=1.5)
@@ -110,3 +110,95 @@ def test_compare_unusable_input(tmp_path):
 def test_cli_usage_errors_are_exit_codes(capfd):
     assert ls.cli("case", "frobnicate") == 2
     assert ls.cli("--help") == 0
+
+
+def test_threads_and_seed_are_bounded_and_named():
+    t, m = ls.load(CASES / "loss_f64.input.safetensors")
+    for call in (lambda th: ls.run_case(t, m, threads=th),
+                 lambda th: ls.loss(t["image"], t["gt"], threads=th)):
+        for bad, exc, msg in ((10000, ValueError, "an integer in 1..=1024, found 10000"),
+                              (1025, ValueError, "an integer in 1..=1024, found 1025"),
+                              (-1, ValueError, "an integer in 1..=1024, found -1"),
+                              (True, TypeError, "an int, found bool"),
+                              (2.0, TypeError, "an int, found float")):
+            with pytest.raises(exc, match=rf"\(\): argument `threads`: expected {msg}$"):
+                call(bad)
+        call(1)
+        call(np.int64(2))
+    for bad, exc in ((-1, ValueError), (2**64, ValueError), (True, TypeError), ("1", TypeError)):
+        with pytest.raises(exc, match=r"DeformNetwork.new\(\): argument `seed`: expected"):
+            ls.DeformNetwork.new(D=3, W=4, seed=bad)
+        with pytest.raises(exc, match=r"CfCField.new\(\): argument `seed`: expected"):
+            ls.CfCField.new(D=1, W=4, seed=bad)
+    assert ls.DeformNetwork.new(D=3, W=4, seed=2**64 - 1).param_count > 0
+
+
+def test_metadata_numbers_are_written_exactly(tmp_path):
+    t, m = ls.load(CASES / "step_f64.input.safetensors")
+    meta = {"stage": "loss", "big": 2**64 - 1, "np_int": np.int64(-7), "np_true": np.True_,
+            "false": False, "float": 0.1, "np_float32": np.float32(0.1), "huge": 1e300}
+    ls.save(tmp_path / "m.safetensors", {"x": np.zeros(1)}, meta)
+    _, back = ls.load(tmp_path / "m.safetensors")
+    assert back == {"stage": "loss", "big": "18446744073709551615", "np_int": "-7",
+                    "np_true": "true", "false": "false", "float": "0.1",
+                    "np_float32": repr(float(np.float32(0.1))), "huge": "1e+300"}
+    # A numpy bool is a bool to the library (field_on), and a too-large size is named exactly.
+    out, _ = ls.step(t, {**m, "field_on": np.True_})
+    ref, _ = ls.step(t, m)
+    assert sorted(out) == sorted(ref) and all(out[k].tobytes() == ref[k].tobytes() for k in ref)
+    r, rm = ls.load(CASES / "rasterize_f64_exact.input.safetensors")
+    ins, kw = raster_inputs(r), raster_kwargs(r, rm)
+    with pytest.raises(ValueError, match='"18446744073709551616"'):
+        ls.rasterize(**ins, **{**kw, "image_height": 2**64})
+
+
+def test_field_construction_errors_are_named():
+    t, _ = ls.load(CASES / "deform_f64_mlp.input.safetensors")
+    sd = weights(t)
+    with pytest.raises(ValueError, match=r"DeformNetwork: state_dict\['linear.0.weight'\]: expected a weight of shape \[W,in\], found shape \[\]"):
+        ls.DeformNetwork({**sd, "linear.0.weight": np.array(1.0)})
+    cfc = weights(ls.load(CASES / "deform_f64_cfc.input.safetensors")[0])
+    with pytest.raises(ValueError, match=r"CfCField: state_dict\['cells.0.ff1.weight'\]: expected a weight of shape \[W,in\], found shape \[3\]"):
+        ls.CfCField({**cfc, "cells.0.ff1.weight": np.zeros(3)})
+    with pytest.raises(ValueError, match=r"DeformNetwork.new\(\): argument `D`: expected an integer >= 3, found -1"):
+        ls.DeformNetwork.new(D=-1)
+    with pytest.raises(TypeError, match=r"DeformNetwork.new\(\): argument `D`: expected an int, found str"):
+        ls.DeformNetwork.new(D="4")
+    with pytest.raises(TypeError, match=r"DeformNetwork.new\(\): argument `is_6dof`: expected a bool, found int"):
+        ls.DeformNetwork.new(is_6dof=1)
+    with pytest.raises(ValueError, match=r"CfCField.new\(\): argument `backbone_layers`: expected an integer >= 1, found -1"):
+        ls.CfCField.new(backbone_layers=-1)
+    with pytest.raises(TypeError, match=r"CfCField.new\(\): argument `variant`: expected a str, found NoneType"):
+        ls.CfCField.new(variant=None)
+    assert ls.DeformNetwork.new(D=np.int64(3), W=4).config["depth"] == 3
+
+
+def test_astype_takes_only_float32_or_float64():
+    field = ls.DeformNetwork.new(D=3, W=4)
+    for bad, found in ((np.int32, "int32"), ("float16", "float16"), ("bogus", "'bogus'")):
+        with pytest.raises(TypeError, match=rf"DeformNetwork.astype\(\): argument `dtype`: expected float32 or float64, found {found}"):
+            field.astype(bad)
+    assert field.astype(np.float64).dtype == np.float64
+
+
+def test_field_time_may_be_any_real_scalar():
+    field = ls.DeformNetwork.new(D=3, W=4, dtype=np.float64)
+    x = np.zeros((2, 3))
+    want = field.forward(x, np.ones((2, 1))).d_xyz.tobytes()
+    for t in (1, 1.0, np.int64(1), np.float32(1.0), np.array(1.0), np.array(1)):
+        assert field.forward(x, t).d_xyz.tobytes() == want, repr(t)
+    with pytest.raises(TypeError, match=r"`t`: expected a float, found bool"):
+        field.forward(x, np.array(True))
+
+
+def test_load_and_save_raise_os_errors(tmp_path):
+    with pytest.raises(FileNotFoundError) as e:
+        ls.load(tmp_path / "nope.safetensors")
+    assert e.value.filename == str(tmp_path / "nope.safetensors")
+    with pytest.raises(IsADirectoryError):
+        ls.load(tmp_path)
+    with pytest.raises(FileNotFoundError):
+        ls.save(tmp_path / "no" / "x.safetensors", {"x": np.zeros(1)})
+    (tmp_path / "bad.safetensors").write_bytes(b"not a safetensors file")
+    with pytest.raises(ValueError, match="bad.safetensors"):
+        ls.load(tmp_path / "bad.safetensors")

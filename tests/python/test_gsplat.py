@@ -141,20 +141,20 @@ def test_dense_and_packed_layouts_agree():
 def test_forward_functions_run_their_stage_once_without_cotangents(monkeypatch):
     t, args = _projection_case()
     calls = []
-    native_run = gs._native.run_case
+    native_run = ls._native.run_case
 
     def counting(tensors, meta, threads=None):
         calls.append((meta["stage"], meta.get("packed"), sorted(tensors)))
         return native_run(tensors, meta, threads)
 
-    monkeypatch.setattr(gs._native, "run_case", counting)
+    monkeypatch.setattr(ls._native, "run_case", counting)
     kw = dict(opacities=t["opacities"], calc_compensations=True, near_plane=4.0)
     for packed in (False, True):
         calls.clear()
         r = gs.fully_fused_projection(*args, packed=packed, **kw)
         assert len(calls) == 1, calls
         stage, flag, names = calls[0]
-        assert (stage, flag) == ("gsplat_fully_fused_projection", packed)
+        assert (stage, flag) == ("gsplat_fully_fused_projection", "true" if packed else "false")
         assert not [n for n in names if n.startswith("v_")], names
         # The same outputs as a run of the stage given zero cotangents of the output layout.
         lead = (r[2] if packed else r[0]).shape[:-1]  # of radii [..., 2]
@@ -267,6 +267,15 @@ def test_bad_arguments_of_the_stage_functions():
         gs.isect_offset_encode(ids, 2, 2, 1)
     with pytest.raises(TypeError, match=r"`isect_ids`: expected int64 of shape \[n_isects\], found dtype int32"):
         gs.isect_offset_encode(ids.astype(np.int32), 2, 2, 1)
+    # Keys must name an existing image and tile (1.6: 1 tile bit for 2 tiles; 1.5.3: 2 bits).
+    with pytest.raises(ValueError, match=r"`isect_ids`: expected image indices below n_images=2, found isect_ids\[1\] = 17179869184 \(key 4: image 2, tile 0\)"):
+        gs.isect_offset_encode(np.array([1 << 32, 4 << 32], np.int64), 2, 2, 1)
+    with pytest.raises(ValueError, match=r"`isect_ids`: expected non-negative keys, found isect_ids\[0\] = -4294967296"):
+        gs.isect_offset_encode(np.array([-1 << 32, 0], np.int64), 2, 2, 1)
+    with pytest.raises(ValueError, match=r"`isect_ids`: expected tile indices below tile_width\*tile_height=3, found isect_ids\[0\] = 12884901888 \(key 3: image 0, tile 3\)"):
+        gs.isect_offset_encode(np.array([3 << 32], np.int64), 1, 3, 1, version="1.5.3")
+    np.testing.assert_array_equal(gs.isect_offset_encode(np.array([1 << 32, 2 << 32], np.int64), 2, 2, 1),
+                                  [[[0, 0]], [[1, 2]]])
 
 
 def test_torch_rasterization_gradcheck_float64(raster):

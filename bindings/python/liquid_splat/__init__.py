@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 from typing import Any, Dict, Mapping, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
@@ -58,6 +59,59 @@ PathLike = Union[str, "os.PathLike[str]"]
 
 _FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 
+#: The largest ``threads`` (the CLI's ``--threads`` range is 1..=1024).
+_MAX_THREADS = 1024
+
+
+def _meta_value(v: Any) -> Any:
+    """A metadata value as the string a case file stores: bools as ``true``/``false`` (what
+    the library parses), integers exactly, floats by ``repr`` (round-trips); numpy scalars
+    alike. Anything else is passed on for the library to refuse, naming the key."""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v))
+    return v
+
+
+def _metadata(metadata: Mapping[Any, Any]) -> Dict[Any, Any]:
+    return {k: _meta_value(v) for k, v in metadata.items()}
+
+
+def _threads(func: str, threads: Any) -> Optional[int]:
+    """``threads``: None (all cores) or an integer in 1..=1024 (the CLI's `--threads`)."""
+    if threads is None:
+        return None
+    return _Args(func).integer("threads", threads, 1, _MAX_THREADS)
+
+
+def _seed(func: str, seed: Any) -> int:
+    return _Args(func).integer("seed", seed, 0, 2**64 - 1)
+
+
+def _run_case(
+    func: str, tensors: Mapping[str, np.ndarray], metadata: Mapping[str, Any], threads: Any
+) -> Tuple[Tensors, Dict[str, str]]:
+    return _native.run_case(dict(tensors), _metadata(metadata), _threads(func, threads))
+
+
+# A library error about a file that the operating system refused: "PATH: REASON (os error N)".
+_OS_ERROR = re.compile(r"(?P<path>.*): (?P<reason>[^:]*) \(os error (?P<code>\d+)\)", re.S)
+
+
+def _os_error(e: ValueError) -> Exception:
+    """The ``OSError`` subclass (``FileNotFoundError``, ``IsADirectoryError``,
+    ``PermissionError``, ...) of an operating-system failure, ``e`` itself otherwise."""
+    m = _OS_ERROR.fullmatch(str(e))
+    if m is None:
+        return e
+    code = int(m["code"])
+    if os.name == "nt":  # the code is a Windows error code; OSError maps it to errno
+        return OSError(None, m["reason"], m["path"], code)
+    return OSError(code, m["reason"], m["path"])
+
 
 # ---------------------------------------------------------------------------
 # Case level
@@ -75,16 +129,26 @@ def run_case(
     Returns ``(outputs, output_metadata)``: bit for bit what ``liquid-splat case run``
     writes for a case file holding ``tensors`` and ``metadata`` (docs/ORACLE.md lists every
     stage's tensor names and metadata keys). Metadata values may be ``str``, ``bool``,
-    ``int`` or ``float`` (floats are written in the shortest form that round-trips).
-    ``threads``: worker threads for this call (default: all cores); results do not depend
-    on it.
+    ``int`` or ``float`` or numpy scalars (integers are written exactly, bools as
+    ``true``/``false``, floats in the shortest form that round-trips). ``threads``: worker
+    threads for this call, 1 to 1024 (default: all cores); results do not depend on it.
     """
-    return _native.run_case(dict(tensors), dict(metadata), threads)
+    return _run_case("run_case", tensors, metadata, threads)
 
 
 def load(path: PathLike) -> Tuple[Tensors, Dict[str, str]]:
-    """Read a safetensors file (F32, F64, I32 tensors): ``(tensors, metadata)``."""
-    return _native.load(os.fspath(path))
+    """Read a safetensors file (F32, F64, I32 tensors): ``(tensors, metadata)``.
+
+    A file the operating system cannot open raises the matching ``OSError``
+    (``FileNotFoundError``, ``IsADirectoryError``, ``PermissionError``, ...); a file that
+    is not a usable safetensors file raises ``ValueError`` (``TypeError`` for a dtype)."""
+    try:
+        return _native.load(os.fspath(path))
+    except ValueError as e:
+        err = _os_error(e)
+        if err is e:
+            raise
+        raise err from None
 
 
 def save(
@@ -92,12 +156,28 @@ def save(
     tensors: Mapping[str, np.ndarray],
     metadata: Optional[Mapping[str, MetaValue]] = None,
 ) -> None:
-    """Write tensors (float32, float64, int32; C order) and metadata as a safetensors file."""
-    _native.save(os.fspath(path), dict(tensors), None if metadata is None else dict(metadata))
+    """Write tensors (float32, float64, int32; C order) and metadata as a safetensors file.
+
+    Metadata values as in :func:`run_case`. Bad tensors or metadata raise ``TypeError`` or
+    ``ValueError``; a file the operating system refuses (a missing folder, a directory, no
+    permission) raises the matching ``OSError`` subclass."""
+    meta = None if metadata is None else _metadata(metadata)
+    try:
+        _native.save(os.fspath(path), dict(tensors), meta)
+    except ValueError as e:
+        err = _os_error(e)
+        if err is e:
+            raise
+        raise err from None
 
 
 def cli(*args: str) -> int:
-    """Run the ``liquid-splat`` command-line tool in-process; returns its exit code."""
+    """Run the ``liquid-splat`` command-line tool in-process; returns its exit code.
+
+    The tool writes to file descriptors 1 and 2 directly, not through ``sys.stdout``: in
+    pytest, capture it with ``capfd`` (``capsys`` sees nothing). ``--pin-threads`` starts the
+    process's global worker pool pinned (unless an earlier call started it), and every later
+    call with ``threads=None`` in this process runs on that pinned pool."""
     return _native.cli([os.fspath(a) for a in args])
 
 
@@ -172,6 +252,8 @@ class _Args:
 
     def scalar(self, name: str, x: Any, *, positive: bool = False) -> float:
         where = f"{self.func}(): argument `{name}`"
+        if isinstance(x, np.ndarray) and x.ndim == 0:
+            x = x[()]
         if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
             raise TypeError(f"{where}: expected a float, found {type(x).__name__}")
         v = float(x)
@@ -183,6 +265,8 @@ class _Args:
 
     def integer(self, name: str, x: Any, lo: int, hi: Optional[int] = None) -> int:
         where = f"{self.func}(): argument `{name}`"
+        if isinstance(x, np.ndarray) and x.ndim == 0:
+            x = x[()]
         if isinstance(x, bool) or not isinstance(x, (int, np.integer)):
             raise TypeError(f"{where}: expected an int, found {type(x).__name__}")
         v = int(x)
@@ -190,6 +274,16 @@ class _Args:
             rng = f">= {lo}" if hi is None else f"in {lo}..={hi}"
             raise ValueError(f"{where}: expected an integer {rng}, found {v}")
         return v
+
+    def flag(self, name: str, x: Any) -> bool:
+        if not isinstance(x, (bool, np.bool_)):
+            raise TypeError(f"{self.func}(): argument `{name}`: expected a bool, found {type(x).__name__}")
+        return bool(x)
+
+    def string(self, name: str, x: Any) -> str:
+        if not isinstance(x, str):
+            raise TypeError(f"{self.func}(): argument `{name}`: expected a str, found {type(x).__name__}")
+        return x
 
     def choice(self, name: str, x: Any, options: Tuple[str, ...]) -> str:
         if x not in options:
@@ -322,7 +416,7 @@ def rasterize(
         cov3D_precomp, viewmatrix, projmatrix, campos, bg, image_height, image_width,
         tanfovx, tanfovy, scale_modifier, sh_degree, "exact",
     )
-    out, _ = _native.run_case(t, meta, threads)
+    out, _ = _run_case("rasterize", t, meta, threads)
     return RasterizeResult(
         out["color"], out["depth"], out["radii"], out["final_T"], out["n_contrib"], out["means2D"]
     )
@@ -371,7 +465,7 @@ def rasterize_vjp(
     t["grad_out_color"] = a.array("grad_color", grad_color, (3, h, w))
     if grad_depth is not None:
         t["grad_out_depth"] = a.array("grad_depth", grad_depth, (1, h, w))
-    out, _ = _native.run_case(t, meta, threads)
+    out, _ = _run_case("rasterize_vjp", t, meta, threads)
     return {k: v for k, v in out.items() if k.startswith("grad_")}
 
 
@@ -396,6 +490,42 @@ def _count(sd: Mapping[str, Any], fmt: str) -> int:
     while fmt.format(n) in sd:
         n += 1
     return n
+
+
+def _rows(cls: str, sd: Mapping[str, Any], key: str, shape: str) -> int:
+    """The first dimension of the 2-D weight ``sd[key]`` (a layer's width)."""
+    found = np.shape(sd[key])
+    if len(found) != 2:
+        raise ValueError(
+            f"{cls}: state_dict[{key!r}]: expected a weight of shape {shape}, "
+            f"found shape {_shape(found)}"
+        )
+    return int(found[0])
+
+
+def _mlp_config(func: str, D: Any, W: Any, is_blender: Any, is_6dof: Any) -> Dict[str, MetaValue]:
+    """The ``deform`` stage's keys for ``DeformNetwork(D, W, is_blender, is_6dof)``; the
+    library refuses sizes above its limits."""
+    a = _Args(func)
+    return {"field": "mlp", "depth": a.integer("D", D, 3), "width": a.integer("W", W, 1),
+            "is_6dof": a.flag("is_6dof", is_6dof),
+            "variant": "synthetic" if a.flag("is_blender", is_blender) else "real"}
+
+
+def _cfc_config(func: str, D: Any, W: Any, variant: Any, activation: Any, backbone_units: Any,
+                backbone_layers: Any) -> Dict[str, MetaValue]:
+    """The ``deform`` stage's keys for ``CfCField(D, W, variant, ...)``."""
+    a = _Args(func)
+    return {"field": "cfc", "depth": a.integer("D", D, 1), "width": a.integer("W", W, 1),
+            "variant": a.string("variant", variant),
+            "activation": a.string("activation", activation),
+            "backbone_units": a.integer("backbone_units", backbone_units, 1),
+            "backbone_layers": a.integer("backbone_layers", backbone_layers, 1)}
+
+
+def _init_weights(func: str, config: Dict[str, MetaValue], seed: Any, dtype: str) -> Tensors:
+    """A freshly initialised field's weights (the library's seeded initialisation)."""
+    return _native.field_init(_metadata(config), _seed(func, seed), dtype)
 
 
 class _Field:
@@ -437,25 +567,29 @@ class _Field:
         a = _Args(f"{type(self).__name__}.{func}")
         a.dtype, a.dtype_from = self.dtype, "the state_dict"
         x = a.array("xyz", xyz, ("N", 3))
-        if isinstance(t, (int, float, np.floating)) and not isinstance(t, bool):
+        scalar = isinstance(t, (int, float, np.integer, np.floating)) or (
+            isinstance(t, np.ndarray) and t.ndim == 0
+        )
+        if scalar and not isinstance(t, bool):
             tt = np.full((x.shape[0], 1), a.scalar("t", t), self.dtype)
         else:
             tt = a.array("t", t, ("N", 1))
         return a, {"xyz": x, "t": tt}
 
-    def _run(self, tensors: Tensors, threads: Optional[int]) -> Tensors:
+    def _run(self, func: str, tensors: Tensors, threads: Optional[int]) -> Tensors:
         tensors.update(self.state_dict)
         meta: Dict[str, MetaValue] = {"stage": "deform", **self.config}
-        out, _ = _native.run_case(tensors, meta, threads)
+        out, _ = _run_case(f"{type(self).__name__}.{func}", tensors, meta, threads)
         return out
 
     def forward(
         self, xyz: np.ndarray, t: Union[np.ndarray, float], *, threads: Optional[int] = None
     ) -> DeformResult:
         """``(d_xyz, d_rotation, d_scaling[, d_xyz_se3])`` at canonical centres ``xyz``
-        [N,3] and normalised time ``t`` ([N,1] or a float for every point)."""
+        [N,3] and normalised time ``t`` ([N,1], or one number for every point: a float, an
+        int, a numpy scalar or a 0-d array)."""
         _, ins = self._inputs("forward", xyz, t)
-        out = self._run(ins, threads)
+        out = self._run("forward", ins, threads)
         return DeformResult(out["d_xyz"], out["d_rotation"], out["d_scaling"], out.get("d_xyz_se3"))
 
     __call__ = forward
@@ -478,27 +612,34 @@ class _Field:
         ins["grad_d_xyz"] = a.array("grad_d_xyz", grad_d_xyz, ("N", 3))
         ins["grad_d_rotation"] = a.array("grad_d_rotation", grad_d_rotation, ("N", 4))
         ins["grad_d_scaling"] = a.array("grad_d_scaling", grad_d_scaling, ("N", 3))
-        out = self._run(ins, threads)
+        out = self._run("vjp", ins, threads)
         return {k: v for k, v in out.items() if k.startswith("grad")}
 
     def astype(self, dtype: Any) -> "_Field":
         """The same field with its weights converted to ``dtype`` (float32 or float64)."""
+        where = f"{type(self).__name__}.astype(): argument `dtype`"
+        try:
+            dt = np.dtype(dtype)
+        except TypeError:
+            raise TypeError(f"{where}: expected float32 or float64, found {dtype!r}") from None
+        if dt not in _FLOATS:
+            raise TypeError(f"{where}: expected float32 or float64, found {dt}")
         new = object.__new__(type(self))
-        new.state_dict = {k: v.astype(dtype) for k, v in self.state_dict.items()}
-        new.dtype = np.dtype(dtype)
+        new.state_dict = {k: v.astype(dt) for k, v in self.state_dict.items()}
+        new.dtype = dt
         new.config = dict(self.config)
         return new
 
     @property
     def param_count(self) -> int:
         """Number of learned parameters."""
-        return int(_native.field_counts(self.config)["params"])
+        return int(_native.field_counts(_metadata(self.config))["params"])
 
     def macs(self, convention: str = "pytorch") -> int:
         """MACs per Gaussian as ptflops counts them: ``"aten"`` (linear layers only),
         ``"pytorch"`` (pytorch backend, count_functional=True) or
         ``"pytorch_no_functional"``."""
-        counts = _native.field_counts(self.config)
+        counts = _native.field_counts(_metadata(self.config))
         key = f"macs_{convention}"
         if key not in counts:
             raise ValueError(
@@ -531,7 +672,7 @@ class DeformNetwork(_Field):
         config: Dict[str, MetaValue] = {
             "variant": "synthetic" if "timenet.0.weight" in sd else "real",
             "depth": depth,
-            "width": int(np.shape(sd["linear.0.weight"])[0]),
+            "width": _rows("DeformNetwork", sd, "linear.0.weight", "[W,in]"),
             "is_6dof": "branch_w.weight" in sd,
         }
         super().__init__(sd, config)
@@ -540,10 +681,9 @@ class DeformNetwork(_Field):
     def new(cls, D: int = 8, W: int = 256, is_blender: bool = False, is_6dof: bool = False, *,
             seed: int = 0, dtype: Any = np.float32) -> "DeformNetwork":
         """A freshly initialised network with upstream's constructor arguments
-        (``nn.Linear``'s default initialisation scheme, drawn from ``seed``)."""
-        meta = {"field": "mlp", "depth": D, "width": W, "is_6dof": is_6dof,
-                "variant": "synthetic" if is_blender else "real"}
-        return cls(_native.field_init(meta, seed, np.dtype(dtype).name))
+        (``nn.Linear``'s default initialisation scheme, drawn from ``seed``, 0 to 2^64 − 1)."""
+        meta = _mlp_config("DeformNetwork.new", D, W, is_blender, is_6dof)
+        return cls(_init_weights("DeformNetwork.new", meta, seed, np.dtype(dtype).name))
 
 
 class CfCField(_Field):
@@ -564,9 +704,12 @@ class CfCField(_Field):
         config: Dict[str, MetaValue] = {
             "variant": "synthetic" if "timenet.0.weight" in sd else "real",
             "depth": depth,
-            "width": int(np.shape(sd["cells.0.ff1.weight"])[0]),
+            "width": _rows("CfCField", sd, "cells.0.ff1.weight", "[W,in]"),
             "activation": activation,
-            "backbone_units": int(np.shape(sd.get("cells.0.backbone.0.weight", np.zeros((0,))))[0]),
+            "backbone_units": (
+                _rows("CfCField", sd, "cells.0.backbone.0.weight", "[units,in]")
+                if "cells.0.backbone.0.weight" in sd else 0
+            ),
             "backbone_layers": sum(
                 1 for k in sd if k.startswith("cells.0.backbone.") and k.endswith(".weight")
             ),
@@ -578,11 +721,10 @@ class CfCField(_Field):
             backbone_units: int = 64, backbone_layers: int = 2, *, seed: int = 0,
             dtype: Any = np.float32) -> "CfCField":
         """A freshly initialised field (``nn.Linear``'s default initialisation scheme,
-        drawn from ``seed``)."""
-        meta = {"field": "cfc", "depth": D, "width": W, "variant": variant,
-                "activation": activation, "backbone_units": backbone_units,
-                "backbone_layers": backbone_layers}
-        return cls(_native.field_init(meta, seed, np.dtype(dtype).name), activation)
+        drawn from ``seed``, 0 to 2^64 − 1)."""
+        meta = _cfc_config("CfCField.new", D, W, variant, activation, backbone_units,
+                           backbone_layers)
+        return cls(_init_weights("CfCField.new", meta, seed, np.dtype(dtype).name), activation)
 
 
 def load_field(state_dict: Mapping[str, np.ndarray], activation: str = "gelu") -> _Field:
@@ -611,7 +753,7 @@ def loss(
     lam = a.scalar("lambda_dssim", lambda_dssim)
     if not 0.0 <= lam <= 1.0:
         raise ValueError(f"loss(): argument `lambda_dssim`: expected a number in [0, 1], found {lam!r}")
-    out, _ = _native.run_case(t, {"stage": "loss", "lambda_dssim": lam}, threads)
+    out, _ = _run_case("loss", t, {"stage": "loss", "lambda_dssim": lam}, threads)
     return out
 
 
@@ -623,11 +765,15 @@ def step(
 ) -> Tuple[Tensors, Dict[str, str]]:
     """One whole D-3DGS training iteration (field, rasterizer, loss, backward,
     densification statistics, Adam) from case-file tensors and metadata (docs/ORACLE.md,
-    stage ``step``; ``stage`` may be left out). Returns ``(outputs, output_metadata)``."""
+    stage ``step``; ``stage`` may be left out). Returns ``(outputs, output_metadata)``.
+
+    Unlike :func:`rasterize`, which renders the background when there are no Gaussians,
+    ``step`` refuses N = 0 (``ValueError`` naming ``xyz``): a training iteration needs at
+    least one Gaussian."""
     meta = dict(metadata)
     if meta.setdefault("stage", "step") != "step":
         raise ValueError(f"step(): argument `metadata`: expected stage 'step', found {meta['stage']!r}")
-    return _native.run_case(dict(tensors), meta, threads)
+    return _run_case("step", tensors, meta, threads)
 
 
 from . import gsplat  # noqa: E402  (uses the helpers above)

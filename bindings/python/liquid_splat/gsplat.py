@@ -31,7 +31,7 @@ from typing import Any, Dict, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
-from . import MetaValue, Tensors, _Args, _native, _shape
+from . import MetaValue, Tensors, _Args, _run_case, _shape
 
 __all__ = [
     "VERSIONS",
@@ -96,8 +96,8 @@ def _flag(a: _Args, name: str, x: Any) -> bool:
     return bool(x)
 
 
-def _run(t: Tensors, meta: Dict[str, MetaValue], threads: Optional[int]) -> Tensors:
-    out, _ = _native.run_case(t, meta, threads)
+def _run(a: _Args, t: Tensors, meta: Dict[str, MetaValue], threads: Optional[int]) -> Tensors:
+    out, _ = _run_case(a.func, t, meta, threads)
     return out
 
 
@@ -140,7 +140,7 @@ def quat_scale_to_covar_preci(
     computed. ``quats [N,4]`` (w, x, y, z, any norm; normalised inside), ``scales [N,3]``."""
     a, t, meta, shape = _covar_case("quat_scale_to_covar_preci", quats, scales, compute_covar,
                                     compute_preci, triu, version, gradient)
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     return out.get("covars"), out.get("precis")
 
 
@@ -169,7 +169,7 @@ def quat_scale_to_covar_preci_vjp(
                 t[name] = a.array(name, v, shape)
         elif v is not None:
             raise ValueError(f"{func}(): argument `{name}`: given, but {key}=False")
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     return {"v_quats": out["v_quats"], "v_scales": out["v_scales"]}
 
 
@@ -208,7 +208,7 @@ def spherical_harmonics(
     (any length) up to degree ``degrees_to_use`` (0–4)."""
     a, t, meta = _sh_case("spherical_harmonics", degrees_to_use, dirs, coeffs, masks, version,
                           gradient)
-    return _run(t, meta, threads)["colors"]
+    return _run(a, t, meta, threads)["colors"]
 
 
 def spherical_harmonics_vjp(
@@ -226,7 +226,7 @@ def spherical_harmonics_vjp(
     a, t, meta = _sh_case("spherical_harmonics_vjp", degrees_to_use, dirs, coeffs, masks,
                           version, gradient)
     t["v_colors"] = a.array("v_colors", v_colors, ("M", "D"))
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     return {"v_dirs": out["v_dirs"], "v_coeffs": out["v_coeffs"]}
 
 
@@ -313,7 +313,7 @@ def fully_fused_projection(
                    height, eps2d, near_plane, far_plane, radius_clip, packed, sparse_grad,
                    calc_compensations, camera_model, opacities, version, gradient)
     # No cotangents: the stage reads them as zeros (one run, packed or dense).
-    out = _run(p.t, p.meta, threads)
+    out = _run(p.a, p.t, p.meta, threads)
     if p.meta["packed"]:
         return (out["camera_ids"], out["gaussian_ids"], out["radii"], out["means2d"],
                 out["depths"], out["conics"], out.get("compensations"))
@@ -366,7 +366,7 @@ def fully_fused_projection_vjp(
             t["v_compensations"] = p.a.array("v_compensations", v_compensations, lead)
     elif v_compensations is not None:
         raise ValueError(f"{func}(): argument `v_compensations`: given, but calc_compensations=False")
-    out = _run(t, p.meta, threads)
+    out = _run(p.a, t, p.meta, threads)
     return {k: v for k, v in out.items() if k in ("v_means", "v_quats", "v_scales", "v_covars")}
 
 
@@ -448,7 +448,7 @@ def _isect(means2d, radii, depths, tile_size, tile_width, tile_height, sort, seg
     meta["tile_size"] = a.integer("tile_size", tile_size, 1)
     meta["tile_width"] = a.integer("tile_width", tile_width, 1)
     meta["tile_height"] = a.integer("tile_height", tile_height, 1)
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     if not packed:
         out["tiles_per_gauss"] = out["tiles_per_gauss"].reshape(means2d.shape[:2])
     return out
@@ -470,7 +470,9 @@ def isect_offset_encode(
     """``isect_offsets [n_images, tile_height, tile_width]`` (int32): the index of the first
     intersection of each tile in the sorted ``isect_ids`` (int64, from :func:`isect_tiles`),
     that of the next occupied tile (or ``n_isects``) for an empty one. The key layout
-    (image bits above tile bits) depends on ``version``."""
+    (image bits above tile bits) depends on ``version``. Keys must be sorted, non-negative,
+    and name an image below ``n_images`` and a tile below ``tile_width·tile_height``
+    (``ValueError`` naming the first key that does not)."""
     a = _Args("isect_offset_encode")
     a.choice("version", version, VERSIONS)
     where = "isect_offset_encode(): argument `isect_ids`"
@@ -486,7 +488,17 @@ def isect_offset_encode(
     th = a.integer("tile_height", tile_height, 1)
     bits = _key_bits(version, tw * th)
     key = isect_ids >> 32
-    slot = (key >> bits) * (tw * th) + (key & ((1 << bits) - 1))
+    image, tile = key >> bits, key & ((1 << bits) - 1)
+    for bad, what in ((key < 0, "non-negative keys"),
+                      (image >= ni, f"image indices below n_images={ni}"),
+                      (tile >= tw * th, f"tile indices below tile_width*tile_height={tw * th}")):
+        if bad.any():
+            i = int(np.flatnonzero(bad)[0])
+            raise ValueError(
+                f"{where}: expected {what}, found isect_ids[{i}] = {int(isect_ids[i])} "
+                f"(key {int(key[i])}: image {int(image[i])}, tile {int(tile[i])})"
+            )
+    slot = image * (tw * th) + tile
     if slot.size and np.any(np.diff(slot) < 0):
         raise ValueError(f"{where}: expected keys sorted by (image, tile), found them unsorted")
     offsets = np.searchsorted(slot, np.arange(ni * tw * th), side="left")
@@ -553,11 +565,11 @@ def rasterize_to_pixels(
     the projected Gaussians (dense ``[C,N,·]`` or packed ``[nnz,·]`` rows; ``colors`` with
     any ``D ≥ 1`` channels) over the tiles of ``isect_offsets [I,th,tw]`` and
     ``flatten_ids``; optional ``backgrounds [I,D]``."""
-    _, t, meta, _ = _r2p_case(
+    a, t, meta, _ = _r2p_case(
         "rasterize_to_pixels", means2d, conics, colors, opacities, image_width, image_height,
         tile_size, isect_offsets, flatten_ids, backgrounds, masks, packed, absgrad, version,
         gradient)
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     return out["render_colors"], out["render_alphas"]
 
 
@@ -593,7 +605,7 @@ def rasterize_to_pixels_vjp(
     d = colors.shape[-1]
     t["v_render_colors"] = a.array("v_render_colors", v_render_colors, (i, h, w, d))
     t["v_render_alphas"] = a.array("v_render_alphas", v_render_alphas, (i, h, w, 1))
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     shapes = {"v_means2d": means2d.shape, "v_means2d_abs": means2d.shape,
               "v_conics": conics.shape, "v_colors": colors.shape,
               "v_opacities": opacities.shape}
@@ -715,12 +727,12 @@ def rasterization(
     ``conics``, ``opacities``, ``tiles_per_gauss`` (packed adds ``camera_ids``,
     ``gaussian_ids``), ``isect_ids`` (int64), ``flatten_ids``, ``isect_offsets``,
     ``width``, ``height``, ``tile_size``, ``tile_width``, ``tile_height``, ``n_cameras``."""
-    _, t, meta, shape = _raster_case(
+    a, t, meta, shape = _raster_case(
         "rasterization", means, quats, scales, opacities, colors, viewmats, Ks, width, height,
         near_plane, far_plane, radius_clip, eps2d, sh_degree, packed, tile_size, backgrounds,
         render_mode, sparse_grad, absgrad, rasterize_mode, channel_chunk, distributed,
         camera_model, segmented, covars, version, gradient)
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     m: Dict[str, Any] = {k[len("meta."):]: v for k, v in out.items() if k.startswith("meta.")}
     m["isect_ids"] = _join_ids(m["isect_ids"])
     ts = int(meta["tile_size"])
@@ -777,5 +789,5 @@ def rasterization_vjp(
         distributed, camera_model, segmented, covars, version, gradient)
     t["v_render_colors"] = a.array("v_render_colors", v_render_colors, shape)
     t["v_render_alphas"] = a.array("v_render_alphas", v_render_alphas, shape[:3] + (1,))
-    out = _run(t, meta, threads)
+    out = _run(a, t, meta, threads)
     return {k: v for k, v in out.items() if k.startswith("v_")}

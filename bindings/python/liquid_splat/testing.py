@@ -75,6 +75,16 @@ def _outputs(which: str, x: Outputs) -> Union[str, Dict[str, np.ndarray]]:
     return {str(k): _array(f"{which}[{k!r}]", v) for k, v in x.items()}
 
 
+def _tolerance(name: str, x: Any) -> Optional[float]:
+    """``atol``, ``rtol`` or ``max_mismatch_fraction``: None or a number (not a bool); the
+    library checks the range and names the field."""
+    if x is None:
+        return None
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
+        raise TypeError(f"compare(): argument `{name}`: expected a float or None, found {type(x).__name__}")
+    return float(x)
+
+
 def recommended_tolerances(dtype: Any = "float32") -> Dict[str, Any]:
     """The recommended tolerance file for a backend in ``dtype`` (float32 or float64;
     ``fixtures/cases/tolerances_f32.json`` / ``tolerances_f64.json``), as a dict."""
@@ -114,15 +124,17 @@ def compare(
             "compare(): argument `tolerances`: expected a path to a tolerance file or a dict, "
             f"found {type(tolerances).__name__}"
         )
+    if not isinstance(equal_nan, (bool, np.bool_)):
+        raise TypeError(f"compare(): argument `equal_nan`: expected a bool, found {type(equal_nan).__name__}")
     passed, table, text = _native.compare(
         _outputs("expected", expected),
         _outputs("actual", actual),
         tol_json,
         tol_path,
-        atol,
-        rtol,
-        max_mismatch_fraction,
-        equal_nan,
+        _tolerance("atol", atol),
+        _tolerance("rtol", rtol),
+        _tolerance("max_mismatch_fraction", max_mismatch_fraction),
+        bool(equal_nan),
     )
     return CompareReport(passed, table, text)
 
