@@ -192,3 +192,138 @@ def test_loss_gradcheck_float64():
     gt = torch.rand(3, 10, 12, dtype=torch.float64, generator=g)
     image = (gt + 0.2 * torch.randn(3, 10, 12, dtype=torch.float64, generator=g)).requires_grad_()
     assert torch.autograd.gradcheck(lambda im: lt.loss(im, gt) * 3.0, (image,))
+
+
+def _gaussians(T, n=None, requires_grad=False):
+    keys = ("means3D", "opacities", "shs", "scales", "rotations")
+    return {k: T[k][:n].clone().requires_grad_(requires_grad) for k in keys}
+
+
+def test_rasterizer_renders_the_background_without_gaussians():
+    T, m, _ = tensors("rasterize_f64_exact")
+    raster = lt.GaussianRasterizer(settings(T, m))
+    g = _gaussians(T, 0, requires_grad=True)          # N = 0: shs of shape [0,16,3]
+    means2D = torch.zeros_like(g["means3D"], requires_grad=True)
+    color, radii, depth = raster(g["means3D"], means2D, g["opacities"], shs=g["shs"],
+                                 scales=g["scales"], rotations=g["rotations"])
+    assert radii.shape == (0,) and float(depth.detach().abs().max()) == 0.0
+    assert torch.equal(color, T["bg"][:, None, None].expand(3, 24, 32))
+    color.sum().backward()
+    assert g["means3D"].grad.shape == (0, 3) and g["shs"].grad.shape == (0, 16, 3)
+    # Inria's "absent" is None or the 1-D empty tensor, as before.
+    c2, _, _ = lt.rasterize_gaussians(g["means3D"], means2D, g["shs"], torch.Tensor([]),
+                                      g["opacities"], g["scales"], g["rotations"],
+                                      torch.Tensor([]), settings(T, m))
+    assert torch.equal(c2, color)
+
+
+def test_inplace_change_of_a_saved_input_fails_the_backward():
+    T, m, _ = tensors("rasterize_f64_exact")
+    inplace = "modified by an inplace operation"
+
+    def render(st):
+        g = _gaussians(T, requires_grad=True)
+        color, _, _ = lt.GaussianRasterizer(st)(g["means3D"], None, g["opacities"], shs=g["shs"],
+                                                scales=g["scales"], rotations=g["rotations"])
+        return g, color
+
+    g, color = render(settings(T, m))
+    with torch.no_grad():
+        g["scales"].mul_(2.0)
+    with pytest.raises(RuntimeError, match=inplace):
+        color.sum().backward()
+    # The settings' tensors too (a camera moved between forward and backward).
+    st = settings({**T, "viewmatrix": T["viewmatrix"].clone()}, m)
+    g, color = render(st)
+    st.viewmatrix[3, 2] += 0.5
+    with pytest.raises(RuntimeError, match=inplace):
+        color.sum().backward()
+    # Fields: a weight or the time changed in place.
+    net = lt.DeformNetwork(D=4, W=16, is_blender=True, dtype=torch.float64)
+    x = torch.rand(5, 3, dtype=torch.float64)
+    t = torch.rand(5, 1, dtype=torch.float64, requires_grad=True)
+    d_xyz, _, _ = net(x, t)
+    with torch.no_grad():
+        net.get_parameter("linear.0.weight").add_(1.0)
+    with pytest.raises(RuntimeError, match=inplace):
+        d_xyz.sum().backward()
+    # gsplat: the camera matrices are read again by the backward.
+    t2, _ = ls.load(CASES / "gsplat_rasterization_f64_v16.input.safetensors")
+    x = {k: torch.from_numpy(t2[k].copy()).requires_grad_() for k in
+         ("means", "quats", "scales", "opacities", "colors")}
+    viewmats = torch.from_numpy(t2["viewmats"].copy())
+    rc, _, _ = lt.rasterization(x["means"], x["quats"], x["scales"], x["opacities"], x["colors"],
+                                viewmats, torch.from_numpy(t2["Ks"]), 24, 16, sh_degree=3)
+    viewmats[:, 0, 3] += 0.1
+    with pytest.raises(RuntimeError, match=inplace):
+        rc.sum().backward()
+    t3, _ = ls.load(CASES / "gsplat_rasterize_to_pixels_f64_v16_gsplat.input.safetensors")
+    d = {k: torch.from_numpy(t3[k].copy()).requires_grad_() for k in
+         ("means2d", "conics", "colors", "opacities")}
+    rc, _ = lt.rasterize_to_pixels(*d.values(), 24, 16, 16, torch.from_numpy(t3["isect_offsets"]),
+                                   torch.from_numpy(t3["flatten_ids"]), packed=True)
+    with torch.no_grad():
+        d["conics"].mul_(0.5)
+    with pytest.raises(RuntimeError, match=inplace):
+        rc.sum().backward()
+
+
+def test_raster_settings_numbers_are_checked_not_coerced():
+    T, m, e = tensors("rasterize_f64_exact")
+    g = _gaussians(T)
+
+    def render(**change):
+        st = settings(T, m)._replace(**change)
+        return lt.GaussianRasterizer(st)(g["means3D"], None, g["opacities"], shs=g["shs"],
+                                         scales=g["scales"], rotations=g["rotations"])
+
+    for name, value, found in (("image_height", 24.9, "float"), ("image_height", "24", "str"),
+                               ("image_width", True, "bool"), ("sh_degree", 2.7, "float"),
+                               ("image_height", torch.tensor(24.0), "float"),
+                               ("tanfovx", "0.4", "str"), ("scale_modifier", True, "bool")):
+        kind = "an int" if name in ("image_height", "image_width", "sh_degree") else "a float"
+        with pytest.raises(TypeError, match=rf"argument `raster_settings.{name}`: expected {kind}, found {found}"):
+            render(**{name: value})
+    with pytest.raises(ValueError, match="`image_width`: expected an integer >= 1, found 0"):
+        render(image_width=0)
+    # numpy scalars and 0-d tensors holding such values are the numbers they hold.
+    color, _, _ = render(image_height=np.int64(24), image_width=torch.tensor(32),
+                         tanfovx=np.float64(float(m["tanfovx"])), sh_degree=torch.tensor(3))
+    assert color.numpy().tobytes() == e["color"].tobytes()
+
+
+def test_means2D_is_checked():
+    T, m, _ = tensors("rasterize_f64_exact")
+    g = _gaussians(T)
+    raster = lt.GaussianRasterizer(settings(T, m))
+
+    def render(means2D):
+        return raster(g["means3D"], means2D, g["opacities"], shs=g["shs"], scales=g["scales"],
+                      rotations=g["rotations"])
+
+    with pytest.raises(ValueError, match=r"`means2D`: expected shape \[N,3\] with N=9 from `means3D` \(Inria's screenspace points\), found shape \[9,2\]"):
+        render(torch.zeros(9, 2, dtype=torch.float64, requires_grad=True))
+    with pytest.raises(ValueError, match=r"`means2D`: expected shape \[N,3\] with N=9 .*found shape \[4,3\]"):
+        render(torch.zeros(4, 3, dtype=torch.float64))
+    for bad in (np.zeros((9, 3)), "means2D"):
+        with pytest.raises(TypeError, match=r"`means2D`: expected a torch.Tensor of shape \[N,3\] .*or None, found"):
+            render(bad)
+
+
+def test_unsupported_dtypes_and_field_arguments_are_named():
+    T, m, _ = tensors("rasterize_f64_exact")
+    g = _gaussians(T)
+    raster = lt.GaussianRasterizer(settings(T, m))
+    with pytest.raises(TypeError, match=r"argument `opacities`: expected dtype torch.float32 or torch.float64, found torch.bfloat16"):
+        raster(g["means3D"], None, g["opacities"].bfloat16(), shs=g["shs"], scales=g["scales"],
+               rotations=g["rotations"])
+    with pytest.raises(TypeError, match=r"argument `[a-z_.0-9]+`: expected dtype torch.float32 or torch.float64, found torch.bfloat16"):
+        lt.DeformNetwork.from_state_dict({k: v.bfloat16() for k, v in lt.DeformNetwork(D=4, W=8).state_dict().items()})
+    with pytest.raises(ValueError, match=r"DeformNetwork\(\): argument `D`: expected an integer >= 3, found -1"):
+        lt.DeformNetwork(D=-1)
+    with pytest.raises(TypeError, match=r"DeformNetwork\(\): argument `D`: expected an int, found str"):
+        lt.DeformNetwork(D="4")
+    with pytest.raises(TypeError, match=r"CfCField\(\): argument `backbone_units`: expected an int, found float"):
+        lt.CfCField(backbone_units=8.0)
+    with pytest.raises(ValueError, match=r"CfCField\(\): argument `seed`: expected an integer in 0..=18446744073709551615, found -1"):
+        lt.CfCField(D=1, W=4, seed=-1)

@@ -18,6 +18,11 @@ so ``torch.autograd.grad`` and ``torch.autograd.gradcheck`` (float64) work. Inpu
 read stop-gradient where upstream reads them so: a field's network reads ``xyz``
 detached (only the 6-DoF warp passes a gradient to ``xyz``), the loss treats ``gt`` as a
 constant, the rasterizer's settings (matrices, camera, background) get no gradient.
+``gradcheck`` w.r.t. a field's ``xyz`` therefore does not apply: the analytic ``grad_xyz``
+is upstream's (none, or ``(Rᵀ − I)·g`` through the 6-DoF warp), not the derivative of the
+network's output w.r.t. ``xyz``. The tensors a backward reads are saved with
+``save_for_backward``: changing one in place between forward and backward raises
+``RuntimeError`` in backward, as torch's own functions do.
 """
 
 from __future__ import annotations
@@ -31,6 +36,7 @@ from torch.autograd.function import once_differentiable
 
 from . import _native
 from . import gsplat as _gs
+from . import _cfc_config, _init_weights, _mlp_config, _metadata, _run_case
 from . import CfCField as _NpCfCField
 from . import DeformNetwork as _NpDeformNetwork
 from . import loss as _np_loss
@@ -60,7 +66,12 @@ def _np(name: str, t: Any) -> Any:
             f"argument `{name}`: expected a CPU tensor (the oracle runs on the CPU), "
             f"found device {t.device}"
         )
-    return t.detach().contiguous().numpy()
+    try:
+        return t.detach().contiguous().numpy()
+    except TypeError:  # a dtype numpy has no equivalent of (bfloat16, ...)
+        raise TypeError(
+            f"argument `{name}`: expected dtype torch.float32 or torch.float64, found {t.dtype}"
+        ) from None
 
 
 def _t(a: Optional[np.ndarray]) -> Optional[torch.Tensor]:
@@ -74,7 +85,10 @@ def _t(a: Optional[np.ndarray]) -> Optional[torch.Tensor]:
 
 class GaussianRasterizationSettings(NamedTuple):
     """Inria's ``GaussianRasterizationSettings`` (same fields, same order). ``prefiltered``
-    and ``debug`` are accepted and have no effect on the results."""
+    and ``debug`` are accepted and have no effect on the results. ``image_height``,
+    ``image_width`` and ``sh_degree`` are ints, ``tanfovx``, ``tanfovy`` and
+    ``scale_modifier`` floats (Python or numpy scalars, or 0-d tensors): a string, a bool or
+    a fractional size is refused (``TypeError``), never rounded."""
 
     image_height: int
     image_width: int
@@ -90,18 +104,56 @@ class GaussianRasterizationSettings(NamedTuple):
     debug: bool = False
 
 
+_SETTINGS_TENSORS = ("viewmatrix", "projmatrix", "campos", "bg")
+
+
+def _setting(s: Any, name: str, integer: bool) -> Any:
+    """A number of the settings as given (an int, a float, a numpy scalar or a 0-d tensor's
+    value), never converted: ``rasterize`` checks its range. Bools and strings are refused."""
+    v = getattr(s, name)
+    if isinstance(v, torch.Tensor) and v.dim() == 0:
+        v = v.item()
+    kinds = (int, np.integer) if integer else (int, float, np.integer, np.floating)
+    if isinstance(v, (bool, np.bool_)) or not isinstance(v, kinds):
+        raise TypeError(
+            f"rasterize_gaussians(): argument `raster_settings.{name}`: expected "
+            f"{'an int' if integer else 'a float'}, found {type(v).__name__}"
+        )
+    return v
+
+
 def _settings_kwargs(s: Any) -> Dict[str, Any]:
-    return dict(
-        viewmatrix=_np("raster_settings.viewmatrix", s.viewmatrix),
-        projmatrix=_np("raster_settings.projmatrix", s.projmatrix),
-        campos=_np("raster_settings.campos", s.campos),
-        bg=_np("raster_settings.bg", s.bg),
-        image_height=int(s.image_height),
-        image_width=int(s.image_width),
-        tanfovx=float(s.tanfovx),
-        tanfovy=float(s.tanfovy),
-        scale_modifier=float(s.scale_modifier),
+    kw = {n: _np(f"raster_settings.{n}", getattr(s, n)) for n in _SETTINGS_TENSORS}
+    kw.update(
+        image_height=_setting(s, "image_height", True),
+        image_width=_setting(s, "image_width", True),
+        tanfovx=_setting(s, "tanfovx", False),
+        tanfovy=_setting(s, "tanfovy", False),
+        scale_modifier=_setting(s, "scale_modifier", False),
     )
+    return kw
+
+
+def _means2D(means3D: Any, means2D: Any) -> None:
+    """Inria's screenspace points: None or a CPU tensor of ``means3D``'s shape [N,3] (it
+    receives the gradient, its values are not read)."""
+    where = "rasterize_gaussians(): argument `means2D`"
+    if means2D is None:
+        return
+    if not isinstance(means2D, torch.Tensor):
+        raise TypeError(
+            f"{where}: expected a torch.Tensor of shape [N,3] (Inria's screenspace points) or "
+            f"None, found {type(means2D).__name__}"
+        )
+    n = means3D.shape[0] if isinstance(means3D, torch.Tensor) and means3D.dim() == 2 else None
+    if means2D.dim() != 2 or means2D.shape[1] != 3 or (n is not None and means2D.shape[0] != n):
+        note = "" if n is None else f" with N={n} from `means3D`"
+        raise ValueError(
+            f"{where}: expected shape [N,3]{note} (Inria's screenspace points), found shape "
+            f"[{','.join(str(d) for d in means2D.shape)}]"
+        )
+    if means2D.device.type != "cpu":
+        raise ValueError(f"{where}: expected a CPU tensor, found device {means2D.device}")
 
 
 _RASTER_INPUTS = (
@@ -110,10 +162,16 @@ _RASTER_INPUTS = (
 )
 
 
+# The tensors the rasterizer's backward reads again: the Gaussians', then the settings'.
+_RASTER_SAVED = ("means3D", "opacities", "shs", "colors_precomp", "scales", "rotations",
+                 "cov3D_precomp") + _SETTINGS_TENSORS
+
+
 class _RasterizeGaussians(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means3D, means2D, shs, colors_precomp, opacities, scales, rotations,
                 cov3D_precomp, raster_settings):
+        _means2D(means3D, means2D)
         arrays = dict(
             means3D=_np("means3D", means3D),
             opacities=_np("opacities", opacities),
@@ -124,9 +182,15 @@ class _RasterizeGaussians(torch.autograd.Function):
             cov3D_precomp=_np("cov3D_precomp", cov3D_precomp),
         )
         kw = _settings_kwargs(raster_settings)
-        sh_degree = int(raster_settings.sh_degree) if shs is not None else None
+        sh_degree = _setting(raster_settings, "sh_degree", True) if shs is not None else None
         r = _np_rasterize(**arrays, **kw, sh_degree=sh_degree)
-        ctx.arrays, ctx.kw, ctx.sh_degree = arrays, kw, sh_degree
+        inputs = dict(means3D=means3D, opacities=opacities, shs=shs,
+                      colors_precomp=colors_precomp, scales=scales, rotations=rotations,
+                      cov3D_precomp=cov3D_precomp)
+        ctx.save_for_backward(*(inputs[n] for n in _RASTER_SAVED[:7]),
+                              *(getattr(raster_settings, n) for n in _SETTINGS_TENSORS))
+        ctx.numbers = {k: v for k, v in kw.items() if k not in _SETTINGS_TENSORS}
+        ctx.sh_degree = sh_degree
         ctx.present = [x is not None for x in
                        (means3D, means2D, shs, colors_precomp, opacities, scales, rotations,
                         cov3D_precomp)]
@@ -137,8 +201,9 @@ class _RasterizeGaussians(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_color, grad_radii, grad_depth):
+        saved = {n: _np(n, x) for n, x in zip(_RASTER_SAVED, ctx.saved_tensors)}
         g = _np_rasterize_vjp(
-            **ctx.arrays, **ctx.kw, sh_degree=ctx.sh_degree,
+            **saved, **ctx.numbers, sh_degree=ctx.sh_degree,
             grad_color=_np("grad_color", grad_color),
             grad_depth=_np("grad_depth", grad_depth),
             gradient="exact",
@@ -153,11 +218,13 @@ class _RasterizeGaussians(torch.autograd.Function):
 def rasterize_gaussians(means3D, means2D, sh, colors_precomp, opacities, scales, rotations,
                         cov3Ds_precomp, raster_settings):
     """Inria's ``rasterize_gaussians`` (same arguments, same order): ``(color, radii,
-    depth)``. Pass ``None`` (or an empty tensor, as Inria's wrapper does) for unused
-    inputs."""
+    depth)``. Pass ``None`` (or ``torch.Tensor([])``, the 1-D empty tensor Inria's wrapper
+    passes) for unused inputs; any other empty tensor is an input with N = 0 Gaussians
+    (the image is then the background). ``means2D``: None or a tensor of shape [N,3]."""
 
     def opt(x):
-        return None if x is None or (isinstance(x, torch.Tensor) and x.numel() == 0) else x
+        absent = isinstance(x, torch.Tensor) and x.dim() == 1 and x.numel() == 0
+        return None if absent else x
 
     return _RasterizeGaussians.apply(
         means3D, means2D, opt(sh), opt(colors_precomp), opacities, opt(scales),
@@ -200,27 +267,33 @@ class GaussianRasterizer(nn.Module):
 # ---------------------------------------------------------------------------
 
 
+def _deform_case(names: Sequence[str], xyz: Any, t: Any, params: Sequence[Any]) -> Dict[str, np.ndarray]:
+    case: Dict[str, np.ndarray] = {"xyz": _np("xyz", xyz), "t": _np("t", t)}
+    case.update({n: _np(n, p) for n, p in zip(names, params)})
+    return case
+
+
 class _Deform(torch.autograd.Function):
     @staticmethod
     def forward(ctx, config, names, xyz, t, *params):
-        x = _np("xyz", xyz)
-        tt = _np("t", t)
-        case: Dict[str, np.ndarray] = {"xyz": x, "t": tt}
-        case.update({n: _np(n, p) for n, p in zip(names, params)})
+        case = _deform_case(names, xyz, t, params)
         meta = {"stage": "deform", **config}
-        out, _ = _native.run_case(case, meta)
-        ctx.case, ctx.meta, ctx.names = case, meta, names
+        func = "CfCField" if config["field"] == "cfc" else "DeformNetwork"
+        out, _ = _run_case(f"{func}.forward", case, meta, None)
+        ctx.save_for_backward(xyz, t, *params)
+        ctx.meta, ctx.names, ctx.func = meta, names, func
         return (torch.from_numpy(out["d_xyz"]), torch.from_numpy(out["d_rotation"]),
                 torch.from_numpy(out["d_scaling"]))
 
     @staticmethod
     @once_differentiable
     def backward(ctx, g_xyz, g_rot, g_scale):
-        case = dict(ctx.case)
+        xyz, t, *params = ctx.saved_tensors
+        case = _deform_case(ctx.names, xyz, t, params)
         case["grad_d_xyz"] = _np("grad_d_xyz", g_xyz)
         case["grad_d_rotation"] = _np("grad_d_rotation", g_rot)
         case["grad_d_scaling"] = _np("grad_d_scaling", g_scale)
-        out, _ = _native.run_case(case, ctx.meta)
+        out, _ = _run_case(f"{ctx.func}.vjp", case, ctx.meta, None)
         grad_xyz = _t(out.get("grad_xyz"))
         grad_t = torch.from_numpy(out["grad_t"])
         return (None, None, grad_xyz, grad_t,
@@ -237,7 +310,7 @@ class _FieldModule(nn.Module):
         name = {torch.float32: "float32", torch.float64: "float64"}.get(dtype)
         if name is None:
             raise TypeError(f"argument `dtype`: expected torch.float32 or torch.float64, found {dtype}")
-        weights = _native.field_init(self._config, seed, name)
+        weights = _init_weights(type(self).__name__, self._config, seed, name)
         for key in sorted(weights):
             *path, leaf = key.split(".")
             module: nn.Module = self
@@ -269,13 +342,13 @@ class _FieldModule(nn.Module):
 
     @property
     def param_count(self) -> int:
-        return int(_native.field_counts(self._config)["params"])
+        return int(_native.field_counts(_metadata(self._config))["params"])
 
     def macs(self, convention: str = "pytorch") -> int:
         """MACs per Gaussian as ptflops counts them (``aten``, ``pytorch``,
         ``pytorch_no_functional``)."""
         key = f"macs_{convention}"
-        counts = _native.field_counts(self._config)
+        counts = _native.field_counts(_metadata(self._config))
         if key not in counts:
             raise ValueError(
                 "macs(): argument `convention`: expected 'aten', 'pytorch' or "
@@ -302,9 +375,7 @@ class DeformNetwork(_FieldModule):
                 "DeformNetwork: expected input_ch=3, output_ch=59, multires=10 (the values "
                 f"D-3DGS uses), found {input_ch}, {output_ch}, {multires}"
             )
-        self._build({"field": "mlp", "depth": D, "width": W,
-                     "variant": "synthetic" if is_blender else "real",
-                     "is_6dof": bool(is_6dof)}, seed, dtype)
+        self._build(_mlp_config("DeformNetwork", D, W, is_blender, is_6dof), seed, dtype)
 
     @classmethod
     def from_state_dict(cls, state_dict: Mapping[str, torch.Tensor]) -> "DeformNetwork":
@@ -328,9 +399,8 @@ class CfCField(_FieldModule):
                  activation: str = "gelu", backbone_units: int = 64, backbone_layers: int = 2,
                  *, seed: int = 0, dtype: torch.dtype = torch.float32):
         super().__init__()
-        self._build({"field": "cfc", "depth": D, "width": W, "variant": variant,
-                     "activation": activation, "backbone_units": backbone_units,
-                     "backbone_layers": backbone_layers}, seed, dtype)
+        self._build(_cfc_config("CfCField", D, W, variant, activation, backbone_units,
+                                backbone_layers), seed, dtype)
 
     @classmethod
     def from_state_dict(cls, state_dict: Mapping[str, torch.Tensor],
@@ -383,20 +453,23 @@ class _GsRasterization(torch.autograd.Function):
     @staticmethod
     def forward(ctx, holder, kw, means, quats, scales, covars, opacities, colors, backgrounds,
                 viewmats, Ks):
-        arrays = {n: _np(n, x) for n, x in zip(
-            _GS_RASTERIZATION_INPUTS + ("viewmats", "Ks"),
-            (means, quats, scales, covars, opacities, colors, backgrounds, viewmats, Ks))}
+        inputs = (means, quats, scales, covars, opacities, colors, backgrounds, viewmats, Ks)
+        arrays = {n: _np(n, x) for n, x in zip(_GS_RASTERIZATION_INPUTS + ("viewmats", "Ks"),
+                                                inputs)}
         r = _gs.rasterization(**arrays, **kw)
         holder.update(r.meta)
-        ctx.arrays, ctx.kw = arrays, kw
+        ctx.save_for_backward(*inputs)
+        ctx.kw = kw
         ctx.present = [arrays[n] is not None for n in _GS_RASTERIZATION_INPUTS]
         return torch.from_numpy(r.render_colors), torch.from_numpy(r.render_alphas)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, v_render_colors, v_render_alphas):
+        arrays = {n: _np(n, x) for n, x in zip(_GS_RASTERIZATION_INPUTS + ("viewmats", "Ks"),
+                                                ctx.saved_tensors)}
         g = _gs.rasterization_vjp(
-            **ctx.arrays, **ctx.kw,
+            **arrays, **ctx.kw,
             v_render_colors=_np("v_render_colors", v_render_colors),
             v_render_alphas=_np("v_render_alphas", v_render_alphas),
         )
@@ -464,19 +537,22 @@ class _GsRasterizeToPixels(torch.autograd.Function):
     @staticmethod
     def forward(ctx, kw, means2d, conics, colors, opacities, backgrounds, isect_offsets,
                 flatten_ids):
-        arrays = {n: _np(n, x) for n, x in zip(
-            _GS_R2P_INPUTS + ("isect_offsets", "flatten_ids"),
-            (means2d, conics, colors, opacities, backgrounds, isect_offsets, flatten_ids))}
+        inputs = (means2d, conics, colors, opacities, backgrounds, isect_offsets, flatten_ids)
+        arrays = {n: _np(n, x) for n, x in zip(_GS_R2P_INPUTS + ("isect_offsets", "flatten_ids"),
+                                                inputs)}
         rc, ra = _gs.rasterize_to_pixels(**arrays, **kw)
-        ctx.arrays, ctx.kw = arrays, kw
+        ctx.save_for_backward(*inputs)
+        ctx.kw = kw
         ctx.has_bg = backgrounds is not None
         return torch.from_numpy(rc), torch.from_numpy(ra)
 
     @staticmethod
     @once_differentiable
     def backward(ctx, v_render_colors, v_render_alphas):
+        arrays = {n: _np(n, x) for n, x in zip(_GS_R2P_INPUTS + ("isect_offsets", "flatten_ids"),
+                                                ctx.saved_tensors)}
         g = _gs.rasterize_to_pixels_vjp(
-            **ctx.arrays, **ctx.kw,
+            **arrays, **ctx.kw,
             v_render_colors=_np("v_render_colors", v_render_colors),
             v_render_alphas=_np("v_render_alphas", v_render_alphas),
         )
