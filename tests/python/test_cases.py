@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 import liquid_splat as ls
 from conftest import CASES, bits_equal
@@ -96,3 +97,35 @@ def test_the_console_script_runs_the_tool(tmp_path):
     assert r.returncode == 0, r.stderr
     t, m = ls.load(tmp_path / "c.safetensors")
     assert m["stage"] == "loss" and t["image"].shape == (3, 24, 32)
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals and file names")
+def test_the_console_entry_point_ends_like_the_native_tool(tmp_path):
+    import os
+    import signal
+
+    tool = [sys.executable, "-m", "liquid_splat"]
+    # Ctrl-C ends a long run at once (the Rust code runs without the interpreter).
+    p = subprocess.Popen(tool + ["--threads", "1", "train", "--scene", "swing", "--resolution", "16",
+                                 "--frames", "2", "--init-points", "50", "--iterations", "100000000",
+                                 "--out", str(tmp_path / "run")],
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        assert p.stderr.readline().startswith(b"training")
+        p.send_signal(signal.SIGINT)
+        assert p.wait(timeout=20) == -signal.SIGINT
+    finally:
+        p.kill()
+        p.wait()
+        p.stderr.close()
+    # A closed stdout ends it quietly (`liquid-splat case compare A B | head -1`).
+    r, w = os.pipe()
+    os.close(r)
+    case = str(CASES / "loss_f32.expected.safetensors")
+    q = subprocess.run(tool + ["case", "compare", case, case], stdout=w, stderr=subprocess.PIPE)
+    os.close(w)
+    assert q.returncode == -signal.SIGPIPE and q.stderr == b"", q.stderr.decode()
+    # A file name that is not UTF-8 is a usage error (exit 2) with a message.
+    q = subprocess.run(tool + ["case", "run", b"x\xff.safetensors", str(tmp_path / "o")],
+                       capture_output=True)
+    assert q.returncode == 2 and b"not valid UTF-8" in q.stderr and b"Traceback" not in q.stderr, q.stderr
