@@ -9,8 +9,12 @@
 //! - shape and dtype must be equal;
 //! - element `(a, e)` matches when `|a − e| ≤ atol + rtol·|e|` (PyTorch's
 //!   `allclose` / `torch.testing` rule, with the tolerance scaled by the
-//!   *expected* value). Infinities match only an identical infinity. A NaN
-//!   matches only a NaN, and only with `equal_nan`;
+//!   *expected* value), evaluated in the tensors' dtype as `torch.isclose`
+//!   and `numpy.isclose` evaluate it (two F32 tensors: `atol` and `rtol`
+//!   rounded to f32, `|a − e|` and `atol + |rtol·e|` in f32, so that an
+//!   element on the boundary goes the way it goes in PyTorch). Infinities
+//!   match only an identical infinity. A NaN matches only a NaN, and only
+//!   with `equal_nan`;
 //! - the tensor passes when its number of mismatching elements is at most
 //!   `floor(max_mismatch_fraction · numel)` (default 0). The allowance exists
 //!   for discontinuity bands: a Gaussian that sits exactly on the 1/255 alpha
@@ -114,6 +118,21 @@ impl Tolerance {
             return false;
         }
         (actual - expected).abs() <= self.atol + self.rtol * expected.abs()
+    }
+
+    /// [`matches`](Self::matches) evaluated in f32, as PyTorch evaluates
+    /// `isclose` for float32 tensors: `atol + |rtol·e|` with `atol` and
+    /// `rtol` rounded to f32, and `|a − e|` in f32 (which can overflow: then
+    /// no match).
+    pub fn matches_f32(&self, actual: f32, expected: f32) -> bool {
+        if actual.is_nan() || expected.is_nan() {
+            return self.equal_nan && actual.is_nan() && expected.is_nan();
+        }
+        if actual == expected {
+            return true;
+        }
+        let err = (actual - expected).abs();
+        err.is_finite() && err <= self.atol as f32 + (self.rtol as f32 * expected).abs()
     }
 
     fn allowance(&self, expected: f64) -> f64 {
@@ -588,6 +607,8 @@ fn unravel(mut flat: usize, shape: &[usize]) -> Vec<usize> {
 fn element_stats(shape: &[usize], e: &Tensor, a: &Tensor, tol: &Tolerance) -> ElementStats {
     let ev = crate::io::tensor_file::into_row_major(e.to_f64());
     let av = crate::io::tensor_file::into_row_major(a.to_f64());
+    // (F32 values are exact in f64 and back.)
+    let in_f32 = matches!((e, a), (Tensor::F32(_), Tensor::F32(_)));
     let n = ev.len();
     let allowed_mismatches = (tol.max_mismatch_fraction * n as f64).floor() as usize;
 
@@ -606,7 +627,11 @@ fn element_stats(shape: &[usize], e: &Tensor, a: &Tensor, tol: &Tolerance) -> El
         nan_a += y.is_nan() as usize;
         inf_e += x.is_infinite() as usize;
         inf_a += y.is_infinite() as usize;
-        let ok = tol.matches(y, x);
+        let ok = if in_f32 {
+            tol.matches_f32(y as f32, x as f32)
+        } else {
+            tol.matches(y, x)
+        };
         mismatches += (!ok) as usize;
 
         let score = if x.is_nan() || y.is_nan() {

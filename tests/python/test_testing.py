@@ -82,9 +82,24 @@ def test_tolerance_overrides_are_numbers_not_bools():
     assert compare(e, a, atol=np.float32(1.0)).passed and compare(e, a, atol=1).passed
 
 
-@pytest.mark.xfail(reason="the extension's compare() takes equal_nan as a bool that can only turn "
-                          "the field on (bindings/python/src/lib.rs, compare)", strict=False)
 def test_equal_nan_false_replaces_the_tolerance_files_field():
     nan = {"x": np.array([np.nan])}
     assert compare(nan, nan, tolerances={"default": {"equal_nan": True}}).passed
     assert not compare(nan, nan, tolerances={"default": {"equal_nan": True}}, equal_nan=False).passed
+
+
+def test_float32_elements_on_the_boundary_go_as_numpy_isclose_says():
+    # Pairs within a few ulps of |a - e| = atol + rtol*|e|: the count of elements that
+    # numpy.isclose (float32 arithmetic, as torch.isclose) calls not close is the report's
+    # mismatch count, in float32 and with every tolerance pair.
+    rng = np.random.default_rng(5)
+    e = rng.uniform(-2.0, 2.0, 20000).astype(np.float32)
+    for atol, rtol in ((0.0, 1e-3), (1e-5, 1.3e-6), (1e-4, 1e-2)):
+        bound = atol + rtol * np.abs(e.astype(np.float64))
+        side = np.where(rng.integers(0, 2, e.size) == 1, 1.0, -1.0)
+        a = (e.astype(np.float64) + side * bound * (1 + rng.uniform(-1e-6, 1e-6, e.size))).astype(np.float32)
+        want = int(np.count_nonzero(~np.isclose(a, e, rtol=rtol, atol=atol)))
+        report = compare({"x": e}, {"x": a}, atol=atol, rtol=rtol, max_mismatch_fraction=1.0)
+        got = json.loads(report.json)["tensors"][0]["stats"]["mismatches"]
+        assert got == want, (atol, rtol, got, want)
+        assert 0 < want < e.size

@@ -102,13 +102,14 @@ def compare(
     atol: Optional[float] = None,
     rtol: Optional[float] = None,
     max_mismatch_fraction: Optional[float] = None,
-    equal_nan: bool = False,
+    equal_nan: Optional[bool] = None,
 ) -> CompareReport:
     """Compare every tensor of ``expected`` (the oracle's outputs) with ``actual``.
 
     Each is a dict of arrays (numpy, or torch tensors, copied to C order), a
     ``(tensors, metadata)`` pair, or a path to a safetensors file. Element ``(a, e)``
-    matches when ``|a − e| ≤ atol + rtol·|e|``; a tensor passes when its mismatches are at
+    matches when ``|a − e| ≤ atol + rtol·|e|`` (in float32 for float32 tensors, as
+    ``torch.isclose`` evaluates it); a tensor passes when its mismatches are at
     most ``floor(max_mismatch_fraction · numel)``. Unusable input (bad tolerances, an
     unreadable file, an empty ``expected``, an unsupported dtype) raises ``ValueError`` or
     ``TypeError``; mismatches never raise, they are in the report.
@@ -124,7 +125,7 @@ def compare(
             "compare(): argument `tolerances`: expected a path to a tolerance file or a dict, "
             f"found {type(tolerances).__name__}"
         )
-    if not isinstance(equal_nan, (bool, np.bool_)):
+    if equal_nan is not None and not isinstance(equal_nan, (bool, np.bool_)):
         raise TypeError(f"compare(): argument `equal_nan`: expected a bool, found {type(equal_nan).__name__}")
     passed, table, text = _native.compare(
         _outputs("expected", expected),
@@ -134,7 +135,7 @@ def compare(
         _tolerance("atol", atol),
         _tolerance("rtol", rtol),
         _tolerance("max_mismatch_fraction", max_mismatch_fraction),
-        bool(equal_nan),
+        None if equal_nan is None else bool(equal_nan),
     )
     return CompareReport(passed, table, text)
 
@@ -147,7 +148,7 @@ def assert_close(
     atol: Optional[float] = None,
     rtol: Optional[float] = None,
     max_mismatch_fraction: Optional[float] = None,
-    equal_nan: bool = False,
+    equal_nan: Optional[bool] = None,
 ) -> CompareReport:
     """Raise ``AssertionError`` (message: the report's table) unless :func:`compare`
     passes; return the report otherwise. Argument order as ``torch.testing.assert_close``:

@@ -26,7 +26,7 @@ use numpy::PyUntypedArrayMethods;
 use numpy::{PyArray, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray};
 use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
-use pyo3::types::{PyBool, PyDict, PyString};
+use pyo3::types::{PyBool, PyDict, PyInt, PyString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::path::PathBuf;
 
@@ -51,10 +51,10 @@ fn compute<R: Send>(
 ) -> PyResult<R> {
     let pool = match threads {
         None => None,
-        Some(0) => {
-            return Err(PyValueError::new_err(
-                "threads: expected a positive number of worker threads or None, found 0",
-            ))
+        Some(n) if !(1..=1024).contains(&n) => {
+            return Err(PyValueError::new_err(format!(
+                "threads: expected 1 to 1024 worker threads or None, found {n}"
+            )))
         }
         Some(n) => Some(
             rayon::ThreadPoolBuilder::new()
@@ -162,14 +162,25 @@ fn tensor_from_array(what: &str, obj: &Bound<'_, PyAny>, finite: bool) -> PyResu
 /// as `true`/`false`, integers in decimal, floats in the shortest form that
 /// round-trips.
 fn meta_value(key: &str, v: &Bound<'_, PyAny>) -> PyResult<String> {
-    if let Ok(b) = v.downcast::<PyBool>() {
-        return Ok(if b.is_true() { "true" } else { "false" }.to_string());
+    let numpy_bool = v
+        .get_type()
+        .name()
+        .is_ok_and(|n| n == "bool" || n == "bool_");
+    if v.downcast::<PyBool>().is_ok() || numpy_bool {
+        return Ok(if v.is_truthy()? { "true" } else { "false" }.to_string());
     }
     if let Ok(s) = v.downcast::<PyString>() {
         return s.extract::<String>();
     }
+    // (A Python int of any size, exactly.)
+    if v.downcast::<PyInt>().is_ok() {
+        return Ok(v.str()?.extract::<String>()?);
+    }
     if let Ok(i) = v.extract::<i64>() {
         return Ok(i.to_string());
+    }
+    if let Ok(u) = v.extract::<u64>() {
+        return Ok(u.to_string());
     }
     if let Ok(x) = v.extract::<f64>() {
         return Ok(format!("{x:?}"));
@@ -288,7 +299,7 @@ fn tensors_or_path(label: &str, obj: &Bound<'_, PyAny>) -> PyResult<TensorFile> 
 /// as `case compare` does: `(passed, table, report_json)`.
 #[allow(clippy::too_many_arguments)]
 #[pyfunction]
-#[pyo3(signature = (expected, actual, tolerances_json=None, tolerances_path=None, atol=None, rtol=None, max_mismatch_fraction=None, equal_nan=false))]
+#[pyo3(signature = (expected, actual, tolerances_json=None, tolerances_path=None, atol=None, rtol=None, max_mismatch_fraction=None, equal_nan=None))]
 fn compare<'py>(
     py: Python<'py>,
     expected: &Bound<'py, PyAny>,
@@ -298,7 +309,7 @@ fn compare<'py>(
     atol: Option<f64>,
     rtol: Option<f64>,
     max_mismatch_fraction: Option<f64>,
-    equal_nan: bool,
+    equal_nan: Option<bool>,
 ) -> PyResult<(bool, String, String)> {
     let expected = tensors_or_path("expected", expected)?;
     let actual = tensors_or_path("actual", actual)?;
@@ -317,8 +328,8 @@ fn compare<'py>(
         if max_mismatch_fraction.is_some() {
             tol.default.max_mismatch_fraction = max_mismatch_fraction;
         }
-        if equal_nan {
-            tol.default.equal_nan = Some(true);
+        if equal_nan.is_some() {
+            tol.default.equal_nan = equal_nan;
         }
         let report = oracle::compare(&expected, &actual, &tol)?;
         Ok((report.passed, report.to_string(), report.to_json()))

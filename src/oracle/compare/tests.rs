@@ -334,3 +334,20 @@ fn report_json_round_trips_through_serde_json() {
     assert_eq!(v["tensors"][0]["stats"]["worst"]["index"][0], 1);
     assert_eq!(v["tensors"][0]["stats"]["max_abs_error"], 0.5);
 }
+
+#[test]
+fn f32_tensors_are_compared_in_f32_as_torch_isclose_does() {
+    // torch.isclose(a, e, rtol=1e-3, atol=0) and numpy.isclose (both in
+    // float32) say this pair is close; the same rule in f64 says it is not.
+    let (e, a) = (0.18586217f32, 0.18604803f32);
+    let tol = Tolerance {
+        atol: 0.0,
+        rtol: 1e-3,
+        max_mismatch_fraction: 0.0,
+        equal_nan: false,
+    };
+    assert!(tol.matches_f32(a, e));
+    assert!(!tol.matches(a as f64, e as f64));
+    // |a − e| overflowing f32 is no match, as in torch.
+    assert!(!tol.matches_f32(f32::MAX, -f32::MAX));
+}
