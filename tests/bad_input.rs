@@ -352,6 +352,26 @@ fn sizes_checked_before_the_allocation() {
         refused_within(&["render", s(&run), flag, value], quick, &[flag]);
     }
     refused_within(&["export", s(&run), "--times", "nan"], quick, &["--times"]);
+    // A ground truth without its render.
+    std::fs::remove_file(
+        run.join("test/renders")
+            .read_dir()
+            .unwrap()
+            .next()
+            .unwrap()
+            .unwrap()
+            .path(),
+    )
+    .unwrap();
+    refused_within(&["eval", s(&run)], quick, &["has no render"]);
+    // The outputs of a case written over the case.
+    let p = d.join("sizes_case.safetensors");
+    ok(&["case", "new", "loss", s(&p)]);
+    refused_within(
+        &["case", "run", s(&p), s(&p)],
+        quick,
+        &["OUTPUT", "input case"],
+    );
     for args in [
         &["bench", "deform", "--n", "18446744073709551615"][..],
         &["bench", "lpips", "--size", "4294967296"],

@@ -243,6 +243,15 @@ fn regen_golden(dir: &Path) -> crate::Result<Outcome> {
 
 fn run_case(input: &Path, output: &Path) -> crate::Result<Outcome> {
     let case = TensorFile::load(input)?;
+    // (The outputs would replace the case.)
+    if std::fs::canonicalize(output)
+        .is_ok_and(|o| std::fs::canonicalize(input).is_ok_and(|i| i == o))
+    {
+        return Err(Error::invalid(
+            "OUTPUT",
+            format!("{} is the input case", output.display()),
+        ));
+    }
     let mut out = crate::oracle::run_case(&case)?;
     out.path = output.to_path_buf();
     out.save(output)?;

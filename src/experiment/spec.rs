@@ -386,17 +386,34 @@ pub fn evaluate_renders(
 ) -> Result<Vec<train::ViewMetrics>> {
     let renders = out.join("test").join("renders");
     let gt_dir = out.join("test").join("gt");
-    let mut names: Vec<String> = std::fs::read_dir(&renders)
-        .map_err(|e| Error::io(&renders, e))?
-        .filter_map(|e| e.ok())
-        .map(|e| e.file_name().to_string_lossy().to_string())
-        .filter(|n| n.ends_with(".png"))
-        .collect();
-    names.sort();
+    // The PNG files of `dir`, sorted.
+    let pngs = |dir: &Path| -> Result<Vec<String>> {
+        let mut v: Vec<String> = std::fs::read_dir(dir)
+            .map_err(|e| Error::io(dir, e))?
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().to_string())
+            .filter(|n| n.ends_with(".png"))
+            .collect();
+        v.sort();
+        Ok(v)
+    };
+    let names = pngs(&renders)?;
     if names.is_empty() {
         return Err(Error::invalid(
             "eval",
             format!("no PNG renders in {}", renders.display()),
+        ));
+    }
+    // A view with ground truth but no render would leave the mean over
+    // fewer views than the test split without a word.
+    if let Some(n) = pngs(&gt_dir)?.iter().find(|n| !names.contains(n)) {
+        return Err(Error::invalid(
+            "eval",
+            format!(
+                "{} has no render {}",
+                gt_dir.join(n).display(),
+                renders.join(n).display()
+            ),
         ));
     }
     let mut per_view = Vec::new();
@@ -406,7 +423,11 @@ pub fn evaluate_renders(
         if (h, w) != (gh, gw) {
             return Err(Error::invalid(
                 "eval",
-                format!("{n}: render is {w}x{h}, ground truth {gw}x{gh}"),
+                format!(
+                    "{} is {w}x{h}, its ground truth {} {gw}x{gh}",
+                    renders.join(n).display(),
+                    gt_dir.join(n).display()
+                ),
             ));
         }
         let m = train::trainer::view_metrics_with::<f32>(

@@ -16,7 +16,25 @@ use std::path::Path;
 /// Write `bytes` to `path` atomically: write a temporary file in the same
 /// folder, flush it to disk, then rename it over `path`. A crash leaves either
 /// the old file or the new one, never half of one.
+///
+/// A symbolic link is followed: the file it points to is replaced, the link
+/// stays. An existing path that is not a regular file (a device such as
+/// `/dev/stdout`, a named pipe) is written through, not replaced.
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    if path.is_symlink() {
+        let target = std::fs::canonicalize(path).map_err(|e| Error::io(path, e))?;
+        return write_atomic(&target, bytes);
+    }
+    if let Ok(m) = std::fs::metadata(path) {
+        if !m.is_file() && !m.is_dir() {
+            let write = || -> std::io::Result<()> {
+                let mut f = std::fs::OpenOptions::new().write(true).open(path)?;
+                f.write_all(bytes)?;
+                f.flush()
+            };
+            return write().map_err(|e| Error::io(path, e));
+        }
+    }
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
         _ => std::path::PathBuf::from("."),
@@ -47,4 +65,35 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Read a whole file, with the path in the error.
 pub fn read(path: &Path) -> Result<Vec<u8>> {
     std::fs::read(path).map_err(|e| Error::io(path, e))
+}
+
+#[cfg(all(test, target_os = "linux"))]
+mod tests {
+    use super::*;
+    use std::os::unix::fs::FileTypeExt;
+
+    #[test]
+    fn links_are_followed_and_devices_written_through() {
+        let dir = std::env::temp_dir().join(format!("ls-io-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let (target, link) = (dir.join("target"), dir.join("link"));
+        std::fs::write(&target, b"old").unwrap();
+        let _ = std::fs::remove_file(&link);
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        write_atomic(&link, b"new").unwrap();
+        assert!(link.is_symlink());
+        assert_eq!(std::fs::read(&target).unwrap(), b"new");
+        // A device stays a device; one that refuses the bytes is an error
+        // naming it.
+        write_atomic(Path::new("/dev/null"), b"x").unwrap();
+        let err = write_atomic(Path::new("/dev/full"), b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("/dev/full"), "{err}");
+        for dev in ["/dev/null", "/dev/full"] {
+            let t = std::fs::metadata(dev).unwrap().file_type();
+            assert!(t.is_char_device(), "{dev}");
+        }
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
