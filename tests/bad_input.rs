@@ -396,6 +396,31 @@ fn sizes_checked_before_the_allocation() {
     }
 }
 
+/// Options that do not apply to the data given are refused, not ignored.
+#[test]
+fn options_that_do_not_apply_are_refused() {
+    let d = tmp("apply");
+    let out = d.join("run");
+    for (args, needle) in [
+        (&["train", SWING, "--resolution", "8"][..], "--resolution"),
+        (&["train", SWING, "--frames", "3"], "--frames"),
+        (
+            &["train", "--scene", "swing", "--downscale", "2"],
+            "--downscale",
+        ),
+        (
+            &["train", BLOB_NERFIES, "--white-background"],
+            "--white-background",
+        ),
+        (&["eval", SWING, "--lpips-normalize"], "--lpips-vgg"),
+        (&["eval", SWING, "--lpips-unverified"], "--lpips-vgg"),
+    ] {
+        let mut a = args.to_vec();
+        a.extend(["--out", s(&out)].iter().filter(|_| args[0] == "train"));
+        refused_within(&a, Duration::from_secs(20), &[needle]);
+    }
+}
+
 /// Output written to a closed pipe ends the tool quietly (SIGPIPE), not with
 /// a panic.
 #[test]

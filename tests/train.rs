@@ -294,3 +294,29 @@ fn damaged_or_foreign_checkpoints_are_errors() {
     assert!(e.to_string().contains("dtype"), "{e}");
     assert!(checkpoint::load::<f32>(&ckpt, &cfg, &binding(&data)).is_ok());
 }
+
+/// Gaussians that are not finite are refused when the trainer is made, and a
+/// step whose loss is not finite stops the run before its update.
+#[test]
+fn non_finite_gaussians_and_losses_stop_the_run() {
+    let data = scene();
+    let views = train::run::views::<f32>(&data.train);
+    let make = |edit: &dyn Fn(&mut liquid_splat::gaussians::Gaussians<f32>)| {
+        let mut g = liquid_splat::gaussians::init::initial_gaussians::<f32>(&data.init).unwrap();
+        edit(&mut g);
+        Trainer::new(config(40), g, views.len(), data.scene_extent, [0.0; 3])
+    };
+    let err = make(&|g| g.scaling[4] = f32::INFINITY)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("scaling of Gaussian 1 is inf"), "{err}");
+    // Colours of 1e30 are finite, but the SSIM's squares overflow f32.
+    let mut t = make(&|g| g.sh.iter_mut().for_each(|v| *v = 1e30)).unwrap();
+    let before = t.model().gaussians.clone();
+    let err = t.step(&views).unwrap_err().to_string();
+    assert!(err.contains("iteration 1: the loss is NaN"), "{err}");
+    let after = &t.model().gaussians;
+    assert!(after.sh == before.sh && after.xyz == before.xyz && after.scaling == before.scaling);
+    assert_eq!(t.iteration(), 0);
+}

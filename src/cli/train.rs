@@ -75,10 +75,10 @@ pub struct LpipsArgs {
     pub lpips_lin: Option<PathBuf>,
     /// LPIPS with normalize=True (\[0,1\] mapped to \[-1,1\] first). Default: as D-3DGS's
     /// metrics.py calls it, \[0,1\] images passed as they are.
-    #[arg(long)]
+    #[arg(long, requires = "lpips_vgg")]
     pub lpips_normalize: bool,
     /// Accept weight files other than the published ones (reported with their SHA-256).
-    #[arg(long)]
+    #[arg(long, requires = "lpips_vgg")]
     pub lpips_unverified: bool,
 }
 
@@ -124,17 +124,17 @@ pub struct RunArgs {
     #[arg(long)]
     pub scene: Option<String>,
     /// Built-in scene: image width and height.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 64, conflicts_with = "data")]
     pub resolution: usize,
     /// Built-in scene: training frames.
-    #[arg(long, default_value_t = 24)]
+    #[arg(long, default_value_t = 24, conflicts_with = "data")]
     pub frames: usize,
     /// Random initial points when the scene has no point cloud (upstream: 100,000;
     /// fewer keep CPU runs fast, densification adds more where needed).
     #[arg(long, default_value_t = 2000)]
     pub init_points: usize,
     /// Dataset folder: downscale factor 1, 2, 4 or 8.
-    #[arg(long, default_value_t = 1)]
+    #[arg(long, default_value_t = 1, conflicts_with = "scene")]
     pub downscale: usize,
     /// Composite RGBA on white and train with a white background.
     #[arg(long)]

@@ -78,6 +78,18 @@ struct CamSpec {
 
 /// Load a nerfies-layout dataset. The test split goes to `Dataset::test`; val is empty.
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
+    // (Its images' alpha is dropped and its frames keep a black background;
+    // a white one would be recorded but not used.)
+    if opts.background == super::Background::White {
+        return Err(Error::invalid(
+            "--white-background",
+            format!(
+                "{}: the NeRF-DS/nerfies layout is trained on its RGB as is, on black; \
+                 the option applies to the D-NeRF layout and the built-in scenes",
+                dir.display()
+            ),
+        ));
+    }
     let ds_path = dir.join("dataset.json");
     let ds = json::read(&ds_path)?;
     let (auto_split, auto_ratio) = upstream_rule(dir);

@@ -205,6 +205,21 @@ const HASH_PARAMETER_ORDER: [Group; 5] = [
     Group::Opacity,
 ];
 
+/// A non-finite loss would spread to every parameter it reaches: the run
+/// stops at the iteration that gave it, before its update.
+fn check_loss(it: u64, loss: f64, view: usize) -> Result<()> {
+    if loss.is_finite() {
+        return Ok(());
+    }
+    Err(Error::invalid(
+        "training",
+        format!(
+            "iteration {it}: the loss is {loss} on view {view}; the run diverged and stops \
+             here (the model is as before this iteration)"
+        ),
+    ))
+}
+
 impl<T: Real> Trainer<T> {
     /// A fresh run from initial Gaussians, for `views` training cameras.
     pub fn new(
@@ -216,6 +231,24 @@ impl<T: Real> Trainer<T> {
     ) -> Result<Self> {
         config.validate()?;
         gaussians.validate()?;
+        // (Finite points far apart can give scales that overflow.)
+        for group in Group::ALL {
+            let w = gaussians.width(group).max(1);
+            let values = gaussians.group(group);
+            if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+                return Err(Error::invalid(
+                    "Gaussians",
+                    format!(
+                        "{} of Gaussian {} is {}, not finite (from a point cloud whose \
+                         coordinates or spacing overflow {}? rescale the scene)",
+                        group.name(),
+                        k / w,
+                        values[k].to_f64(),
+                        std::any::type_name::<T>()
+                    ),
+                ));
+            }
+        }
         if views == 0 {
             return Err(Error::invalid("training views", "the train split is empty"));
         }
@@ -364,6 +397,7 @@ impl<T: Real> Trainer<T> {
         let (g, mut times) = crate::threads::keep_awake(|| {
             self.model.gradients(view, time, field_on, cfg.lambda_dssim)
         })?;
+        check_loss(it, g.loss.loss.to_f64(), pick.index)?;
         let mut clock = Lap(Instant::now());
 
         // Densification, then Adam with the rates of iteration it − 1.
