@@ -112,7 +112,54 @@ fn train_render_eval_on_the_fixture_scene() {
     args.extend(SMALL_FIELD);
     let r = cli(&args);
     assert_eq!(r.status.code(), Some(2), "{}", text(&r));
-    assert!(text(&r).contains("different run arguments"), "{}", text(&r));
+    assert!(text(&r).contains("iterations: recorded"), "{}", text(&r));
+}
+
+/// run.json records the dataset folder as an absolute path: a run trained
+/// with a relative one renders from any folder, and resumes with the folder
+/// written either way.
+#[test]
+fn a_relative_dataset_folder_is_found_from_anywhere() {
+    let dir = tmp("relative");
+    support::copy_dir(
+        Path::new(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/fixtures/scenes/swing"
+        )),
+        &dir.join("swing"),
+    );
+    let out = dir.join("run");
+    let mut args = vec![
+        "train",
+        "swing",
+        "--iterations",
+        "4",
+        "--init-points",
+        "50",
+        "--quiet",
+        "--out",
+        "run",
+    ];
+    args.extend(SMALL_FIELD);
+    let in_dir = |args: &[&str], cwd: &Path| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
+            .args(args)
+            .current_dir(cwd)
+            .output()
+            .unwrap()
+    };
+    let r = in_dir(&args, &dir);
+    assert!(r.status.success(), "{}", text(&r));
+    let r = in_dir(
+        &["render", out.to_str().unwrap(), "--sweep-frames", "0"],
+        Path::new("/"),
+    );
+    assert!(r.status.success(), "{}", text(&r));
+    let abs = dir.join("swing");
+    args[1] = abs.to_str().unwrap();
+    args.push("--resume");
+    let r = in_dir(&args, &dir);
+    assert!(r.status.success(), "{}", text(&r));
 }
 
 #[test]

@@ -157,7 +157,11 @@ impl RunArgs {
     /// The library's description of the run.
     pub fn spec(&self) -> RunSpec {
         RunSpec {
-            data: self.data.clone(),
+            // (Absolute, so that render and export find it from any folder.)
+            data: self
+                .data
+                .as_ref()
+                .map(|d| std::path::absolute(d).unwrap_or_else(|_| d.clone())),
             scene: self.scene.clone(),
             resolution: self.resolution,
             frames: self.frames,

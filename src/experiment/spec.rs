@@ -267,6 +267,32 @@ impl RunSpec {
     }
 }
 
+/// The arguments in which `given` differs from `recorded`, each as
+/// `key: recorded X, given Y`. Dataset folders are the same when they are
+/// the same folder (however the path was written).
+fn spec_differences(recorded: &RunSpec, given: &RunSpec) -> Vec<String> {
+    let same_folder = match (&recorded.data, &given.data) {
+        (Some(a), Some(b)) => {
+            a == b
+                || std::fs::canonicalize(a)
+                    .is_ok_and(|a| std::fs::canonicalize(b).is_ok_and(|b| a == b))
+        }
+        (a, b) => a == b,
+    };
+    let (Ok(serde_json::Value::Object(r)), Ok(serde_json::Value::Object(g))) =
+        (serde_json::to_value(recorded), serde_json::to_value(given))
+    else {
+        return vec!["unreadable".into()];
+    };
+    r.iter()
+        .filter(|(k, v)| g.get(*k) != Some(*v) && !(*k == "data" && same_folder))
+        .map(|(k, v)| {
+            let now = g.get(k).map_or("none".to_string(), |v| v.to_string());
+            format!("{k}: recorded {v}, given {now}")
+        })
+        .collect()
+}
+
 /// Set up run folder `out` to train `spec` on `data` (loaded with
 /// [`RunSpec::load_dataset`]): check the data, apply the resume rule, save
 /// `spec` as `out/run.json`, and return the training configuration.
@@ -297,12 +323,14 @@ pub fn prepare_run(
     }
     if resume && spec_path.exists() {
         let old = RunSpec::read(out)?;
-        if serde_json::to_value(&old).ok() != serde_json::to_value(spec).ok() {
+        let differs = spec_differences(&old, spec);
+        if !differs.is_empty() {
             return Err(Error::invalid(
                 "--resume",
                 format!(
-                    "{} records different run arguments; resume with the same ones",
-                    spec_path.display()
+                    "{} records other run arguments ({}); resume with the same ones",
+                    spec_path.display(),
+                    differs.join("; ")
                 ),
             ));
         }
@@ -343,7 +371,16 @@ pub struct OpenedRun<T: Real> {
 /// caller picks `T` from [`RunSpec::precision`]).
 pub fn open_run<T: Real>(out: &Path) -> Result<OpenedRun<T>> {
     let spec = RunSpec::read(out)?;
-    let data = spec.load_dataset()?;
+    let data = spec.load_dataset().map_err(|e| match &spec.data {
+        Some(d) if !d.is_dir() => Error::format(
+            out.join(RUN_FILE),
+            format!(
+                "the run's dataset folder {} is not found ({e})",
+                d.display()
+            ),
+        ),
+        _ => e,
+    })?;
     let config = spec.train_config(&data)?;
     let ckpt_dir = out.join("checkpoints");
     let ckpt = checkpoint::latest(&ckpt_dir)?.ok_or_else(|| {
