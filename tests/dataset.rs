@@ -340,6 +340,23 @@ fn bad_nerfies_input_is_a_named_error() {
         nerfies_split: NerfiesSplit::TrainVal,
         ..Default::default()
     };
+    // Each value is named by its own field.
+    for (field, value) in [
+        ("focal_length", serde_json::json!(1e-300)),
+        ("focal_length", serde_json::json!(0.0)),
+        ("focal_length", serde_json::json!(-5.0)),
+        ("image_size", serde_json::json!([1e300, 16])),
+        ("image_size", serde_json::json!([0, 16])),
+    ] {
+        let keep = std::fs::read(dir.join("camera/00002.json")).unwrap();
+        edit_json(&dir, "camera/00002.json", |v| v[field] = value.clone());
+        let e = dataset::load(&dir, &lo).unwrap_err().to_string();
+        assert!(
+            e.contains("00002.json") && e.contains(&format!("`{field}`")),
+            "{field} {value}: {e}"
+        );
+        std::fs::write(dir.join("camera/00002.json"), keep).unwrap();
+    }
     edit_json(&dir, "camera/00002.json", |v| {
         v["focal_length"] = serde_json::Value::Null
     });

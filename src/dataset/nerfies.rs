@@ -203,11 +203,27 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         )?;
         let w = round_half_even(size[0] * ratio);
         let h = round_half_even(size[1] * ratio);
-        if !(w >= 1.0 && h >= 1.0 && focal > 0.0) {
+        if !(w >= 1.0 && h >= 1.0 && w * h <= crate::render::MAX_PIXELS as f64) {
             return Err(Error::field(
                 &cp,
                 "image_size",
-                format!("unusable size {w}x{h} or focal {focal}"),
+                format!(
+                    "{w}x{h} pixels at this scale (each side at least 1, at most {} pixels)",
+                    crate::render::MAX_PIXELS
+                ),
+            ));
+        }
+        // Both fields of view must be in (0, pi).
+        let (fx, fy) = (focal2fov(focal, w), focal2fov(focal, h));
+        let pi = std::f64::consts::PI;
+        if !(focal > 0.0 && fx > 0.0 && fy > 0.0 && fx < pi && fy < pi) {
+            return Err(Error::field(
+                &cp,
+                "focal_length",
+                format!(
+                    "{focal} pixels at this scale for a {w}x{h} image: fields of view {fx} and \
+                     {fy} radians (each must be in (0, pi))"
+                ),
             ));
         }
         let (w, h) = (w as usize, h as usize);
@@ -233,15 +249,8 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         crate::camera::check_rotation(&rot).map_err(|w| Error::field(&cp, "orientation", w))?;
         let t = (-(dmat3_from_rows(&rot) * DVec3::from_slice(&pos))).to_array();
         let r = opts.downscale;
-        let camera = Camera::from_w2c(
-            rot,
-            t,
-            focal2fov(focal, w as f64),
-            focal2fov(focal, h as f64),
-            w,
-            h,
-        )
-        .map_err(|e| Error::field(&cp, "orientation/position", e.to_string()))?;
+        let camera = Camera::from_w2c(rot, t, fx, fy, w, h)
+            .map_err(|e| Error::field(&cp, "orientation/position", e.to_string()))?;
         let time = if max_t > 0.0 {
             time_id(id)? / max_t
         } else {
