@@ -317,30 +317,36 @@ fn sizes_checked_before_the_allocation() {
             &[s(&p), needle],
         );
     }
-    // A radius box over 2^31 tiles of one pixel.
-    let p = case(
-        d.as_path(),
-        "isect_all.safetensors",
-        &["gsplat_isect_tiles", "--count", "4"],
-        |f| {
-            f.set_meta("tile_size", "1");
-            f.set_meta("tile_width", "65536");
-            f.set_meta("tile_height", "32768");
-            f.set_meta("n_images", "1");
-            // (Without conics and opacities: the radius box, not AccuTile.)
-            for k in ["image_ids", "conics", "opacities"] {
-                f.tensors.remove(k);
-            }
-            let m = f.shape("radii").unwrap()[0];
-            f.insert_i32("image_ids", vec![m], vec![0; m]);
-            f.insert_i32("radii", vec![m, 2], vec![i32::MAX; 2 * m]);
-        },
-    );
-    refused_within(
-        &["case", "run", s(&p), s(&d.join("o"))],
-        quick,
-        &[s(&p), "intersections"],
-    );
+    // Radius boxes over all 2^26 tiles of one pixel, more than 2^28 in all;
+    // and a grid of 2^31 tiles.
+    for (grid, needle) in [
+        (["8192", "8192"], "intersections"),
+        (["65536", "32768"], "tiles"),
+    ] {
+        let p = case(
+            d.as_path(),
+            "isect_all.safetensors",
+            &["gsplat_isect_tiles", "--count", "8"],
+            |f| {
+                f.set_meta("tile_size", "1");
+                f.set_meta("tile_width", grid[0]);
+                f.set_meta("tile_height", grid[1]);
+                f.set_meta("n_images", "1");
+                // (Without conics and opacities: the radius box, not AccuTile.)
+                for k in ["image_ids", "conics", "opacities"] {
+                    f.tensors.remove(k);
+                }
+                let m = f.shape("radii").unwrap()[0];
+                f.insert_i32("image_ids", vec![m], vec![0; m]);
+                f.insert_i32("radii", vec![m, 2], vec![i32::MAX; 2 * m]);
+            },
+        );
+        refused_within(
+            &["case", "run", s(&p), s(&d.join("o"))],
+            quick,
+            &[s(&p), needle],
+        );
+    }
 
     let run = d.join("run");
     train(SWING, &run, &[]);

@@ -103,16 +103,16 @@ pub struct CompareArgs {
     /// The output under test (safetensors).
     pub actual: PathBuf,
     /// Absolute tolerance for floating-point tensors (replaces the file's default).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub atol: Option<f64>,
     /// Relative tolerance for floating-point tensors (replaces the file's default).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub rtol: Option<f64>,
     /// Per-tensor tolerances (JSON; format in the `oracle::compare` docs).
     #[arg(long, value_name = "FILE.json")]
     pub tolerances: Option<PathBuf>,
     /// Fraction of elements per tensor allowed to mismatch (replaces the file's default).
-    #[arg(long)]
+    #[arg(long, allow_negative_numbers = true)]
     pub max_mismatch_fraction: Option<f64>,
     /// Count NaN == NaN as a match.
     #[arg(long)]

@@ -467,10 +467,11 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
             .collect();
         train::run::render_times(&trainer, v, &times, &dir, |k, _| format!("{k:04}"))?;
         eprintln!(
-            "time sweep of test view {} ({}): {} frames, t = 0..1, in {}",
+            "time sweep of test view {} ({}): {} frames, t = {}, in {}",
             a.sweep_view,
             file_stem(&v.name),
             a.sweep_frames,
+            if a.sweep_frames == 1 { "0" } else { "0..1" },
             dir.display()
         );
     }

@@ -100,6 +100,10 @@ fn sat_u32<T: Real>(v: T) -> i64 {
 /// at all).
 pub const MAX_ISECTS: usize = 1 << 28;
 
+/// The most tiles over all images (`n_images · tile_width · tile_height`,
+/// the size of `isect_offsets`): 2^26.
+pub const MAX_TILES: usize = 1 << 26;
+
 /// Tiles `first + i · stride` for `i` in `0..len`, in that order.
 #[derive(Clone, Copy)]
 struct Run {
@@ -268,10 +272,10 @@ pub fn isect_tiles<T: Real>(
     let n_tiles = tile_width.saturating_mul(tile_height);
     let tile_bits = key_bits(version, n_tiles);
     let image_bits = key_bits(version, n_images);
-    if tile_bits + image_bits > 31 {
+    if tile_bits + image_bits > 31 || n_images.saturating_mul(n_tiles) > MAX_TILES {
         return Err(Error::invalid(
             "tiles",
-            format!("{n_images} images of {n_tiles} tiles need more than 31 bits of image and tile key (gsplat allows 32; here the key is a signed int64)"),
+            format!("{n_images} images of {n_tiles} tiles: more than {MAX_TILES} tiles in all, or more than 31 bits of image and tile key (gsplat allows 32; here the key is a signed int64)"),
         ));
     }
     if let Some(ids) = input.image_ids {
@@ -417,22 +421,25 @@ pub fn isect_offset_encode(
 mod tests {
     use super::*;
 
-    fn isect(
+    /// `m` copies of one entry at (16, 16).
+    fn isect_m(
+        m: usize,
         radii: [i32; 2],
         conic: Option<[f64; 3]>,
         tile_size: usize,
         grid: [usize; 2],
     ) -> Result<Isects> {
-        let conics = conic.map(|c| c.to_vec());
+        let conics = conic.map(|c| c.repeat(m));
+        let opacities = conic.map(|_| vec![0.9; m]);
         isect_tiles(
             &IsectInput {
-                means2d: &[16.0, 16.0],
-                radii: &radii,
-                depths: &[1.0f64],
+                means2d: &[16.0, 16.0].repeat(m),
+                radii: &radii.repeat(m),
+                depths: &vec![1.0f64; m],
                 conics: conics.as_deref(),
-                opacities: conic.map(|_| [0.9][..].to_owned()).as_deref(),
+                opacities: opacities.as_deref(),
                 image_ids: None,
-                n: 1,
+                n: m,
             },
             tile_size,
             grid[0],
@@ -447,6 +454,15 @@ mod tests {
         )
     }
 
+    fn isect(
+        radii: [i32; 2],
+        conic: Option<[f64; 3]>,
+        tile_size: usize,
+        grid: [usize; 2],
+    ) -> Result<Isects> {
+        isect_m(1, radii, conic, tile_size, grid)
+    }
+
     #[test]
     fn a_grid_whose_tile_count_overflows_is_refused() {
         let err = isect([4, 4], None, 16, [1 << 32, 1 << 32]).unwrap_err();
@@ -456,8 +472,12 @@ mod tests {
     #[test]
     fn a_list_past_the_limit_is_refused_before_it_is_allocated() {
         // 2^31 tiles of 1 pixel, one entry covering all of them.
-        let err = isect([i32::MAX, i32::MAX], None, 1, [1 << 16, 1 << 15]).unwrap_err();
+        // Five entries, each on all 2^26 tiles of one pixel.
+        let err = isect_m(5, [i32::MAX, i32::MAX], None, 1, [1 << 13, 1 << 13]).unwrap_err();
         assert!(err.to_string().contains("268435456"), "{err}");
+        // A grid above 2^26 tiles (its offsets alone 256 MiB).
+        let err = isect([4, 4], None, 1, [1 << 16, 1 << 15]).unwrap_err();
+        assert!(err.to_string().contains("67108864 tiles"), "{err}");
         // The same entry on a grid of 2^20 tiles is listed on every tile.
         let is = isect([i32::MAX, i32::MAX], None, 1, [1 << 10, 1 << 10]).unwrap();
         assert_eq!(is.tiles_per_gauss, [1 << 20]);

@@ -186,6 +186,16 @@ fn check_offsets(path: &Path, bytes: &[u8]) -> Result<()> {
     ) else {
         return Ok(());
     };
+    // (The crate's own error for a number here names nothing.)
+    if let Some(serde_json::Value::Object(m)) = header.get("__metadata__") {
+        if let Some((k, v)) = m.iter().find(|(_, v)| !v.is_string()) {
+            return Err(Error::field(
+                path,
+                format!("__metadata__.{k}"),
+                format!("{v} is not a string (metadata values are strings, e.g. \"0.2\")"),
+            ));
+        }
+    }
     for (name, info) in header.iter().filter(|(k, _)| *k != "__metadata__") {
         let Some(offsets) = info.get("data_offsets").and_then(|o| o.as_array()) else {
             continue;
@@ -788,6 +798,14 @@ mod tests {
         let mut f = TensorFile::new("x");
         f.insert_real::<f32>("a", vec![2], &[1.0, 2.0]);
         assert!(check_offsets(Path::new("x"), &f.to_bytes().unwrap()).is_ok());
+        // A metadata value written as a JSON number is named.
+        let header = br#"{"__metadata__":{"lambda_dssim":0.2}}"#;
+        let mut bytes = (header.len() as u64).to_le_bytes().to_vec();
+        bytes.extend_from_slice(header);
+        let err = TensorFile::from_bytes(Path::new("m.safetensors"), &bytes)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("lambda_dssim") && err.contains("0.2"), "{err}");
     }
 
     #[test]
