@@ -274,6 +274,25 @@ fn bad_input_is_a_named_error() {
         e.contains("transforms_val.json") && e.contains("camera_angle_x"),
         "{e}"
     );
+    let e = broken("fov-tiny", |d| {
+        edit_json(d, "transforms_train.json", |v| {
+            v["camera_angle_x"] = serde_json::json!(1e-300)
+        })
+    });
+    assert!(
+        e.contains("transforms_train.json") && e.contains("camera_angle_x") && e.contains("1e-300"),
+        "{e}"
+    );
+    let e = broken("far-cameras", |d| {
+        edit_json(d, "transforms_train.json", |v| {
+            v["frames"][0]["transform_matrix"][0][3] = serde_json::json!(1e308);
+            v["frames"][1]["transform_matrix"][0][3] = serde_json::json!(-1e308);
+        })
+    });
+    assert!(
+        e.contains("transforms_train.json") && e.contains("too far apart"),
+        "{e}"
+    );
     let e = broken("matrix-shape", |d| {
         edit_json(d, "transforms_train.json", |v| {
             v["frames"][0]["transform_matrix"][1] = serde_json::json!([1, 2])

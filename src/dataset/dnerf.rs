@@ -25,7 +25,7 @@
 //! [`upstream_w2c`] implements upstream's formula for comparison.
 
 use super::image::{box_downscale, composite, to_chw};
-use super::{json, par_map_ordered, scene_extent, Dataset, DatasetKind, Frame, LoadOptions};
+use super::{json, par_map_ordered, Dataset, DatasetKind, Frame, LoadOptions};
 use crate::camera::{focal2fov, fov2focal, Camera};
 use crate::error::{Error, Result};
 use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
@@ -56,11 +56,12 @@ fn read_split(dir: &Path, split: &str) -> Result<SplitSpec> {
         json::get(&file, &v, "camera_angle_x", "camera_angle_x")?,
         "camera_angle_x",
     )?;
-    if !(fov > 0.0 && fov < std::f64::consts::PI) {
+    // (Narrower fields of view give a tangent that rounds to 0 in f32.)
+    if !((1e-6..=std::f64::consts::PI - 1e-6).contains(&fov)) {
         return Err(Error::field(
             &file,
             "camera_angle_x",
-            format!("{fov} is not in (0, pi)"),
+            format!("{fov:?} is not in [1e-6, pi - 1e-6] radians"),
         ));
     }
     let frames_v = json::array(&file, json::get(&file, &v, "frames", "frames")?, "frames")?;
@@ -230,7 +231,11 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         val: it.next().unwrap_or_default(),
         test: it.next().unwrap_or_default(),
         white_background: opts.background == super::Background::White,
-        scene_extent: scene_extent(&centres),
+        scene_extent: super::finite_scene_extent(
+            &centres,
+            &dir.join("transforms_train.json"),
+            "transform_matrix",
+        )?,
         init,
         warnings,
     })

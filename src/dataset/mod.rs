@@ -207,6 +207,21 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     }
 }
 
+/// [`scene_extent`], refused when it is not finite (camera centres too far
+/// apart for `f64`: densification would compare with infinity); `file` and
+/// `field` name what holds the cameras.
+pub fn finite_scene_extent(centres: &[[f64; 3]], file: &Path, field: &str) -> Result<f64> {
+    let e = scene_extent(centres);
+    if !e.is_finite() {
+        return Err(Error::field(
+            file,
+            field,
+            format!("the camera centres are too far apart: scene extent {e}"),
+        ));
+    }
+    Ok(e)
+}
+
 /// Upstream's `cameras_extent`: 1.1 × max distance of the centres from their mean.
 /// Zero centres give 0.
 pub fn scene_extent(centres: &[[f64; 3]]) -> f64 {

@@ -20,9 +20,7 @@
 //! - Initial points: `points.npy` mapped by `(p − center)·scale`; without it, the random cube.
 
 use super::image::{box_downscale, to_chw};
-use super::{
-    json, par_map_ordered, scene_extent, Dataset, DatasetKind, Frame, LoadOptions, NerfiesSplit,
-};
+use super::{json, par_map_ordered, Dataset, DatasetKind, Frame, LoadOptions, NerfiesSplit};
 use crate::camera::{focal2fov, Camera};
 use crate::error::{Error, Result};
 use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
@@ -329,7 +327,11 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         val: vec![],
         test: test_frames,
         white_background: false,
-        scene_extent: scene_extent(&centres),
+        scene_extent: super::finite_scene_extent(
+            &centres,
+            &dir.join("camera"),
+            "position (with scene.json's center and scale)",
+        )?,
         init,
         warnings,
     })
