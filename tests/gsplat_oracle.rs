@@ -26,9 +26,33 @@ fn case_new_and_run_every_gsplat_stage() {
         .into_iter()
         .enumerate()
         {
+            // Options a stage does not use are refused, and left out below.
+            let imaged = !stage.contains("covar") && !stage.contains("harmonics");
+            let packs = stage.contains("projection") || stage.ends_with("rasterization");
+            let unused = |o: &str| match o {
+                "--antialiased" | "--width" => !imaged,
+                "--dense" => !packs,
+                _ => false,
+            };
             let case = p(&format!("{stage}_{i}.safetensors"));
-            let mut args = vec!["case", "new", stage, &case, "--dtype", "f32", "--seed", "5"];
-            args.extend(extra.iter().copied());
+            let base = vec!["case", "new", stage, &case, "--dtype", "f32", "--seed", "5"];
+            let mut used = Vec::new();
+            let mut k = 0;
+            while k < extra.len() {
+                let takes_value = extra[k] != "--antialiased" && extra[k] != "--dense";
+                let n = if takes_value { 2 } else { 1 };
+                let opt = &extra[k..k + n];
+                if unused(extra[k]) {
+                    let o = run(&[&base[..], opt].concat());
+                    assert_eq!(o.status.code(), Some(2), "{stage} {opt:?}");
+                    assert!(String::from_utf8_lossy(&o.stderr).contains("not used by stage"));
+                } else {
+                    used.extend_from_slice(opt);
+                }
+                k += n;
+            }
+            let mut args = base.clone();
+            args.extend(used.iter().copied());
             let o = run(&args);
             assert!(
                 o.status.success(),
