@@ -495,6 +495,47 @@ fn a_huge_element_before_vertex_is_a_truncation_error_not_a_hang() {
     );
 }
 
+// ---- initial positions that overflow f32 ----
+
+/// Finite in the file, infinite once rounded to f32 as initial positions are: each
+/// had no distance to its neighbours, and the nearest-neighbour search put every
+/// point in one cell.
+#[test]
+fn initial_positions_beyond_the_f32_range_are_refused() {
+    let d = tmp("f32range");
+    let data = d.join("swing");
+    copy_dir(Path::new(SWING), &data);
+    std::fs::write(
+        data.join("points3d.ply"),
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty double x\nproperty double y\nproperty double z\nend_header\n0 0 0\n1 0 0\n0 1e39 0\n0 0 1\n",
+    )
+    .unwrap();
+    refused(
+        &["inspect", s(&data)],
+        &["points3d.ply", "vertex.y", "vertex 2", "f32"],
+    );
+    let data = d.join("blob-nerfies");
+    copy_dir(Path::new(BLOB_NERFIES), &data);
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    let mut header = "{'descr': '<f8', 'fortran_order': False, 'shape': (4, 3), }".to_string();
+    while !(10 + header.len() + 1).is_multiple_of(64) {
+        header.push(' ');
+    }
+    header.push('\n');
+    npy.extend((header.len() as u16).to_le_bytes());
+    npy.extend(header.as_bytes());
+    for v in [
+        0.0f64, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, -1e39,
+    ] {
+        npy.extend(v.to_le_bytes());
+    }
+    std::fs::write(data.join("points.npy"), npy).unwrap();
+    refused(
+        &["inspect", s(&data)],
+        &["points.npy", "points", "point 3", "f32"],
+    );
+}
+
 // ---- 4, 5, 6, 11: checkpoints ----
 
 #[test]

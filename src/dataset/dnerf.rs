@@ -213,6 +213,17 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         let pc = crate::gaussians::ply::read_points(&points)?;
         crate::gaussians::init::check_count(pc.len())
             .map_err(|w| Error::field(&points, "vertex", w))?;
+        if let Some(k) = crate::gaussians::init::first_unusable_coordinate(&pc.xyz) {
+            return Err(Error::field(
+                &points,
+                format!("vertex.{}", ["x", "y", "z"][k % 3]),
+                format!(
+                    "vertex {}: {:e} is beyond the f32 range (positions are stored as f32)",
+                    k / 3,
+                    pc.xyz[k]
+                ),
+            ));
+        }
         InitialPoints::Cloud {
             xyz: pc.xyz,
             rgb: pc.rgb,

@@ -313,6 +313,18 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         for (k, v) in xyz.iter_mut().enumerate() {
             *v = (*v - center[k % 3]) * scale;
         }
+        if let Some(k) = crate::gaussians::init::first_unusable_coordinate(&xyz) {
+            return Err(Error::field(
+                &npy,
+                "points",
+                format!(
+                    "point {}: coordinate {:e} of (p − center)·scale is beyond the f32 range \
+                     (positions are stored as f32)",
+                    k / 3,
+                    xyz[k]
+                ),
+            ));
+        }
         InitialPoints::Cloud { xyz, rgb: None }
     } else {
         InitialPoints::RandomCube {
