@@ -385,6 +385,19 @@ fn sizes_checked_before_the_allocation() {
     ] {
         refused_within(args, quick, &["is not in"]);
     }
+    refused_within(
+        &[
+            "train",
+            "--scene",
+            "swing",
+            "--iterations",
+            "18446744073709551615",
+            "--out",
+            s(&d.join("long")),
+        ],
+        quick,
+        &["iterations", "1000000000"],
+    );
     for (flag, value) in [("--sweep-times", "1"), ("--sweep-gaussians", "0")] {
         refused_within(
             &[

@@ -262,6 +262,10 @@ fn experiment_writes_a_report_and_resumes_per_configuration() {
     assert_eq!(std::fs::read(&cfc).unwrap(), cfc_before);
     let again = json(&mlp);
     assert_eq!(again["test_psnr"], rec["test_psnr"]);
+    // Each training folder is a run that render opens.
+    let work = out.join("training/swing__mlp-d8-w256-relu__seed0");
+    let r = cli(&["render", work.to_str().unwrap(), "--sweep-frames", "0"]);
+    assert!(r.status.success(), "{}", text(&r));
     assert_eq!(again["smoothness_sweep"], serde_json::json!([9, 1000]));
 
     // A kept record made with other settings is refused, not mixed into the

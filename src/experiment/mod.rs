@@ -201,7 +201,7 @@ impl Experiment {
 
     fn base_spec(&self, data: Option<PathBuf>, scene: Option<String>) -> RunSpec {
         RunSpec {
-            data,
+            data: data.map(|d| std::path::absolute(&d).unwrap_or(d)),
             scene,
             resolution: self.resolution,
             frames: 24,
@@ -315,6 +315,9 @@ impl Experiment {
             .out
             .join("training")
             .join(format!("{}__{label}__seed{}", run.scene, s.seed));
+        // (So that render and export open the training folder as a run.)
+        std::fs::create_dir_all(&work).map_err(|e| Error::io(&work, e))?;
+        s.write(&work)?;
         let opts = RunOptions {
             out: work.clone(),
             checkpoint_every: (self.iterations / 4).max(1),

@@ -112,6 +112,10 @@ pub struct TrainConfig {
     pub ast: bool,
 }
 
+/// The most training iterations a run may have (the paper's runs have
+/// 40,000; the schedules' arithmetic stays far from overflow).
+pub const MAX_ITERATIONS: u64 = 1_000_000_000;
+
 impl TrainConfig {
     /// Upstream's settings scaled to `iterations` (module docs), with `field`.
     /// AST noise follows the field's variant: on for [`Variant::Real`].
@@ -136,8 +140,11 @@ impl TrainConfig {
 
     /// Check the values a run depends on.
     pub fn validate(&self) -> Result<()> {
-        if self.iterations == 0 {
-            return Err(Error::invalid("iterations", "must be at least 1"));
+        if !(1..=MAX_ITERATIONS).contains(&self.iterations) {
+            return Err(Error::invalid(
+                "iterations",
+                format!("{} (1 to {MAX_ITERATIONS})", self.iterations),
+            ));
         }
         if self.max_sh_degree > 3 {
             return Err(Error::invalid(
