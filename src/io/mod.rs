@@ -62,9 +62,35 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
-/// Read a whole file, with the path in the error.
+/// Refuses a device given as an input (`/dev/zero` has no end to read to).
+fn refuse_device(path: &Path) -> Result<()> {
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if let Ok(m) = std::fs::metadata(path) {
+            let t = m.file_type();
+            if t.is_char_device() || t.is_block_device() {
+                return Err(Error::invalid(
+                    "input file",
+                    format!("{} is a device, not a file", path.display()),
+                ));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Read a whole file, with the path in the error (a device is refused).
 pub fn read(path: &Path) -> Result<Vec<u8>> {
+    refuse_device(path)?;
     std::fs::read(path).map_err(|e| Error::io(path, e))
+}
+
+/// Open a file for reading, with the path in the error (a device is
+/// refused).
+pub fn open(path: &Path) -> Result<std::fs::File> {
+    refuse_device(path)?;
+    std::fs::File::open(path).map_err(|e| Error::io(path, e))
 }
 
 #[cfg(all(test, target_os = "linux"))]
@@ -94,6 +120,9 @@ mod tests {
             let t = std::fs::metadata(dev).unwrap().file_type();
             assert!(t.is_char_device(), "{dev}");
         }
+        // A device is not read (/dev/zero has no end).
+        let err = read(Path::new("/dev/zero")).unwrap_err().to_string();
+        assert!(err.contains("/dev/zero") && err.contains("device"), "{err}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -343,7 +343,7 @@ impl PthFile {
     /// Open `path` and read its tensor metadata (not the data). The top-level
     /// object must be a dictionary of tensors (other entries are ignored).
     pub fn open(path: &Path) -> Result<PthFile> {
-        let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
+        let mut f = super::open(path)?;
         let mut magic = [0u8; 4];
         let n = read_up_to(&mut f, &mut magic).map_err(|e| Error::io(path, e))?;
         f.seek(SeekFrom::Start(0)).map_err(|e| Error::io(path, e))?;
@@ -670,7 +670,7 @@ impl PthFile {
             Container::Legacy => {
                 // open_legacy checked that the file holds all of the storage.
                 let data = self.legacy_offsets[key];
-                let mut f = File::open(path).map_err(|e| Error::io(path, e))?;
+                let mut f = super::open(path)?;
                 f.seek(SeekFrom::Start(data + start))
                     .map_err(|e| Error::io(path, e))?;
                 let mut buf = vec![0u8; len as usize];
@@ -679,7 +679,7 @@ impl PthFile {
                 Ok(buf)
             }
             Container::Zip => {
-                let f = File::open(path).map_err(|e| Error::io(path, e))?;
+                let f = super::open(path)?;
                 let file_len = f.metadata().map_err(|e| Error::io(path, e))?.len();
                 let mut zip = zip::ZipArchive::new(BufReader::new(f))
                     .map_err(|e| Error::format(path, format!("zip container: {e}")))?;

@@ -74,7 +74,7 @@ pub struct LpipsWeights {
 
 /// SHA-256 of a file, hexadecimal, read in 1 MiB pieces.
 pub fn sha256_file(path: &Path) -> Result<String> {
-    let mut f = std::fs::File::open(path).map_err(|e| Error::io(path, e))?;
+    let mut f = crate::io::open(path)?;
     let mut h = Sha256::new();
     let mut buf = vec![0u8; 1 << 20];
     loop {
