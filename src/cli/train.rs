@@ -428,7 +428,6 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
             format!("{} (at most {MAX_SWEEP_FRAMES})", a.sweep_frames),
         ));
     }
-
     let sweep_view = if a.sweep_frames == 0 && a.times.is_empty() {
         None
     } else {
@@ -439,10 +438,11 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
             )
         })?)
     };
-    let time_name = |stem: &str, t: f64| format!("{stem}_t{t:.6}.png");
+    // The stem of `--times`' files: `r_000_t0.250000`.
+    let time_stem = |stem: &str, t: f64| format!("{stem}_t{t:.6}");
     if let Some(v) = sweep_view {
         let stem = file_stem(&v.name);
-        check_times(&a.times, |t| time_name(&stem, t))?;
+        check_times(&a.times, |t| format!("{}.png", time_stem(&stem, t)))?;
     }
     let per_view = train::run::render_views(&trainer, &test, &a.out.join("test"), None)?;
     eprintln!(
@@ -478,9 +478,8 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
     if !a.times.is_empty() {
         let dir = a.out.join("times");
         let stem = file_stem(&v.name);
-        let files = train::run::render_times(&trainer, v, &a.times, &dir, |_, t| {
-            time_name(&stem, t).trim_end_matches(".png").to_string()
-        })?;
+        let files =
+            train::run::render_times(&trainer, v, &a.times, &dir, |_, t| time_stem(&stem, t))?;
         for f in files {
             println!("{}", f.display());
         }

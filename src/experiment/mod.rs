@@ -230,7 +230,10 @@ impl Experiment {
     /// sweep): the report would mix them.
     fn check_kept(&self, path: &std::path::Path, data: &crate::dataset::Dataset) -> Result<()> {
         let r = report::read_record(path)?;
-        let size = [data.train[0].width, data.train[0].height];
+        let size = data
+            .train
+            .first()
+            .map_or(r.resolution, |f| [f.width, f.height]);
         let sweep = [self.sweep_times, self.sweep_gaussians];
         let differs = if r.iterations as u64 != self.iterations {
             Some(format!(
