@@ -288,6 +288,12 @@ fn damaged_or_foreign_checkpoints_are_errors() {
         .err()
         .unwrap();
     assert!(e.to_string().contains("different run configuration"), "{e}");
+    // Only the field that differs is shown, not the whole configuration.
+    assert!(
+        e.to_string().contains(&format!("seed: {}", cfg.seed)),
+        "{e}"
+    );
+    assert!(e.to_string().len() < 600, "{e}");
     let e = checkpoint::load::<f64>(&ckpt, &cfg, &binding(&data))
         .err()
         .unwrap();

@@ -212,6 +212,27 @@ pub fn latest(dir: &Path) -> Result<Option<PathBuf>> {
     Ok(best.map(|(_, p)| p))
 }
 
+/// Where two configuration fingerprints first differ: each from the start
+/// of the field holding the difference, at most 100 characters.
+fn first_difference(a: &str, b: &str) -> (String, String) {
+    let at = a
+        .char_indices()
+        .zip(b.chars())
+        .find(|((_, x), y)| x != y)
+        .map_or(a.len().min(b.len()), |((i, _), _)| i);
+    // (The prefix before `at` is the same in both, so `start` is a
+    // character boundary of each.)
+    let start = a[..at].rfind([',', '{', '(']).map_or(0, |k| k + 1);
+    let part = |s: &str| {
+        s[start..]
+            .trim_start()
+            .chars()
+            .take(100)
+            .collect::<String>()
+    };
+    (part(a), part(b))
+}
+
 /// Load a checkpoint folder written by [`save`] for a run with `config` on
 /// the data `binding` describes.
 pub fn load<T: Real>(
@@ -237,13 +258,15 @@ fn load_checked<T: Real>(
         ));
     }
     let found = f.meta("config")?;
-    if found != config.fingerprint() {
+    let this = config.fingerprint();
+    if found != this {
+        let (theirs, ours) = first_difference(found, &this);
         return Err(Error::field(
             &path,
             "__metadata__.config",
             format!(
-                "the checkpoint was written by a different run configuration:\n  checkpoint: {found}\n  this run:   {}",
-                config.fingerprint()
+                "the checkpoint was written by a different run configuration; they first \
+                 differ at\n  checkpoint: {theirs}\n  this run:   {ours}"
             ),
         ));
     }
