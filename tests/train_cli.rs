@@ -89,11 +89,18 @@ fn train_render_eval_on_the_fixture_scene() {
     assert_eq!(json(&out.join("results.json")), results);
     assert_eq!(json(&out.join("per_view.json")), per_view);
 
+    let r = cli(&["render", o, "--sweep-frames", "5", "--sweep-view", "1"]);
+    assert!(r.status.success(), "{}", text(&r));
     let r = cli(&["render", o, "--sweep-frames", "3", "--sweep-view", "1"]);
     assert!(r.status.success(), "{}", text(&r));
     for k in 0..3 {
         assert!(out.join(format!("sweep/{k:04}.png")).is_file());
         assert!(out.join(format!("sweep/{k:04}.exr")).is_file());
+    }
+    // The earlier sweep's frames 3 and 4 are gone.
+    for k in 3..5 {
+        assert!(!out.join(format!("sweep/{k:04}.png")).exists());
+        assert!(!out.join(format!("sweep/{k:04}.exr")).exists());
     }
     assert_eq!(json(&out.join("results.json")), results);
 

@@ -466,6 +466,19 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
             })
             .collect();
         train::run::render_times(&trainer, v, &times, &dir, |k, _| format!("{k:04}"))?;
+        // Frames of an earlier, longer sweep would follow these ones.
+        for k in a.sweep_frames.. {
+            let stale = [
+                dir.join(format!("{k:04}.png")),
+                dir.join(format!("{k:04}.exr")),
+            ];
+            if !stale.iter().any(|p| p.is_file()) {
+                break;
+            }
+            for p in stale.iter().filter(|p| p.is_file()) {
+                std::fs::remove_file(p).map_err(|e| Error::io(p, e))?;
+            }
+        }
         eprintln!(
             "time sweep of test view {} ({}): {} frames, t = {}, in {}",
             a.sweep_view,
