@@ -227,8 +227,16 @@ impl<T: Real> Model<T> {
         time: f64,
         field_on: bool,
     ) -> Result<RasterOutput<T>> {
-        let deformed = self.deformed(time, field_on)?;
-        Ok(rasterize(&self.raster_input(&deformed, camera))?.0)
+        self.render_deformed(&self.deformed(time, field_on)?, camera)
+    }
+
+    /// The render of Gaussians already deformed ([`deformed`](Self::deformed)).
+    pub fn render_deformed(
+        &self,
+        deformed: &Deformed<T>,
+        camera: &RasterCamera<T>,
+    ) -> Result<RasterOutput<T>> {
+        Ok(rasterize(&self.raster_input(deformed, camera))?.0)
     }
 
     /// Loss `(1 − λ)·L1 + λ·(1 − SSIM)` of the render of `view` at `time`

@@ -391,7 +391,7 @@ pub fn render_times<T: Real>(
                 ),
             ));
         }
-        let img = trainer.render(&view.camera, t)?;
+        let img = trainer.model().render_deformed(&d, &view.camera)?;
         let n = name(k, t);
         let png = dir.join(format!("{n}.png"));
         image::write_png(&png, &img.color, view.height, view.width)?;
