@@ -46,7 +46,9 @@
 //! floating-point tensors only: integer tensors (radii, n_contrib) stay exact
 //! unless an entry in `tensors` matches them. The CLI flags `--atol`,
 //! `--rtol`, `--max-mismatch-fraction` and `--equal-nan` replace the
-//! corresponding fields of `default`.
+//! corresponding fields of `default`. Entries of `tensors` that apply to no
+//! tensor of `expected` are listed in the report (`unused_tolerances`), not
+//! failed.
 //!
 //! ## Statistics
 //! All computed in f64 in element order (no parallel reduction, so the report
@@ -240,21 +242,35 @@ impl Tolerances {
         Ok(())
     }
 
-    /// The entry in `tensors` that applies to `name`, if any.
-    fn entry(&self, name: &str) -> Option<&ToleranceSpec> {
-        if let Some(s) = self.tensors.get(name) {
-            return Some(s);
+    /// The key and entry in `tensors` that apply to `name`, if any.
+    fn entry(&self, name: &str) -> Option<(&str, &ToleranceSpec)> {
+        if let Some((k, s)) = self.tensors.get_key_value(name) {
+            return Some((k, s));
         }
-        let mut best: Option<(usize, &ToleranceSpec)> = None;
+        let mut best: Option<(usize, &str, &ToleranceSpec)> = None;
         for (pattern, spec) in &self.tensors {
             if pattern.contains('*') && glob_match(pattern, name) {
                 let specificity = pattern.chars().filter(|&c| c != '*').count();
-                if best.is_none_or(|(s, _)| specificity > s) {
-                    best = Some((specificity, spec));
+                if best.is_none_or(|(s, _, _)| specificity > s) {
+                    best = Some((specificity, pattern, spec));
                 }
             }
         }
-        best.map(|(_, s)| s)
+        best.map(|(_, k, s)| (k, s))
+    }
+
+    /// The keys of `tensors` that apply to none of `names` (no match, or
+    /// every match taken by a more specific entry), in key order.
+    pub fn unused<'a>(&self, names: impl IntoIterator<Item = &'a str>) -> Vec<String> {
+        let used: std::collections::BTreeSet<&str> = names
+            .into_iter()
+            .filter_map(|n| self.entry(n).map(|(k, _)| k))
+            .collect();
+        self.tensors
+            .keys()
+            .filter(|k| !used.contains(k.as_str()))
+            .cloned()
+            .collect()
     }
 
     /// The tolerance for tensor `name` of dtype `dtype` (`"F32"`, `"F64"`, `"I32"`).
@@ -262,7 +278,7 @@ impl Tolerances {
         let mut t = Tolerance::for_dtype(dtype);
         let is_float = dtype != "I32";
         self.default.apply(&mut t, is_float);
-        if let Some(spec) = self.entry(name) {
+        if let Some((_, spec)) = self.entry(name) {
             spec.apply(&mut t, true);
         }
         t
@@ -405,6 +421,10 @@ pub struct CompareReport {
     pub missing: Vec<String>,
     /// Tensors of `actual` absent from `expected` (listed, not a failure).
     pub extra: Vec<String>,
+    /// Entries of the tolerance file's `tensors` that apply to no tensor of
+    /// `expected` (listed, not a failure: a shared tolerance file names
+    /// tensors of many stages, but a misspelt name shows up here).
+    pub unused_tolerances: Vec<String>,
 }
 
 impl CompareReport {
@@ -479,6 +499,7 @@ pub fn compare(
         .cloned()
         .collect();
     let passed = missing.is_empty() && tensors.iter().all(|t| t.status == Status::Pass);
+    let unused_tolerances = tol.unused(expected.tensors.keys().map(String::as_str));
     Ok(CompareReport {
         expected: expected.path.display().to_string(),
         actual: actual.path.display().to_string(),
@@ -486,6 +507,7 @@ pub fn compare(
         tensors,
         missing,
         extra,
+        unused_tolerances,
     })
 }
 
@@ -811,6 +833,13 @@ impl fmt::Display for CompareReport {
         }
         if !self.extra.is_empty() {
             writeln!(f, "extra in actual (ignored): {}", self.extra.join(", "))?;
+        }
+        if !self.unused_tolerances.is_empty() {
+            writeln!(
+                f,
+                "tolerance entries that apply to no tensor here: {}",
+                self.unused_tolerances.join(", ")
+            )?;
         }
         let n = self.tensors.len() + self.missing.len();
         if self.passed {

@@ -43,6 +43,9 @@ def test_tolerances_and_overrides():
     assert compare(e, a, tolerances={"tensors": {"x": {"rtol": 1e-6}}}).passed
     nan = {"x": np.array([np.nan])}
     assert not compare(nan, nan).passed and compare(nan, nan, equal_nan=True).passed
+    typo = compare(e, a, tolerances={"tensors": {"X": {"rtol": 1e-6}, "x*": {"rtol": 0}}})
+    assert not typo.passed and typo.unused_tolerances == ["X"]
+    assert "apply to no tensor here: X" in str(typo)
     with pytest.raises(ValueError, match="unknown|bogus"):
         compare(e, a, tolerances={"default": {"bogus": 1}})
     with pytest.raises(ValueError, match="atol"):

@@ -28,8 +28,10 @@ Outputs = Union[str, "os.PathLike[str]", Mapping[str, Any], Tuple[Mapping[str, A
 class CompareReport:
     """The comparison report: ``passed``, one entry per compared tensor in ``tensors``
     (name, status, dtypes, shapes, tolerance, problems, stats with the worst element),
-    ``missing`` (expected tensors absent from actual: failures) and ``extra`` (only in
-    actual: listed, not failed). ``str(report)`` is the table ``case compare`` prints;
+    ``missing`` (expected tensors absent from actual: failures), ``extra`` (only in
+    actual: listed, not failed) and ``unused_tolerances`` (entries of the tolerances'
+    ``tensors`` that apply to no expected tensor, such as a misspelt name: listed, not
+    failed). ``str(report)`` is the table ``case compare`` prints;
     ``report.json`` is the JSON ``case compare --report`` writes."""
 
     def __init__(self, passed: bool, table: str, text: str):
@@ -40,6 +42,7 @@ class CompareReport:
         self.tensors: List[Dict[str, Any]] = d["tensors"]
         self.missing: List[str] = d["missing"]
         self.extra: List[str] = d["extra"]
+        self.unused_tolerances: List[str] = d["unused_tolerances"]
 
     def to_dict(self) -> Dict[str, Any]:
         """The report as the JSON object ``case compare --report`` writes."""

@@ -208,6 +208,33 @@ fn missing_tensor_fails_and_extra_is_only_listed() {
 }
 
 #[test]
+fn tolerance_entries_that_apply_to_nothing_are_listed() {
+    let x = f32t(&[1], &[1.0]);
+    let e = file("e", &[("grad_means", x.clone()), ("radii", x.clone())]);
+    let tol = Tolerances::from_json(
+        Path::new("t.json"),
+        r#"{"tensors": {"grad_*": {"rtol": 1e-3}, "grad_means": {"rtol": 1e-4},
+            "*": {"rtol": 1e-2}, "radius": {"atol": 0}, "v_*": {"rtol": 1e-3}}}"#,
+    )
+    .unwrap();
+    let r = compare(&e, &e, &tol).unwrap();
+    assert!(r.passed, "unused entries do not fail a comparison");
+    // "grad_*" is shadowed by the exact "grad_means"; "*" applies to radii; the
+    // misspelt "radius" and "v_*" match nothing.
+    assert_eq!(r.unused_tolerances, vec!["grad_*", "radius", "v_*"]);
+    let text = r.to_string();
+    assert!(
+        text.contains("tolerance entries that apply to no tensor here: grad_*, radius, v_*"),
+        "{text}"
+    );
+    assert!(r.to_json().contains("\"unused_tolerances\""));
+
+    let r = compare(&e, &e, &Tolerances::default()).unwrap();
+    assert!(r.unused_tolerances.is_empty());
+    assert!(!r.to_string().contains("tolerance entries"));
+}
+
+#[test]
 fn mismatch_fraction_allows_a_small_band() {
     let ev: Vec<f32> = (0..100).map(|i| i as f32).collect();
     let mut av = ev.clone();
