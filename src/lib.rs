@@ -74,6 +74,14 @@
 #![warn(unsafe_op_in_unsafe_fn)]
 #![warn(clippy::undocumented_unsafe_blocks)]
 
+/// `println!` for the tool's results on standard output: when the output
+/// was closed (a pipe whose reader has gone), the command ends by an unwind
+/// carrying [`cli::StdoutClosed`] instead of a panic (see [`cli::print_out`]).
+macro_rules! outln {
+    () => { $crate::cli::print_out(format_args!("\n")) };
+    ($($arg:tt)*) => { $crate::cli::print_out(format_args!("{}\n", format_args!($($arg)*))) };
+}
+
 pub mod bench;
 pub mod camera;
 pub mod cli;

@@ -318,12 +318,12 @@ impl Table {
 
     /// Print the header line on stdout.
     pub fn print_header(&self) {
-        println!("{}", self.header());
+        outln!("{}", self.header());
     }
 
     /// Print one row on stdout.
     pub fn print_row<S: AsRef<str>>(&self, cells: &[S]) {
-        println!("{}", self.line(cells));
+        outln!("{}", self.line(cells));
     }
 }
 

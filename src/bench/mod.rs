@@ -72,7 +72,7 @@ pub fn lpips<T: Real>(w: &lpips::LpipsWeights, size: usize, reps: usize) -> crat
         Ok(())
     })?;
     let t = times.median();
-    println!(
+    outln!(
         "lpips vgg {size}x{size} pair, {} ({}), {} threads: {:.0} ms per pair (median of {}), {:.1} GFLOP/s in the convolutions ({:.0} GFLOP per pair); value {value:.6}",
         std::any::type_name::<T>(),
         if w.vgg.official && w.lin.official {
@@ -110,7 +110,7 @@ pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 69.0];
 /// on a shared machine tells a slow period from a quiet one.
 pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
     let reps = reps.max(1);
-    println!("machine threads: {}", harness::available_cores());
+    outln!("machine threads: {}", harness::available_cores());
     let peaks: Vec<Option<(&str, f64)>> = thread_counts
         .iter()
         .map(|&t| harness::fma_peak(t, 20_000_000))
@@ -118,12 +118,12 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
     for (&t, p) in thread_counts.iter().zip(&peaks) {
         match p {
             Some((isa, gflops)) => {
-                println!("f32 FMA peak ({isa}), {t} thread(s): {gflops:.1} GFLOP/s")
+                outln!("f32 FMA peak ({isa}), {t} thread(s): {gflops:.1} GFLOP/s")
             }
-            None => println!("f32 FMA peak: no AVX2+FMA or AVX-512 on this CPU"),
+            None => outln!("f32 FMA peak: no AVX2+FMA or AVX-512 on this CPU"),
         }
     }
-    println!(
+    outln!(
         "instruction set of the row functions: {:?}",
         crate::kernels::fastmath::isa()
     );
@@ -226,7 +226,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
             ]);
         }
     }
-    println!(
+    outln!(
         "(f32, SH degree 3, exact gradients, minimum over {reps} runs; pairs eval: (pixel, Gaussian) \
          pairs the forward evaluated, up to each pixel's stop, and pair/s of both passes those \
          pairs over the pass's time; bwd replayed: the pairs the backward evaluates, each row's \
@@ -239,9 +239,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
          periods\"))",
         RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
     );
-    println!(
-        "stages, ms wall (ms CPU of the process, all threads), of the fastest of {reps} runs:"
-    );
+    outln!("stages, ms wall (ms CPU of the process, all threads), of the fastest of {reps} runs:");
     for (scene, threads, passes) in &stage_lines {
         for (pass, st) in ["fwd", "bwd"].iter().zip(passes) {
             let cells: Vec<String> = st
@@ -251,7 +249,7 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
                     None => format!("{} {:.2}", s.name, s.wall * 1e3),
                 })
                 .collect();
-            println!("  {scene:<14} {threads:>2} {pass}: {}", cells.join(", "));
+            outln!("  {scene:<14} {threads:>2} {pass}: {}", cells.join(", "));
         }
     }
     Ok(())
@@ -297,7 +295,7 @@ fn train_as<T: crate::math::Real>(spec: &RunSpec) -> crate::Result<()> {
     let total = t0.elapsed().as_secs_f64();
     let n = config.iterations;
     let (w, h) = (data.train[0].width, data.train[0].height);
-    println!(
+    outln!(
         "{} on {} ({w}x{h}, {} views), {} iterations, {}, {} threads, mean {:.0} Gaussians",
         crate::report::field_label(&config.field),
         spec.data_name(),
@@ -368,12 +366,12 @@ pub fn deform<T: Real>(
     if n == 0 {
         return Err(crate::Error::invalid("n", "must be at least 1"));
     }
-    println!(
+    outln!(
         "{}; precision {}; N = {n}; median of {reps}",
         harness::threads_line(),
         T::PRECISION,
     );
-    println!(
+    outln!(
         "matrix kernel path: {:?}",
         crate::kernels::matmul::kernel_path()
     );
@@ -398,7 +396,7 @@ pub fn deform<T: Real>(
         let run = || matmul(MatRef::row_major(&a, n, k), MatRef::row_major(&b, k, w));
         let times = harness::repeat(1, reps, || Ok::<_, crate::Error>(run()))?;
         let s = times.median();
-        println!(
+        outln!(
             "{:<16} {:>11.1} {:>10.1}   (one [N, 256]·[256, 256] product, as in a trunk layer)",
             "matmul N×256×256",
             s * 1e3,
@@ -466,8 +464,8 @@ pub fn deform<T: Real>(
             cpu,
         ]);
     }
-    println!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs;");
-    println!(" CPU/threads: median process CPU time / threads, the wall time with idle cores if the threads never wait; includes spin-waiting)");
+    outln!("(medians, then the fastest run; GFLOP/s: 2 FLOPs per ptflops-aten MAC of the forward; forward+backward counts 3x the forward's FLOPs;");
+    outln!(" CPU/threads: median process CPU time / threads, the wall time with idle cores if the threads never wait; includes spin-waiting)");
     if !profile {
         return Ok(());
     }
@@ -490,16 +488,19 @@ pub fn deform<T: Real>(
 fn kernel_shapes<T: Real>(n: usize, reps: usize) {
     use crate::kernels::matmul::{matmul, matmul_tn, MatRef};
     let cast = |v: Vec<f64>| v.into_iter().map(T::from_f64).collect::<Vec<T>>();
-    println!();
-    println!(
+    outln!();
+    outln!(
         "matrix kernels alone on the fields' shapes, {} threads, path {:?}, median of {} (fastest)",
         rayon::current_num_threads(),
         crate::kernels::matmul::kernel_path(),
         reps.max(1)
     );
-    println!(
+    outln!(
         "{:<10} {:>26} {:>16} {:>14}   used in",
-        "product", "shape", "ms", "GFLOP/s"
+        "product",
+        "shape",
+        "ms",
+        "GFLOP/s"
     );
     let shapes: [(&str, usize, usize, &str); 8] = [
         ("x·W", 256, 256, "MLP trunk layers"),
@@ -547,7 +548,7 @@ fn kernel_shapes<T: Real>(n: usize, reps: usize) {
             format!("[{k},{n}]·[{n},{m}]")
         };
         let flop = 2.0 * (n * k * m) as f64;
-        println!(
+        outln!(
             "{:<10} {:>26} {:>16} {:>14}   {used}",
             kind,
             shape,
@@ -638,8 +639,8 @@ fn deform_profile<T: Real>(
         }
     }
     let (tf, tb) = (median(totals.0), median(totals.1));
-    println!();
-    println!(
+    outln!();
+    outln!(
         "{name}: per-operation profile, {} threads, N = {}, median of {} profiled runs (forward {:.1} ms, backward {:.1} ms while profiled)",
         rayon::current_num_threads(),
         t.len(),
@@ -647,7 +648,7 @@ fn deform_profile<T: Real>(
         tf * 1e3,
         tb * 1e3
     );
-    println!(
+    outln!(
         "{:<100} {:>26} {:>6} {:>9} {:>6} {:>12}",
         "operation (product: x·Wᵀ etc. with its fused epilogue; pass: a separate element-wise pass)",
         "shape",
@@ -663,7 +664,7 @@ fn deform_profile<T: Real>(
             profile::Kind::Product => format!("{:.1} GFLOP/s", work / s / 1e9),
             profile::Kind::Elementwise => format!("{:.2} Gel/s", work / s / 1e9),
         };
-        println!(
+        outln!(
             "{:<100} {:>26} {:>6} {:>9.2} {:>6.1} {:>12}",
             label,
             shape,
@@ -673,7 +674,7 @@ fn deform_profile<T: Real>(
             rate
         );
     }
-    println!("(% of the profiled forward or backward; rate: FLOPs (2 per multiply-add) per second of a product, elements per second of a pass;");
-    println!(" cells: summed over the cells that run it (calls); time outside the listed operations: allocation, gathering weights, small copies)");
+    outln!("(% of the profiled forward or backward; rate: FLOPs (2 per multiply-add) per second of a product, elements per second of a pass;");
+    outln!(" cells: summed over the cells that run it (calls); time outside the listed operations: allocation, gathering weights, small copies)");
     Ok(())
 }

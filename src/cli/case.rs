@@ -236,7 +236,7 @@ fn regen_golden(dir: &Path) -> crate::Result<Outcome> {
     for (name, bytes) in golden_files()? {
         let path = dir.join(&name);
         crate::io::write_atomic(&path, &bytes)?;
-        println!("{} ({} bytes)", path.display(), bytes.len());
+        outln!("{} ({} bytes)", path.display(), bytes.len());
     }
     Ok(Outcome::Success)
 }
@@ -278,7 +278,7 @@ fn run_compare(args: CompareArgs) -> crate::Result<Outcome> {
     let expected = TensorFile::load(&args.expected)?;
     let actual = TensorFile::load(&args.actual)?;
     let report = compare(&expected, &actual, &tol)?;
-    println!("{report}");
+    outln!("{report}");
     if let Some(p) = &args.report {
         crate::io::write_atomic(p, report.to_json().as_bytes())?;
     }

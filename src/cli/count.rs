@@ -98,24 +98,26 @@ pub fn run(a: CountArgs) -> crate::Result<Outcome> {
             "macs": macs,
             "default_convention": convention_key(MacConvention::Pytorch),
         });
-        println!(
+        outln!(
             "{}",
             serde_json::to_string_pretty(&v).expect("JSON of plain values")
         );
         return Ok(Outcome::Success);
     }
-    println!("field: {arch}");
-    println!(
+    outln!("field: {arch}");
+    outln!(
         "parameters: {} ({:.4} M)",
         thousands(params),
         params as f64 / 1e6
     );
-    println!("gaussians: {}", thousands(n));
-    println!("MACs (ptflops conventions, docs/UPSTREAM.md §8.3; a Linear layer counts in·out + out per Gaussian;");
-    println!("      sin/cos, tanh, sigmoid and element-wise arithmetic count 0):");
-    println!(
+    outln!("gaussians: {}", thousands(n));
+    outln!("MACs (ptflops conventions, docs/UPSTREAM.md §8.3; a Linear layer counts in·out + out per Gaussian;");
+    outln!("      sin/cos, tanh, sigmoid and element-wise arithmetic count 0):");
+    outln!(
         "  {:<52} {:>16} {:>22}",
-        "convention", "per Gaussian", "total"
+        "convention",
+        "per Gaussian",
+        "total"
     );
     for (conv, per, total) in &rows {
         let mark = if *conv == MacConvention::Pytorch {
@@ -125,7 +127,7 @@ pub fn run(a: CountArgs) -> crate::Result<Outcome> {
         } else {
             ""
         };
-        println!(
+        outln!(
             "  {:<52} {:>16} {:>22}{mark}",
             conv.name(),
             thousands(*per),

@@ -86,7 +86,7 @@ pub fn inspect(a: InspectArgs) -> crate::Result<Outcome> {
         ..Default::default()
     };
     let ds = dataset::load(&a.dir, &opts)?;
-    println!("{:#}", dataset::summary(&ds));
+    outln!("{:#}", dataset::summary(&ds));
     Ok(Outcome::Success)
 }
 

@@ -127,6 +127,6 @@ pub fn experiment(a: ExperimentArgs) -> Result<Outcome> {
             r.temporal_smoothness.unwrap_or(f64::NAN)
         ),
     })?;
-    println!("report: {}", report.display());
+    outln!("report: {}", report.display());
     Ok(Outcome::Success)
 }

@@ -25,14 +25,18 @@ pub fn run(what: GradcheckWhat) -> crate::Result<Outcome> {
 
 fn gradcheck_raster(seed: u64) -> crate::Result<Outcome> {
     let mut ok = true;
-    println!(
+    outln!(
         "{:<22} {:<16} {:>6} {:>11} {:>11}",
-        "case (scene seed)", "input", "n", "max abs", "max rel"
+        "case (scene seed)",
+        "input",
+        "n",
+        "max abs",
+        "max rel"
     );
     for case in check::builtin_cases(seed) {
         match check::run_case(&case)? {
             None => {
-                println!(
+                outln!(
                     "{:<22} no scene away from discontinuities in 20 draws",
                     case.name
                 );
@@ -42,7 +46,7 @@ fn gradcheck_raster(seed: u64) -> crate::Result<Outcome> {
                 for g in &r.groups {
                     let pass = g.passes(check::REL_TOL);
                     ok &= pass;
-                    println!(
+                    outln!(
                         "{:<22} {:<16} {:>6} {:>11.3e} {:>11.3e}{}",
                         format!("{} ({})", r.name, r.seed),
                         g.name,
@@ -55,7 +59,7 @@ fn gradcheck_raster(seed: u64) -> crate::Result<Outcome> {
             }
         }
     }
-    println!(
+    outln!(
         "tolerance: relative {:e}; {}",
         check::REL_TOL,
         if ok { "all passed" } else { "FAILED" }

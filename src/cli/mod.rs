@@ -75,6 +75,27 @@ enum Command {
     },
 }
 
+/// The payload of the unwind that ends a command whose standard output was
+/// closed. The binary never sees it (SIGPIPE ends the process first, as it
+/// ends other tools); the Python package's `cli` turns it into
+/// `BrokenPipeError`, as Python's own `print` does.
+#[derive(Debug)]
+pub struct StdoutClosed;
+
+/// Write the tool's output to standard output (what `outln!` expands to).
+/// A closed output (`EPIPE`) unwinds with [`StdoutClosed`] without running
+/// the panic hook, so nothing is printed about it; any other write error
+/// panics as `println!` does.
+pub fn print_out(args: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    if let Err(e) = std::io::stdout().lock().write_fmt(args) {
+        if e.kind() == std::io::ErrorKind::BrokenPipe {
+            std::panic::resume_unwind(Box::new(StdoutClosed));
+        }
+        panic!("failed printing to stdout: {e}");
+    }
+}
+
 /// The most worker threads `--threads` accepts (far above any core count
 /// the tool is run on; each thread is an OS thread with its own stack).
 pub const MAX_THREADS: usize = 1024;

@@ -235,7 +235,7 @@ pub fn train(a: TrainArgs) -> Result<Outcome> {
     let mut progress = Progress::new(config.iterations, a.quiet);
     let summary = experiment::train_run(&spec, &config, &data, &opts, &mut |e| progress.event(e))?;
     progress.finish();
-    println!(
+    outln!(
         "test PSNR {:.3} dB  SSIM {:.4}  {}({} views, {} Gaussians, {} iterations, {:.1} ms/iteration)",
         summary.psnr,
         summary.ssim,
@@ -245,8 +245,8 @@ pub fn train(a: TrainArgs) -> Result<Outcome> {
         summary.iterations,
         1e3 * summary.train_seconds / summary.iterations_run.max(1) as f64,
     );
-    println!("state hash {}", summary.state_hash);
-    println!(
+    outln!("state hash {}", summary.state_hash);
+    outln!(
         "renders in {}, metrics in {}",
         a.out.join("test").display(),
         a.out.join("results.json").display()
@@ -494,7 +494,7 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
         let files =
             train::run::render_times(&trainer, v, &a.times, &dir, |_, t| time_stem(&stem, t))?;
         for f in files {
-            println!("{}", f.display());
+            outln!("{}", f.display());
         }
     }
     Ok(Outcome::Success)
@@ -564,7 +564,7 @@ fn export_as<T: Real>(a: &ExportArgs) -> Result<Outcome> {
         trainer.model().gaussians.len()
     );
     for r in &reports {
-        println!("{}", r.path.display());
+        outln!("{}", r.path.display());
         if r.nonpositive_scales + r.flat > 0 {
             eprintln!(
                 "  t = {}: {} Gaussians with a deformed scale <= 0 (written from their covariance), {} flat (scale {:e})",
@@ -600,7 +600,7 @@ pub fn eval(a: EvalArgs) -> Result<Outcome> {
 
 fn print_metrics(per_view: &[ViewMetrics]) -> Result<()> {
     for m in per_view {
-        println!(
+        outln!(
             "{:<24} PSNR {:>8.3}  SSIM {:.4}  {}",
             m.name,
             m.psnr,
@@ -610,7 +610,7 @@ fn print_metrics(per_view: &[ViewMetrics]) -> Result<()> {
     }
     let (p, s) = train::run::mean_metrics(per_view)?;
     let l = train::run::mean_lpips(per_view);
-    println!(
+    outln!(
         "{:<24} PSNR {:>8.3}  SSIM {:.4}  {}",
         "mean",
         p,
@@ -618,7 +618,7 @@ fn print_metrics(per_view: &[ViewMetrics]) -> Result<()> {
         lpips_text(l)
     );
     if l.is_none() {
-        println!("LPIPS not computed (no weights: --lpips-vgg and --lpips-lin)");
+        outln!("LPIPS not computed (no weights: --lpips-vgg and --lpips-lin)");
     }
     Ok(())
 }

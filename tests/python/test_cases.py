@@ -125,6 +125,16 @@ def test_the_console_entry_point_ends_like_the_native_tool(tmp_path):
     q = subprocess.run(tool + ["case", "compare", case, case], stdout=w, stderr=subprocess.PIPE)
     os.close(w)
     assert q.returncode == -signal.SIGPIPE and q.stderr == b"", q.stderr.decode()
+    # In-process, `ls.cli` raises BrokenPipeError there, as Python's print does (the
+    # interpreter ignores SIGPIPE), without a panic message.
+    r, w = os.pipe()
+    os.close(r)
+    code = ("import liquid_splat as ls, sys\n"
+            "try:\n    ls.cli('case', 'compare', sys.argv[1], sys.argv[1])\n"
+            "except BrokenPipeError as e:\n    sys.stderr.write(f'caught {e}')\n")
+    q = subprocess.run([sys.executable, "-c", code, case], stdout=w, stderr=subprocess.PIPE)
+    os.close(w)
+    assert q.returncode == 0 and q.stderr.decode() == "caught [Errno 32] Broken pipe: standard output was closed", q.stderr.decode()
     # A file name that is not UTF-8 is a usage error (exit 2) with a message.
     q = subprocess.run(tool + ["case", "run", b"x\xff.safetensors", str(tmp_path / "o")],
                        capture_output=True)

@@ -24,7 +24,7 @@ use liquid_splat::oracle::{self, Tolerances};
 use numpy::ndarray::ArrayD;
 use numpy::PyUntypedArrayMethods;
 use numpy::{PyArray, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray};
-use pyo3::exceptions::{PyRuntimeError, PyTypeError, PyValueError};
+use pyo3::exceptions::{PyBrokenPipeError, PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyInt, PyString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -71,6 +71,9 @@ fn compute<R: Send>(
     });
     match outcome {
         Ok(result) => result.map_err(to_py_err),
+        Err(payload) if payload.is::<liquid_splat::cli::StdoutClosed>() => Err(
+            PyBrokenPipeError::new_err("[Errno 32] Broken pipe: standard output was closed"),
+        ),
         Err(payload) => {
             let what = payload
                 .downcast_ref::<&str>()
