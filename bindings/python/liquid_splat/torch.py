@@ -22,11 +22,12 @@ constant, the rasterizer's settings (matrices, camera, background) get no gradie
 is upstream's (none, or ``(Rᵀ − I)·g`` through the 6-DoF warp), not the derivative of the
 network's output w.r.t. ``xyz``. The tensors a backward reads are saved with
 ``save_for_backward``: changing one in place between forward and backward raises
-``RuntimeError`` in backward, as torch's own functions do.
+``RuntimeError`` in backward, as torch's own functions do, naming the argument.
 """
 
 from __future__ import annotations
 
+import weakref
 from typing import Any, Dict, List, Mapping, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
@@ -162,6 +163,29 @@ _RASTER_INPUTS = (
 )
 
 
+def _save(ctx: Any, func: str, named: Sequence[Tuple[str, Optional[torch.Tensor]]]) -> None:
+    """``ctx.save_for_backward`` of the tensors, remembering each one's name and version so
+    that :func:`_saved` can name the ones changed in place."""
+    ctx.save_for_backward(*(t for _, t in named))
+    ctx.saved_func = func
+    ctx.saved_names = [(n, None if t is None else weakref.ref(t), None if t is None else t._version)
+                       for n, t in named]
+
+
+def _saved(ctx: Any) -> Tuple[Any, ...]:
+    """``ctx.saved_tensors``; when torch refuses them because one was changed in place, its
+    ``RuntimeError`` names the arguments whose version moved."""
+    try:
+        return ctx.saved_tensors
+    except RuntimeError as e:
+        changed = [n for n, ref, v in ctx.saved_names
+                   if ref is not None and ref() is not None and ref()._version != v]
+        if not changed:
+            raise
+        raise RuntimeError(f"{ctx.saved_func}: backward: {', '.join(changed)} changed in place "
+                           f"after the forward, which saved it for the backward ({e})") from e
+
+
 # The tensors the rasterizer's backward reads again: the Gaussians', then the settings'.
 _RASTER_SAVED = ("means3D", "opacities", "shs", "colors_precomp", "scales", "rotations",
                  "cov3D_precomp") + _SETTINGS_TENSORS
@@ -187,8 +211,9 @@ class _RasterizeGaussians(torch.autograd.Function):
         inputs = dict(means3D=means3D, opacities=opacities, shs=shs,
                       colors_precomp=colors_precomp, scales=scales, rotations=rotations,
                       cov3D_precomp=cov3D_precomp)
-        ctx.save_for_backward(*(inputs[n] for n in _RASTER_SAVED[:7]),
-                              *(getattr(raster_settings, n) for n in _SETTINGS_TENSORS))
+        _save(ctx, "GaussianRasterizer",
+              [*((n, inputs[n]) for n in _RASTER_SAVED[:7]),
+               *((f"raster_settings.{n}", getattr(raster_settings, n)) for n in _SETTINGS_TENSORS)])
         ctx.numbers = {k: v for k, v in kw.items() if k not in _SETTINGS_TENSORS}
         ctx.sh_degree = sh_degree
         ctx.present = [x is not None for x in
@@ -201,7 +226,7 @@ class _RasterizeGaussians(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, grad_color, grad_radii, grad_depth):
-        saved = {n: _np(n, x) for n, x in zip(_RASTER_SAVED, ctx.saved_tensors)}
+        saved = {n: _np(n, x) for n, x in zip(_RASTER_SAVED, _saved(ctx))}
         g = _np_rasterize_vjp(
             **saved, **ctx.numbers, sh_degree=ctx.sh_degree,
             grad_color=_np("grad_color", grad_color),
@@ -280,7 +305,7 @@ class _Deform(torch.autograd.Function):
         meta = {"stage": "deform", **config}
         func = "CfCField" if config["field"] == "cfc" else "DeformNetwork"
         out, _ = _run_case(f"{func}.forward", case, meta, None)
-        ctx.save_for_backward(xyz, t, *params)
+        _save(ctx, func, [("x", xyz), ("t", t), *zip(names, params)])
         ctx.meta, ctx.names, ctx.func = meta, names, func
         return (torch.from_numpy(out["d_xyz"]), torch.from_numpy(out["d_rotation"]),
                 torch.from_numpy(out["d_scaling"]))
@@ -288,7 +313,7 @@ class _Deform(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, g_xyz, g_rot, g_scale):
-        xyz, t, *params = ctx.saved_tensors
+        xyz, t, *params = _saved(ctx)
         case = _deform_case(ctx.names, xyz, t, params)
         case["grad_d_xyz"] = _np("grad_d_xyz", g_xyz)
         case["grad_d_rotation"] = _np("grad_d_rotation", g_rot)
@@ -458,7 +483,7 @@ class _GsRasterization(torch.autograd.Function):
                                                 inputs)}
         r = _gs.rasterization(**arrays, **kw)
         holder.update(r.meta)
-        ctx.save_for_backward(*inputs)
+        _save(ctx, "rasterization", list(zip(_GS_RASTERIZATION_INPUTS + ("viewmats", "Ks"), inputs)))
         ctx.kw = kw
         ctx.present = [arrays[n] is not None for n in _GS_RASTERIZATION_INPUTS]
         return torch.from_numpy(r.render_colors), torch.from_numpy(r.render_alphas)
@@ -467,7 +492,7 @@ class _GsRasterization(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, v_render_colors, v_render_alphas):
         arrays = {n: _np(n, x) for n, x in zip(_GS_RASTERIZATION_INPUTS + ("viewmats", "Ks"),
-                                                ctx.saved_tensors)}
+                                                _saved(ctx))}
         g = _gs.rasterization_vjp(
             **arrays, **ctx.kw,
             v_render_colors=_np("v_render_colors", v_render_colors),
@@ -541,7 +566,8 @@ class _GsRasterizeToPixels(torch.autograd.Function):
         arrays = {n: _np(n, x) for n, x in zip(_GS_R2P_INPUTS + ("isect_offsets", "flatten_ids"),
                                                 inputs)}
         rc, ra = _gs.rasterize_to_pixels(**arrays, **kw)
-        ctx.save_for_backward(*inputs)
+        _save(ctx, "rasterize_to_pixels",
+              list(zip(_GS_R2P_INPUTS + ("isect_offsets", "flatten_ids"), inputs)))
         ctx.kw = kw
         ctx.has_bg = backgrounds is not None
         return torch.from_numpy(rc), torch.from_numpy(ra)
@@ -550,7 +576,7 @@ class _GsRasterizeToPixels(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, v_render_colors, v_render_alphas):
         arrays = {n: _np(n, x) for n, x in zip(_GS_R2P_INPUTS + ("isect_offsets", "flatten_ids"),
-                                                ctx.saved_tensors)}
+                                                _saved(ctx))}
         g = _gs.rasterize_to_pixels_vjp(
             **arrays, **ctx.kw,
             v_render_colors=_np("v_render_colors", v_render_colors),
