@@ -399,7 +399,8 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 0)]
     pub sweep_view: usize,
     /// Also render these times (comma-separated, finite, |t| at most 1e9; the dataset's span
-    /// is 0..1) into OUT/times/.
+    /// is 0..1) into OUT/times/VIEW_tT.png and .exr (T with 6 decimals; files of earlier
+    /// calls at other times stay). Prints the names written.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     pub times: Vec<f64>,
 }
