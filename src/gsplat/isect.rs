@@ -269,6 +269,12 @@ pub fn isect_tiles<T: Real>(
             format!("tile_size {tile_size}, grid {tile_width}x{tile_height}, {n_images} images: each must be positive"),
         ));
     }
+    if tile_size > 1024 {
+        return Err(Error::invalid(
+            "tile_size",
+            format!("{tile_size} (1 to 1024, as the rasterizing stages take)"),
+        ));
+    }
     let n_tiles = tile_width.saturating_mul(tile_height);
     let tile_bits = key_bits(version, n_tiles);
     let image_bits = key_bits(version, n_images);
@@ -461,6 +467,16 @@ mod tests {
         grid: [usize; 2],
     ) -> Result<Isects> {
         isect_m(1, radii, conic, tile_size, grid)
+    }
+
+    #[test]
+    fn a_tile_size_above_1024_is_refused() {
+        let err = isect([4, 4], None, 1025, [1, 1]).unwrap_err();
+        assert!(
+            err.to_string().contains("tile_size") && err.to_string().contains("1025"),
+            "{err}"
+        );
+        assert!(isect([4, 4], None, 1024, [1, 1]).is_ok());
     }
 
     #[test]
