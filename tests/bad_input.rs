@@ -433,11 +433,22 @@ fn options_that_do_not_apply_are_refused() {
         ),
         (&["eval", SWING, "--lpips-normalize"], "--lpips-vgg"),
         (&["eval", SWING, "--lpips-unverified"], "--lpips-vgg"),
+        (&["experiment", SWING, "--resolution", "8"], "--resolution"),
+        (&["experiment", SWING, "--scenes", "blob"], "--scenes"),
+        (
+            &["experiment", "--scenes", "blob", "--downscale", "2"],
+            "--downscale",
+        ),
     ] {
         let mut a = args.to_vec();
-        a.extend(["--out", s(&out)].iter().filter(|_| args[0] == "train"));
+        a.extend(
+            ["--out", s(&out)]
+                .iter()
+                .filter(|_| ["train", "experiment"].contains(&args[0])),
+        );
         refused_within(&a, Duration::from_secs(20), &[needle]);
     }
+    assert!(!out.exists(), "{} was written", out.display());
 }
 
 /// Output written to a closed pipe ends the tool quietly (SIGPIPE), not with

@@ -4,19 +4,27 @@
 //! folder). Rerunning the same command skips finished runs and resumes
 //! unfinished ones.
 
-use crate::error::{Outcome, Result};
+use crate::error::{Error, Outcome, Result};
 use crate::experiment::{Experiment, ExperimentEvent};
 use crate::train::Event;
 use clap::Args;
 use std::path::PathBuf;
+
+/// `--downscale` when dataset folders are given without it.
+pub const DEFAULT_DOWNSCALE: usize = 4;
 
 /// Arguments of `experiment`.
 #[derive(Args)]
 pub struct ExperimentArgs {
     /// Dataset folders (D-NeRF or NeRF-DS layout). Without any, the built-in scenes are used.
     pub data: Vec<PathBuf>,
-    /// Built-in scenes to use when no dataset folder is given.
-    #[arg(long, value_delimiter = ',', default_value = "bouncing,swing,blob")]
+    /// Built-in scenes to use when no dataset folder is given (refused with dataset folders).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "bouncing,swing,blob",
+        conflicts_with = "data"
+    )]
     pub scenes: Vec<String>,
     /// Report folder (runs, training folders, report.md, CSV, plots).
     #[arg(long, short)]
@@ -24,12 +32,13 @@ pub struct ExperimentArgs {
     /// Training iterations per run.
     #[arg(long, default_value_t = 1000)]
     pub iterations: u64,
-    /// Built-in scenes: image size.
-    #[arg(long, default_value_t = 64)]
+    /// Built-in scenes: image size (refused with dataset folders).
+    #[arg(long, default_value_t = 64, conflicts_with = "data")]
     pub resolution: usize,
-    /// Dataset folders: downscale factor 1, 2, 4 or 8.
-    #[arg(long, default_value_t = 4)]
-    pub downscale: usize,
+    /// Dataset folders: downscale factor 1, 2, 4 or 8 (default 4; refused without dataset
+    /// folders).
+    #[arg(long)]
+    pub downscale: Option<usize>,
     /// Random initial points (scenes without a point cloud).
     #[arg(long, default_value_t = 2000)]
     pub init_points: usize,
@@ -57,13 +66,19 @@ pub struct ExperimentArgs {
 /// `experiment`: run the plan with one progress line per run, every tenth
 /// of its iterations and every evaluation; print where the report is.
 pub fn experiment(a: ExperimentArgs) -> Result<Outcome> {
+    if a.downscale.is_some() && a.data.is_empty() {
+        return Err(Error::invalid(
+            "--downscale",
+            "applies to dataset folders only; the built-in scenes are generated at --resolution",
+        ));
+    }
     let mut exp = Experiment {
         data: a.data,
         scenes: a.scenes,
         out: a.out,
         iterations: a.iterations,
         resolution: a.resolution,
-        downscale: a.downscale,
+        downscale: a.downscale.unwrap_or(DEFAULT_DOWNSCALE),
         init_points: a.init_points,
         seeds: a.seeds,
         ablations: a.ablations,
