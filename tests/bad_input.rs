@@ -448,6 +448,24 @@ fn options_that_do_not_apply_are_refused() {
         );
         refused_within(&a, Duration::from_secs(20), &[needle]);
     }
+    // `synth`: each layout's own options are refused with the other one.
+    let scene = d.join("scene");
+    for (args, needle) in [
+        (&["--white-background"][..], "--white-background"),
+        (
+            &["--layout", "dnerf", "--white-background"],
+            "--white-background",
+        ),
+        (
+            &["--layout", "nerfies", "--eval-frames", "2"],
+            "--eval-frames",
+        ),
+    ] {
+        let mut a = vec!["synth", "blob", s(&scene), "--resolution", "8"];
+        a.extend(args);
+        refused_within(&a, Duration::from_secs(20), &[needle]);
+        assert!(!scene.exists(), "{a:?} wrote {}", scene.display());
+    }
     assert!(!out.exists(), "{} was written", out.display());
 }
 

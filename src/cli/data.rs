@@ -31,9 +31,9 @@ pub struct SynthArgs {
     /// Training frames (nerfies layout: frames of the sequence).
     #[arg(long, default_value_t = 24)]
     pub frames: usize,
-    /// Frames in each of the val and test splits.
-    #[arg(long, default_value_t = 8)]
-    pub eval_frames: usize,
+    /// Frames in each of the val and test splits (D-NeRF layout; default 8).
+    #[arg(long)]
+    pub eval_frames: Option<usize>,
     /// Seed of the camera placement (and of the nerfies points).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -46,7 +46,7 @@ pub struct SynthArgs {
     /// On-disk layout.
     #[arg(long, value_enum, default_value_t = LayoutArg::Dnerf)]
     pub layout: LayoutArg,
-    /// Background of the nerfies-layout RGB images.
+    /// Background of the nerfies-layout RGB images (the D-NeRF layout's are RGBA).
     #[arg(long)]
     pub white_background: bool,
 }
@@ -92,10 +92,27 @@ pub fn inspect(a: InspectArgs) -> crate::Result<Outcome> {
 
 /// `synth NAME OUT_DIR`: write a built-in scene to disk.
 pub fn synth(a: SynthArgs) -> crate::Result<Outcome> {
+    // Options of the other layout are refused, not ignored.
+    match a.layout {
+        LayoutArg::Dnerf if a.white_background => {
+            return Err(crate::Error::invalid(
+                "--white-background",
+                "the D-NeRF layout's images are RGBA, with no background; the option applies to --layout nerfies",
+            ))
+        }
+        LayoutArg::Nerfies if a.eval_frames.is_some() => {
+            return Err(crate::Error::invalid(
+                "--eval-frames",
+                "the nerfies layout is one sequence of --frames frames (even ids train, odd ids validate); the option applies to --layout dnerf",
+            ))
+        }
+        _ => {}
+    }
+    let defaults = synth::SynthOptions::default();
     let opts = synth::SynthOptions {
         resolution: a.resolution,
         frames: a.frames,
-        eval_frames: a.eval_frames,
+        eval_frames: a.eval_frames.unwrap_or(defaults.eval_frames),
         seed: a.seed,
         orbit: match a.orbit {
             OrbitArg::Hemisphere => synth::Orbit::Hemisphere,
