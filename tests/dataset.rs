@@ -425,6 +425,12 @@ fn cli_exits_2_on_bad_input() {
     assert_eq!(v["kind"], "dnerf");
     assert_eq!(v["frames"]["train"], 3);
     assert_eq!(v["image_size"], serde_json::json!([16, 16]));
+    // The initial points `train` would start from: its default, and its option.
+    assert_eq!(v["initial_points"]["count"], 2000);
+    let out = run(&["inspect", scene.to_str().unwrap(), "--init-points", "50"]);
+    assert_eq!(out.status.code(), Some(0));
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(v["initial_points"]["count"], 50);
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

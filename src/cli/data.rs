@@ -16,6 +16,9 @@ pub struct InspectArgs {
     /// Composite RGBA images on white instead of black.
     #[arg(long)]
     pub white_background: bool,
+    /// Random initial points when the dataset has no point cloud (as `train`'s option).
+    #[arg(long, default_value_t = 2000)]
+    pub init_points: usize,
 }
 
 /// Arguments of `synth`.
@@ -83,6 +86,7 @@ pub fn inspect(a: InspectArgs) -> crate::Result<Outcome> {
     let opts = LoadOptions {
         background: background(a.white_background),
         downscale: a.downscale,
+        init_points: a.init_points,
         ..Default::default()
     };
     let ds = dataset::load(&a.dir, &opts)?;
