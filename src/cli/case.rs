@@ -56,13 +56,15 @@ pub struct NewArgs {
     /// Seed of every random draw.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Image width (rasterize, loss, step).
+    /// Image width (rasterize, loss, step and the gsplat stages with a camera: all but
+    /// gsplat_quat_scale_to_covar_preci and gsplat_spherical_harmonics).
     #[arg(long)]
     pub width: Option<usize>,
-    /// Image height (rasterize, loss, step).
+    /// Image height (the stages of --width).
     #[arg(long)]
     pub height: Option<usize>,
-    /// Number of Gaussians (rasterize: in view, plus one beside it; step) or points (deform).
+    /// Number of Gaussians (rasterize: in view, plus one beside it; the gsplat stages: in
+    /// view, plus one beside it and one tiny one; step) or points (deform).
     #[arg(long)]
     pub count: Option<usize>,
     /// Rasterize: gradient mode, exact or inria; gsplat stages: exact or gsplat.
@@ -87,10 +89,11 @@ pub struct NewArgs {
     /// gsplat stages: the gsplat version whose conventions apply, 1.5.3 or 1.6.
     #[arg(long = "gsplat-version")]
     pub gsplat_version: Option<String>,
-    /// gsplat stages: antialiased rasterization (compensated opacities).
+    /// gsplat stages with a camera: antialiased rasterization (compensated opacities).
     #[arg(long)]
     pub antialiased: bool,
-    /// gsplat stages: the dense layout instead of gsplat's default packed one.
+    /// gsplat_fully_fused_projection, gsplat_rasterization: the dense layout instead of
+    /// gsplat's default packed one.
     #[arg(long)]
     pub dense: bool,
 }
@@ -108,7 +111,7 @@ pub struct CompareArgs {
     /// Relative tolerance for floating-point tensors (replaces the file's default).
     #[arg(long, allow_negative_numbers = true)]
     pub rtol: Option<f64>,
-    /// Per-tensor tolerances (JSON; format in the `oracle::compare` docs).
+    /// Per-tensor tolerances (JSON; format in docs/ORACLE.md, `case compare`).
     #[arg(long, value_name = "FILE.json")]
     pub tolerances: Option<PathBuf>,
     /// Fraction of elements per tensor allowed to mismatch (replaces the file's default).

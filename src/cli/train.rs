@@ -42,7 +42,8 @@ pub struct FieldArgs {
     /// The MLP's 6-DoF (SE(3)) variant.
     #[arg(long = "6dof")]
     pub six_dof: bool,
-    /// Time input: synthetic (D-NeRF timenet) or real (NeRF-DS); default from the dataset.
+    /// Time input: synthetic (D-NeRF timenet) or real (NeRF-DS); default from the dataset
+    /// (real for the NeRF-DS/nerfies layout, synthetic otherwise; `count`: synthetic).
     #[arg(long, value_enum)]
     pub variant: Option<VariantChoice>,
 }
