@@ -239,6 +239,8 @@ fn experiment_writes_a_report_and_resumes_per_configuration() {
         "522,280",
         "334,504",
         "threads",
+        // (One sentence across source lines, without their indentation.)
+        "made during each run (the last iteration included), each metric on its own",
     ] {
         assert!(md.contains(needle), "report.md lacks {needle}");
     }

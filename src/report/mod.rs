@@ -489,7 +489,11 @@ pub fn write_report(dir: &Path, records: &[RunRecord], meta: &ReportMeta) -> Res
             "1. Test-set quality per scene (final model)",
             format!(
                 "Metrics of the model after the last iteration. PSNR in dB, SSIM{}. {best}",
-                if has_lpips { ", LPIPS (lower is better)" } else { "" }
+                if has_lpips {
+                    ", LPIPS (lower is better)"
+                } else {
+                    ""
+                }
             ) + &lpips_note,
             "quality",
             tables::matrix("field", &fields, final_metrics),
@@ -497,7 +501,10 @@ pub fn write_report(dir: &Path, records: &[RunRecord], meta: &ReportMeta) -> Res
         (
             "1b. Best of the periodic test evaluations",
             format!(
-                "The best value of each metric over the test evaluations made during each run                  (the last iteration included), each metric on its own: how D-3DGS's published                  numbers were chosen (best of evaluations every 1,000 iterations), so higher                  than the final model's. Table 1c gives the iteration of each. {best}"
+                "The best value of each metric over the test evaluations made during each run \
+                 (the last iteration included), each metric on its own: how D-3DGS's published \
+                 numbers were chosen (best of evaluations every 1,000 iterations), so higher \
+                 than the final model's. Table 1c gives the iteration of each. {best}"
             ),
             "quality_best",
             tables::matrix("field", &fields, best_metrics),
