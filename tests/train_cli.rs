@@ -206,6 +206,8 @@ fn bad_input_exits_2_with_a_message() {
         let r = cli(&args);
         assert_eq!(r.status.code(), Some(2), "{args:?}: {}", text(&r));
         assert!(text(&r).contains(needle), "{args:?}: {}", text(&r));
+        // Nothing is written into the output folder.
+        assert!(!out.join("run.json").exists(), "{args:?} wrote run.json");
     }
 }
 

@@ -307,6 +307,8 @@ pub fn prepare_run(
     resume: bool,
 ) -> Result<TrainConfig> {
     let config = spec.train_config(data)?;
+    // (Refused before anything is written into `out`.)
+    config.validate()?;
     spec.check_eval_split(data)?;
     std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
     let spec_path = out.join(RUN_FILE);
