@@ -1,6 +1,8 @@
 """Bad arguments raise TypeError / ValueError naming the argument, what was expected and
 what was found; nothing crashes the interpreter."""
 
+import os
+
 import numpy as np
 import pytest
 
@@ -202,3 +204,29 @@ def test_load_and_save_raise_os_errors(tmp_path):
     (tmp_path / "bad.safetensors").write_bytes(b"not a safetensors file")
     with pytest.raises(ValueError, match="bad.safetensors"):
         ls.load(tmp_path / "bad.safetensors")
+
+
+def test_paths_the_file_system_cannot_encode_are_named(tmp_path):
+    """A lone surrogate in a path was a PanicException (a BaseException) out of the
+    extension's path conversion; it is a ValueError naming the argument."""
+    from liquid_splat.testing import compare
+
+    x = {"x": np.zeros(1)}
+    with pytest.raises(ValueError, match=r"load\(\): argument `path`: expected a path the file system can encode"):
+        ls.load("nope\ud800.safetensors")
+    with pytest.raises(ValueError, match=r"save\(\): argument `path`: expected a path the file system can encode"):
+        ls.save(tmp_path / "x\ud800.safetensors", x)
+    with pytest.raises(ValueError, match=r"compare\(\): argument `expected`: expected a path"):
+        compare("\ud800", x)
+    with pytest.raises(ValueError, match=r"compare\(\): argument `tolerances`: expected a path"):
+        compare(x, x, tolerances="\ud800.json")
+    with pytest.raises(ValueError, match=r"cli\(\): argument `args\[1\]`: expected UTF-8 text"):
+        ls.cli("case", "\ud800")
+    for call, msg in ((lambda: ls.load(3), r"load\(\): argument `path`: expected a path .* found int"),
+                      (lambda: ls.save(None, x), r"save\(\): argument `path`: expected a path .* found NoneType"),
+                      (lambda: ls.cli("case", 2), r"cli\(\): argument `args\[1\]`: expected a str .* found int")):
+        with pytest.raises(TypeError, match=msg):
+            call()
+    # bytes paths name the same files as their decoded str.
+    ls.save(os.fsencode(tmp_path / "b.safetensors"), x)
+    assert ls.load(os.fsencode(tmp_path / "b.safetensors"))[0]["x"].shape == (1,)

@@ -97,6 +97,29 @@ def _run_case(
     return _native.run_case(dict(tensors), _metadata(metadata), _threads(func, threads))
 
 
+def _path(func: str, name: str, x: Any) -> str:
+    """A path argument as the ``str`` the library opens: a ``str``, ``bytes`` or
+    ``os.PathLike``. A name the file system cannot encode (a lone surrogate such as
+    ``"\\ud800"``) is a ``ValueError`` naming the argument."""
+    where = f"{func}(): argument `{name}`"
+    try:
+        p = os.fspath(x)
+    except TypeError:
+        raise TypeError(
+            f"{where}: expected a path (str, bytes or os.PathLike), found {type(x).__name__}"
+        ) from None
+    if isinstance(p, bytes):
+        p = os.fsdecode(p)
+    try:
+        os.fsencode(p)
+    except UnicodeEncodeError as e:
+        raise ValueError(
+            f"{where}: expected a path the file system can encode, found {p!r} "
+            f"({e.reason} at position {e.start})"
+        ) from None
+    return p
+
+
 # A library error about a file that the operating system refused: "PATH: REASON (os error N)".
 _OS_ERROR = re.compile(r"(?P<path>.*): (?P<reason>[^:]*) \(os error (?P<code>\d+)\)", re.S)
 
@@ -142,8 +165,9 @@ def load(path: PathLike) -> Tuple[Tensors, Dict[str, str]]:
     A file the operating system cannot open raises the matching ``OSError``
     (``FileNotFoundError``, ``IsADirectoryError``, ``PermissionError``, ...); a file that
     is not a usable safetensors file raises ``ValueError`` (``TypeError`` for a dtype)."""
+    path = _path("load", "path", path)
     try:
-        return _native.load(os.fspath(path))
+        return _native.load(path)
     except ValueError as e:
         err = _os_error(e)
         if err is e:
@@ -161,9 +185,10 @@ def save(
     Metadata values as in :func:`run_case`. Bad tensors or metadata raise ``TypeError`` or
     ``ValueError``; a file the operating system refuses (a missing folder, a directory, no
     permission) raises the matching ``OSError`` subclass."""
+    path = _path("save", "path", path)
     meta = None if metadata is None else _metadata(metadata)
     try:
-        _native.save(os.fspath(path), dict(tensors), meta)
+        _native.save(path, dict(tensors), meta)
     except ValueError as e:
         err = _os_error(e)
         if err is e:
@@ -178,7 +203,26 @@ def cli(*args: str) -> int:
     pytest, capture it with ``capfd`` (``capsys`` sees nothing). ``--pin-threads`` starts the
     process's global worker pool pinned (unless an earlier call started it), and every later
     call with ``threads=None`` in this process runs on that pinned pool."""
-    return _native.cli([os.fspath(a) for a in args])
+    argv = []
+    for i, a in enumerate(args):
+        try:
+            a = os.fspath(a)
+        except TypeError:
+            raise TypeError(
+                f"cli(): argument `args[{i}]`: expected a str (or os.PathLike), found "
+                f"{type(a).__name__}"
+            ) from None
+        if isinstance(a, bytes):
+            a = os.fsdecode(a)
+        try:
+            a.encode("utf-8")
+        except UnicodeEncodeError as e:
+            raise ValueError(
+                f"cli(): argument `args[{i}]`: expected UTF-8 text, found {a!r} "
+                f"({e.reason} at position {e.start})"
+            ) from None
+        argv.append(a)
+    return _native.cli(argv)
 
 
 def _shape(shape: Tuple[int, ...]) -> str:

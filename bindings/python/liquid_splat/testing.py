@@ -17,7 +17,7 @@ from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 
 import numpy as np
 
-from . import _native
+from . import _native, _path
 
 __all__ = ["CompareReport", "compare", "assert_close", "recommended_tolerances"]
 
@@ -66,8 +66,8 @@ def _array(name: str, v: Any) -> np.ndarray:
 
 
 def _outputs(which: str, x: Outputs) -> Union[str, Dict[str, np.ndarray]]:
-    if isinstance(x, (str, os.PathLike)):
-        return os.fspath(x)
+    if isinstance(x, (str, bytes, os.PathLike)):
+        return _path("compare", which, x)
     if isinstance(x, tuple) and len(x) == 2 and isinstance(x[0], Mapping):
         x = x[0]  # (tensors, metadata) from run_case / load
     if not isinstance(x, Mapping):
@@ -119,8 +119,8 @@ def compare(
     """
     tol_json: Optional[str] = None
     tol_path: Optional[str] = None
-    if isinstance(tolerances, (str, os.PathLike)):
-        tol_path = os.fspath(tolerances)
+    if isinstance(tolerances, (str, bytes, os.PathLike)):
+        tol_path = _path("compare", "tolerances", tolerances)
     elif isinstance(tolerances, Mapping):
         tol_json = json.dumps(tolerances)
     elif tolerances is not None:
