@@ -230,3 +230,22 @@ def test_paths_the_file_system_cannot_encode_are_named(tmp_path):
     # bytes paths name the same files as their decoded str.
     ls.save(os.fsencode(tmp_path / "b.safetensors"), x)
     assert ls.load(os.fsencode(tmp_path / "b.safetensors"))[0]["x"].shape == (1,)
+
+
+def test_integers_beyond_float_range_are_named(raster):
+    """An int too large for a float was an OverflowError out of float(); it is the
+    ValueError of any other non-finite number, naming the argument."""
+    from liquid_splat.testing import compare
+
+    ins, kw = raster
+    for key in ("tanfovx", "scale_modifier"):
+        with pytest.raises(ValueError, match=rf"rasterize\(\): argument `{key}`: expected a finite .*number, found an integer of 401 digits"):
+            ls.rasterize(**ins, **{**kw, key: 10**400})
+    t, _ = ls.load(CASES / "loss_f64.input.safetensors")
+    with pytest.raises(ValueError, match=r"loss\(\): argument `lambda_dssim`: expected a finite number, found an integer"):
+        ls.loss(t["image"], t["gt"], 10**400)
+    with pytest.raises(ValueError, match=r"compare\(\): argument `rtol`: expected a finite number, found an integer"):
+        compare(t, t, rtol=-(10**400))
+    field = ls.DeformNetwork.new(D=3, W=4)
+    with pytest.raises(ValueError, match=r"DeformNetwork.forward\(\): argument `t`: expected a finite number"):
+        field.forward(np.zeros((2, 3), np.float32), 10**400)

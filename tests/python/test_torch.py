@@ -327,3 +327,15 @@ def test_unsupported_dtypes_and_field_arguments_are_named():
         lt.CfCField(backbone_units=8.0)
     with pytest.raises(ValueError, match=r"CfCField\(\): argument `seed`: expected an integer in 0..=18446744073709551615, found -1"):
         lt.CfCField(D=1, W=4, seed=-1)
+
+
+def test_loss_weight_is_checked_as_in_numpy():
+    """lambda_dssim went through float(): True and "0.5" were accepted, 10**400 was an
+    OverflowError; now the numpy loss's checks apply, naming the argument."""
+    T, m, _ = tensors("loss_f64")
+    for bad, exc in ((True, TypeError), ("0.5", TypeError), (10**400, ValueError), (1.5, ValueError)):
+        with pytest.raises(exc, match=r"loss\(\): argument `lambda_dssim`"):
+            lt.loss(T["image"], T["gt"], bad)
+    want = lt.loss(T["image"], T["gt"], 0.5)
+    for ok in (np.float32(0.5), torch.tensor(0.5), np.array(0.5)):
+        assert lt.loss(T["image"], T["gt"], ok).item() == want.item()

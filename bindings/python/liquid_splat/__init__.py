@@ -300,7 +300,13 @@ class _Args:
             x = x[()]
         if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
             raise TypeError(f"{where}: expected a float, found {type(x).__name__}")
-        v = float(x)
+        try:
+            v = float(x)
+        except OverflowError:  # an int beyond float's range: not finite either
+            raise ValueError(
+                f"{where}: expected a finite{' positive' if positive else ''} number, found an "
+                f"integer of {len(str(abs(int(x))))} digits, beyond float's range"
+            ) from None
         if not math.isfinite(v) or (positive and not v > 0):
             raise ValueError(
                 f"{where}: expected a finite{' positive' if positive else ''} number, found {v!r}"

@@ -85,7 +85,13 @@ def _tolerance(name: str, x: Any) -> Optional[float]:
         return None
     if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
         raise TypeError(f"compare(): argument `{name}`: expected a float or None, found {type(x).__name__}")
-    return float(x)
+    try:
+        return float(x)
+    except OverflowError:  # an int beyond float's range
+        raise ValueError(
+            f"compare(): argument `{name}`: expected a finite number, found an integer of "
+            f"{len(str(abs(int(x))))} digits, beyond float's range"
+        ) from None
 
 
 def recommended_tolerances(dtype: Any = "float32") -> Dict[str, Any]:

@@ -462,8 +462,12 @@ class _Loss(torch.autograd.Function):
 
 def loss(image: torch.Tensor, gt: torch.Tensor, lambda_dssim: float = 0.2) -> torch.Tensor:
     """D-3DGS's ``(1 − λ)·l1_loss(image, gt) + λ·(1 − ssim(image, gt))`` of [3,H,W]
-    images, differentiable w.r.t. ``image``."""
-    return _Loss.apply(image, gt, float(lambda_dssim))
+    images, differentiable w.r.t. ``image``. ``lambda_dssim``: a float in [0, 1] (a Python
+    or numpy scalar, or a 0-d tensor)."""
+    if isinstance(lambda_dssim, torch.Tensor) and lambda_dssim.dim() == 0:
+        lambda_dssim = lambda_dssim.item()
+    # Passed as given: the numpy loss refuses (and names) a bool, a string, a number out of range.
+    return _Loss.apply(image, gt, lambda_dssim)
 
 
 # ---------------------------------------------------------------------------
