@@ -249,3 +249,34 @@ def test_integers_beyond_float_range_are_named(raster):
     field = ls.DeformNetwork.new(D=3, W=4)
     with pytest.raises(ValueError, match=r"DeformNetwork.forward\(\): argument `t`: expected a finite number"):
         field.forward(np.zeros((2, 3), np.float32), 10**400)
+
+
+def test_dicts_choices_and_dtypes_are_named():
+    """Non-dict tensors/metadata/state_dicts, string choices given as arrays, dtypes numpy
+    cannot read and tolerances json cannot write raised Python's or numpy's own errors
+    (AttributeError, 'truth value of an array is ambiguous', 'data type not understood')
+    that named no argument."""
+    from liquid_splat import gsplat as gs
+    from liquid_splat.testing import compare, recommended_tolerances
+
+    t, m = ls.load(CASES / "loss_f64.input.safetensors")
+    for call, msg in ((lambda: ls.run_case(None, m), r"run_case\(\): argument `tensors`: expected a dict, found NoneType"),
+                      (lambda: ls.run_case(t, list(m.items())), r"run_case\(\): argument `metadata`: expected a dict, found list"),
+                      (lambda: ls.step(t, "stage=step"), r"step\(\): argument `metadata`: expected a dict, found str"),
+                      (lambda: ls.save("x.safetensors", t, ["a"]), r"save\(\): argument `metadata`: expected a dict, found list"),
+                      (lambda: ls.DeformNetwork(None), r"DeformNetwork: argument `state_dict`: expected a dict, found NoneType"),
+                      (lambda: ls.CfCField({1: np.zeros(1), "cells.0.ff1.weight": np.zeros((2, 2))}), r"CfCField: state_dict: expected str keys \(parameter names\), found int 1"),
+                      (lambda: ls.DeformNetwork.new(D=3, W=4, dtype="bogus"), r"DeformNetwork.new\(\): argument `dtype`: expected float32 or float64, found 'bogus'"),
+                      (lambda: ls.CfCField.new(D=1, W=4, dtype=np.float16), r"CfCField.new\(\): argument `dtype`: expected float32 or float64, found float16"),
+                      (lambda: recommended_tolerances("bogus"), r"recommended_tolerances\(\): argument `dtype`: expected float32 or float64, found 'bogus'"),
+                      (lambda: recommended_tolerances(np.int8), r"recommended_tolerances\(\): argument `dtype`: expected float32 or float64, found int8"),
+                      (lambda: compare(t, t, tolerances={"default": {"atol": object()}}), r"compare\(\): argument `tolerances`: expected JSON values"),
+                      (lambda: compare({"a": [[1.0], [1.0, 2.0]]}, t), r"compare\(\): expected\['a'\]: expected an array, found list")):
+        with pytest.raises(TypeError, match=msg):
+            call()
+    q, _ = ls.load(CASES / "gsplat_quat_scale_to_covar_preci_f64.input.safetensors")
+    with pytest.raises(ValueError, match=r"quat_scale_to_covar_preci\(\): argument `version`: expected one of '1.5.3', '1.6', found array"):
+        gs.quat_scale_to_covar_preci(q["quats"], q["scales"], version=np.array(["1.6", "1.6"]))
+    # numpy scalars and 0-d arrays still do where a str or a number is expected.
+    gs.quat_scale_to_covar_preci(q["quats"], q["scales"], version=np.array("1.6"))
+    assert compare(t, t, tolerances={"default": {"atol": np.float32(1e-3), "equal_nan": np.True_}}).passed

@@ -339,3 +339,8 @@ def test_loss_weight_is_checked_as_in_numpy():
     want = lt.loss(T["image"], T["gt"], 0.5)
     for ok in (np.float32(0.5), torch.tensor(0.5), np.array(0.5)):
         assert lt.loss(T["image"], T["gt"], ok).item() == want.item()
+
+
+def test_from_state_dict_takes_a_dict():
+    with pytest.raises(TypeError, match=r"CfCField.from_state_dict\(\): argument `state_dict`: expected a dict, found list"):
+        lt.CfCField.from_state_dict([("skip.weight", torch.zeros(1))])

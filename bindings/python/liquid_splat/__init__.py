@@ -80,6 +80,27 @@ def _metadata(metadata: Mapping[Any, Any]) -> Dict[Any, Any]:
     return {k: _meta_value(v) for k, v in metadata.items()}
 
 
+def _mapping(func: str, name: str, x: Any) -> Dict[Any, Any]:
+    """A dict argument (tensors, metadata) as a new dict; anything else is a ``TypeError``
+    naming the argument."""
+    if not isinstance(x, Mapping):
+        raise TypeError(f"{func}(): argument `{name}`: expected a dict, found {type(x).__name__}")
+    return dict(x)
+
+
+def _float_dtype(func: str, name: str, dtype: Any) -> np.dtype:
+    """float32 or float64 from anything ``numpy.dtype`` reads; anything else is a
+    ``TypeError`` naming the argument."""
+    where = f"{func}(): argument `{name}`"
+    try:
+        dt = np.dtype(dtype)
+    except (TypeError, ValueError):
+        raise TypeError(f"{where}: expected float32 or float64, found {dtype!r}") from None
+    if dt not in _FLOATS:
+        raise TypeError(f"{where}: expected float32 or float64, found {dt}")
+    return dt
+
+
 def _threads(func: str, threads: Any) -> Optional[int]:
     """``threads``: None (all cores) or an integer in 1..=1024 (the CLI's `--threads`)."""
     if threads is None:
@@ -94,7 +115,9 @@ def _seed(func: str, seed: Any) -> int:
 def _run_case(
     func: str, tensors: Mapping[str, np.ndarray], metadata: Mapping[str, Any], threads: Any
 ) -> Tuple[Tensors, Dict[str, str]]:
-    return _native.run_case(dict(tensors), _metadata(metadata), _threads(func, threads))
+    tensors = _mapping(func, "tensors", tensors)
+    metadata = _mapping(func, "metadata", metadata)
+    return _native.run_case(tensors, _metadata(metadata), _threads(func, threads))
 
 
 def _path(func: str, name: str, x: Any) -> str:
@@ -186,9 +209,10 @@ def save(
     ``ValueError``; a file the operating system refuses (a missing folder, a directory, no
     permission) raises the matching ``OSError`` subclass."""
     path = _path("save", "path", path)
-    meta = None if metadata is None else _metadata(metadata)
+    tensors = _mapping("save", "tensors", tensors)
+    meta = None if metadata is None else _metadata(_mapping("save", "metadata", metadata))
     try:
-        _native.save(path, dict(tensors), meta)
+        _native.save(path, tensors, meta)
     except ValueError as e:
         err = _os_error(e)
         if err is e:
@@ -336,12 +360,14 @@ class _Args:
         return x
 
     def choice(self, name: str, x: Any, options: Tuple[str, ...]) -> str:
-        if x not in options:
+        if isinstance(x, np.ndarray) and x.ndim == 0:
+            x = x[()]
+        if not isinstance(x, str) or x not in options:
             raise ValueError(
                 f"{self.func}(): argument `{name}`: expected one of "
                 f"{', '.join(repr(o) for o in options)}, found {x!r}"
             )
-        return x
+        return str(x)
 
 
 # ---------------------------------------------------------------------------
@@ -535,6 +561,18 @@ class DeformResult(NamedTuple):
     d_xyz_se3: Optional[np.ndarray] = None
 
 
+def _state_dict(cls: str, state_dict: Any) -> Dict[str, Any]:
+    """A state_dict argument as a new dict with str keys (parameter names)."""
+    if not isinstance(state_dict, Mapping):
+        raise TypeError(f"{cls}: argument `state_dict`: expected a dict, found {type(state_dict).__name__}")
+    for k in state_dict:
+        if not isinstance(k, str):
+            raise TypeError(
+                f"{cls}: state_dict: expected str keys (parameter names), found {type(k).__name__} {k!r}"
+            )
+    return dict(state_dict)
+
+
 def _count(sd: Mapping[str, Any], fmt: str) -> int:
     n = 0
     while fmt.format(n) in sd:
@@ -667,13 +705,7 @@ class _Field:
 
     def astype(self, dtype: Any) -> "_Field":
         """The same field with its weights converted to ``dtype`` (float32 or float64)."""
-        where = f"{type(self).__name__}.astype(): argument `dtype`"
-        try:
-            dt = np.dtype(dtype)
-        except TypeError:
-            raise TypeError(f"{where}: expected float32 or float64, found {dtype!r}") from None
-        if dt not in _FLOATS:
-            raise TypeError(f"{where}: expected float32 or float64, found {dt}")
+        dt = _float_dtype(f"{type(self).__name__}.astype", "dtype", dtype)
         new = object.__new__(type(self))
         new.state_dict = {k: v.astype(dt) for k, v in self.state_dict.items()}
         new.dtype = dt
@@ -712,7 +744,7 @@ class DeformNetwork(_Field):
     kind = "mlp"
 
     def __init__(self, state_dict: Mapping[str, np.ndarray]):
-        sd = dict(state_dict)
+        sd = _state_dict("DeformNetwork", state_dict)
         depth = _count(sd, "linear.{}.weight")
         if depth == 0:
             raise ValueError(
@@ -733,7 +765,8 @@ class DeformNetwork(_Field):
         """A freshly initialised network with upstream's constructor arguments
         (``nn.Linear``'s default initialisation scheme, drawn from ``seed``, 0 to 2^64 − 1)."""
         meta = _mlp_config("DeformNetwork.new", D, W, is_blender, is_6dof)
-        return cls(_init_weights("DeformNetwork.new", meta, seed, np.dtype(dtype).name))
+        dt = _float_dtype("DeformNetwork.new", "dtype", dtype)
+        return cls(_init_weights("DeformNetwork.new", meta, seed, dt.name))
 
 
 class CfCField(_Field):
@@ -744,7 +777,7 @@ class CfCField(_Field):
     kind = "cfc"
 
     def __init__(self, state_dict: Mapping[str, np.ndarray], activation: str = "gelu"):
-        sd = dict(state_dict)
+        sd = _state_dict("CfCField", state_dict)
         depth = _count(sd, "cells.{}.ff1.weight")
         if depth == 0:
             raise ValueError(
@@ -774,12 +807,13 @@ class CfCField(_Field):
         drawn from ``seed``, 0 to 2^64 − 1)."""
         meta = _cfc_config("CfCField.new", D, W, variant, activation, backbone_units,
                            backbone_layers)
-        return cls(_init_weights("CfCField.new", meta, seed, np.dtype(dtype).name), activation)
+        dt = _float_dtype("CfCField.new", "dtype", dtype)
+        return cls(_init_weights("CfCField.new", meta, seed, dt.name), activation)
 
 
 def load_field(state_dict: Mapping[str, np.ndarray], activation: str = "gelu") -> _Field:
     """A :class:`DeformNetwork` or :class:`CfCField`, whichever the state_dict's keys are."""
-    if "cells.0.ff1.weight" in state_dict:
+    if isinstance(state_dict, Mapping) and "cells.0.ff1.weight" in state_dict:
         return CfCField(state_dict, activation)
     return DeformNetwork(state_dict)
 
@@ -820,7 +854,7 @@ def step(
     Unlike :func:`rasterize`, which renders the background when there are no Gaussians,
     ``step`` refuses N = 0 (``ValueError`` naming ``xyz``): a training iteration needs at
     least one Gaussian."""
-    meta = dict(metadata)
+    meta = _mapping("step", "metadata", metadata)
     if meta.setdefault("stage", "step") != "step":
         raise ValueError(f"step(): argument `metadata`: expected stage 'step', found {meta['stage']!r}")
     return _run_case("step", tensors, meta, threads)

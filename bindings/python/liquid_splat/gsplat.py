@@ -474,7 +474,7 @@ def isect_offset_encode(
     and name an image below ``n_images`` and a tile below ``tile_width·tile_height``
     (``ValueError`` naming the first key that does not)."""
     a = _Args("isect_offset_encode")
-    a.choice("version", version, VERSIONS)
+    version = a.choice("version", version, VERSIONS)
     where = "isect_offset_encode(): argument `isect_ids`"
     if not isinstance(isect_ids, np.ndarray):
         raise TypeError(f"{where}: expected a numpy.ndarray of int64, found {type(isect_ids).__name__}")

@@ -62,7 +62,10 @@ class CompareReport:
 def _array(name: str, v: Any) -> np.ndarray:
     if hasattr(v, "detach") and hasattr(v, "cpu"):  # a torch tensor
         v = v.detach().cpu().numpy()
-    return np.ascontiguousarray(np.asarray(v))
+    try:
+        return np.ascontiguousarray(np.asarray(v))
+    except (TypeError, ValueError) as e:  # a ragged list, a bfloat16 tensor, ...
+        raise TypeError(f"compare(): {name}: expected an array, found {type(v).__name__} ({e})") from None
 
 
 def _outputs(which: str, x: Outputs) -> Union[str, Dict[str, np.ndarray]]:
@@ -94,12 +97,23 @@ def _tolerance(name: str, x: Any) -> Optional[float]:
         ) from None
 
 
+def _json_number(x: Any) -> Any:
+    """numpy scalars in a tolerances dict as the Python numbers ``json`` writes."""
+    if isinstance(x, (np.bool_, np.integer, np.floating)):
+        return x.item()
+    raise TypeError(f"expected JSON values (numbers, bools, strings, dicts), found {type(x).__name__}")
+
+
 def recommended_tolerances(dtype: Any = "float32") -> Dict[str, Any]:
     """The recommended tolerance file for a backend in ``dtype`` (float32 or float64;
     ``fixtures/cases/tolerances_f32.json`` / ``tolerances_f64.json``), as a dict."""
-    key = np.dtype(dtype).name
+    where = "recommended_tolerances(): argument `dtype`"
+    try:
+        key = np.dtype(dtype).name
+    except (TypeError, ValueError):
+        raise TypeError(f"{where}: expected float32 or float64, found {dtype!r}") from None
     if key not in _native.RECOMMENDED_TOLERANCES:
-        raise ValueError(f"recommended_tolerances(): expected float32 or float64, found {key}")
+        raise TypeError(f"{where}: expected float32 or float64, found {key}")
     return json.loads(_native.RECOMMENDED_TOLERANCES[key])
 
 
@@ -128,7 +142,10 @@ def compare(
     if isinstance(tolerances, (str, bytes, os.PathLike)):
         tol_path = _path("compare", "tolerances", tolerances)
     elif isinstance(tolerances, Mapping):
-        tol_json = json.dumps(tolerances)
+        try:
+            tol_json = json.dumps(tolerances, default=_json_number)
+        except (TypeError, ValueError) as e:
+            raise TypeError(f"compare(): argument `tolerances`: {e}") from None
     elif tolerances is not None:
         raise TypeError(
             "compare(): argument `tolerances`: expected a path to a tolerance file or a dict, "

@@ -406,6 +406,9 @@ class DeformNetwork(_FieldModule):
     def from_state_dict(cls, state_dict: Mapping[str, torch.Tensor]) -> "DeformNetwork":
         """The network a ``deform.pth`` state_dict describes (sizes read from its keys and
         shapes), with those weights."""
+        if not isinstance(state_dict, Mapping):
+            raise TypeError(f"{cls.__name__}.from_state_dict(): argument `state_dict`: expected a "
+                            f"dict, found {type(state_dict).__name__}")
         sd = {k: _np(k, v) for k, v in state_dict.items()}
         c = _NpDeformNetwork(sd).config
         dtype = torch.float64 if next(iter(sd.values())).dtype == np.float64 else torch.float32
@@ -432,6 +435,9 @@ class CfCField(_FieldModule):
                         activation: str = "gelu") -> "CfCField":
         """The field a state_dict describes (sizes from its keys and shapes; the
         activation is not stored, so give it), with those weights."""
+        if not isinstance(state_dict, Mapping):
+            raise TypeError(f"{cls.__name__}.from_state_dict(): argument `state_dict`: expected a "
+                            f"dict, found {type(state_dict).__name__}")
         sd = {k: _np(k, v) for k, v in state_dict.items()}
         c = _NpCfCField(sd, activation).config
         dtype = torch.float64 if next(iter(sd.values())).dtype == np.float64 else torch.float32
