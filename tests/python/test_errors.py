@@ -36,7 +36,7 @@ def test_rasterize_bad_arguments(raster):
         ls.rasterize(**ins, **{**kw, "sh_degree": 4})
     with pytest.raises(ValueError, match="`tanfovx`: expected a finite positive number, found -1.0"):
         ls.rasterize(**ins, **{**kw, "tanfovx": -1.0})
-    with pytest.raises(ValueError, match="`image_width`: expected an integer >= 1, found 0"):
+    with pytest.raises(ValueError, match="`image_width`: expected an integer in 1..=67108864, found 0"):
         ls.rasterize(**ins, **{**kw, "image_width": 0})
     with pytest.raises(ValueError, match=r"`viewmatrix`: expected shape \[4,4\], found shape \[16\]"):
         ls.rasterize(**ins, **{**kw, "viewmatrix": kw["viewmatrix"].ravel()})
@@ -151,6 +151,8 @@ def test_metadata_numbers_are_written_exactly(tmp_path):
     r, rm = ls.load(CASES / "rasterize_f64_exact.input.safetensors")
     ins, kw = raster_inputs(r), raster_kwargs(r, rm)
     with pytest.raises(ValueError, match='"18446744073709551616"'):
+        ls.run_case(r, {**rm, "image_height": 2**64})
+    with pytest.raises(ValueError, match="`image_height`: expected an integer in 1..=67108864, found 18446744073709551616$"):
         ls.rasterize(**ins, **{**kw, "image_height": 2**64})
 
 
@@ -280,3 +282,38 @@ def test_dicts_choices_and_dtypes_are_named():
     # numpy scalars and 0-d arrays still do where a str or a number is expected.
     gs.quat_scale_to_covar_preci(q["quats"], q["scales"], version=np.array("1.6"))
     assert compare(t, t, tolerances={"default": {"atol": np.float32(1e-3), "equal_nan": np.True_}}).passed
+
+
+def test_sizes_are_bounded_naming_the_argument(raster):
+    """Image and tile sizes past the library's limits were refused by the library naming
+    the wrong key (`image_width` for a too-tall image, `backgrounds` for a tile grid that
+    did not match isect_offsets), accepted (isect_tiles' tile_size 2**63), or, in
+    isect_offset_encode, ran into numpy's MemoryError / OverflowError; each is a ValueError
+    naming the argument."""
+    from liquid_splat import gsplat as gs
+
+    ins, kw = raster
+    with pytest.raises(ValueError, match=r"rasterize\(\): argument `image_height`: expected an integer in 1..=67108864, found 2147483648"):
+        ls.rasterize(**ins, **{**kw, "image_height": 2**31})
+    with pytest.raises(ValueError, match=r"rasterize\(\): arguments `image_height`, `image_width`: expected at most 67108864 pixels, found 4194304x32 = 134217728"):
+        ls.rasterize(**ins, **{**kw, "image_height": 2**22})
+    t, m = ls.load(CASES / "gsplat_isect_tiles_f64_v16.input.safetensors")
+    isect = dict(means2d=t["means2d"], radii=t["radii"], depths=t["depths"], tile_size=16, tile_width=2,
+                 tile_height=1, packed=True, n_images=2, image_ids=t["image_ids"])
+    with pytest.raises(ValueError, match=r"isect_tiles\(\): argument `tile_size`: expected an integer in 1..=1024, found 9223372036854775808"):
+        gs.isect_tiles(**{**isect, "tile_size": 2**63})
+    with pytest.raises(ValueError, match=r"isect_tiles\(\): arguments `n_images`, `tile_width`, `tile_height`: .* found 2 images of 2147483648x1 tiles"):
+        gs.isect_tiles(**{**isect, "tile_width": 2**31})
+    _, ids, _ = gs.isect_tiles(**isect)
+    for key, value in (("n_images", 2**31), ("tile_width", 2**63), ("tile_height", 2**40)):
+        with pytest.raises(ValueError, match=r"isect_offset_encode\(\): arguments `n_images`, `tile_width`, `tile_height`: expected at most 67108864 tiles"):
+            gs.isect_offset_encode(ids, **{"n_images": 2, "tile_width": 2, "tile_height": 1, key: value})
+    r, rm = ls.load(CASES / "gsplat_rasterize_to_pixels_f64_v16_gsplat.input.safetensors")
+    args = [r[k] for k in ("means2d", "conics", "colors", "opacities")]
+    rest = dict(isect_offsets=r["isect_offsets"], flatten_ids=r["flatten_ids"], backgrounds=r["backgrounds"], packed=True)
+    with pytest.raises(ValueError, match=r"rasterize_to_pixels\(\): argument `isect_offsets`: expected shape \[I,1,1\] \(the tiles of a 1x16 image in tiles of 16\), found shape \[2,1,2\]"):
+        gs.rasterize_to_pixels(*args, 1, 16, 16, **rest)
+    with pytest.raises(ValueError, match=r"rasterize_to_pixels\(\): argument `image_height`: expected an integer in 1..=65536, found 100000"):
+        gs.rasterize_to_pixels(*args, 24, 100000, 16, **rest)
+    with pytest.raises(ValueError, match=r"rasterize_to_pixels\(\): argument `tile_size`: expected an integer in 1..=1024, found 2048"):
+        gs.rasterize_to_pixels(*args, 24, 16, 2048, **rest)

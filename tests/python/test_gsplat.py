@@ -216,7 +216,7 @@ def test_bad_arguments_are_named(raster):
         (dict(quats=args["quats"].tolist()), TypeError, r"`quats`: expected a numpy.ndarray .* found list"),
         (dict(Ks=args["Ks"][:1]), ValueError, r"`Ks`: expected shape \[C,3,3\] with C=2 from `viewmats`, found shape \[1,3,3\]"),
         (dict(colors=args["colors"][:, :4], sh_degree=None), ValueError, r"`colors`: expected shape \[N,D\], found shape \[10,4,3\]"),
-        (dict(width=0), ValueError, r"`width`: expected an integer >= 1, found 0"),
+        (dict(width=0), ValueError, r"`width`: expected an integer in 1..=65536, found 0"),
         (dict(render_mode="RGB+D"), ValueError, r"`render_mode`: only 'RGB' is supported by the oracle, found 'RGB\+D'"),
         (dict(rasterize_mode="fast"), ValueError, r"`rasterize_mode`: expected one of 'classic', 'antialiased', found 'fast'"),
         (dict(version="1.5"), ValueError, r"`version`: expected one of '1.5.3', '1.6', found '1.5'"),

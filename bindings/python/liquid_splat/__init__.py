@@ -62,6 +62,12 @@ _FLOATS = (np.dtype(np.float32), np.dtype(np.float64))
 #: The largest ``threads`` (the CLI's ``--threads`` range is 1..=1024).
 _MAX_THREADS = 1024
 
+#: The library's size limits (docs/ORACLE.md, "Sizes are bounded"): pixels of an image (the
+#: gsplat stages: over all images), a side of a gsplat image, a gsplat tile's side.
+_MAX_PIXELS = 1 << 26
+_MAX_SIDE = 65536
+_MAX_TILE_SIZE = 1024
+
 
 def _meta_value(v: Any) -> Any:
     """A metadata value as the string a case file stores: bools as ``true``/``false`` (what
@@ -449,8 +455,13 @@ def _raster_case(
     t["projmatrix"] = a.array("projmatrix", projmatrix, (4, 4))
     t["campos"] = a.array("campos", campos, (3,))
     t["bg"] = a.array("bg", bg, (3,))
-    meta["image_height"] = a.integer("image_height", image_height, 1)
-    meta["image_width"] = a.integer("image_width", image_width, 1)
+    h = meta["image_height"] = a.integer("image_height", image_height, 1, _MAX_PIXELS)
+    w = meta["image_width"] = a.integer("image_width", image_width, 1, _MAX_PIXELS)
+    if h * w > _MAX_PIXELS:
+        raise ValueError(
+            f"{func}(): arguments `image_height`, `image_width`: expected at most {_MAX_PIXELS} "
+            f"pixels, found {h}x{w} = {h * w}"
+        )
     meta["tanfovx"] = a.scalar("tanfovx", tanfovx, positive=True)
     meta["tanfovy"] = a.scalar("tanfovy", tanfovy, positive=True)
     meta["scale_modifier"] = a.scalar("scale_modifier", scale_modifier)

@@ -31,7 +31,7 @@ from typing import Any, Dict, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
-from . import MetaValue, Tensors, _Args, _run_case, _shape
+from . import _MAX_PIXELS, _MAX_SIDE, _MAX_TILE_SIZE, MetaValue, Tensors, _Args, _run_case, _shape
 
 __all__ = [
     "VERSIONS",
@@ -265,8 +265,8 @@ def _proj_case(func, means, covars, quats, scales, viewmats, Ks, width, height, 
     if opacities is not None:
         t["opacities"] = a.array("opacities", opacities, ("N",))
     meta = _common(a, version, gradient, "gsplat_fully_fused_projection")
-    meta["width"] = a.integer("width", width, 1)
-    meta["height"] = a.integer("height", height, 1)
+    meta["width"] = a.integer("width", width, 1, _MAX_SIDE)
+    meta["height"] = a.integer("height", height, 1, _MAX_SIDE)
     meta["eps2d"] = a.scalar("eps2d", eps2d)
     meta["near_plane"] = a.scalar("near_plane", near_plane)
     meta["far_plane"] = a.scalar("far_plane", far_plane)
@@ -445,13 +445,28 @@ def _isect(means2d, radii, depths, tile_size, tile_width, tile_height, sort, seg
                 f"found {n_images}"
             )
         t = {k: v.reshape((-1,) + v.shape[2:]) for k, v in t.items()}
-    meta["tile_size"] = a.integer("tile_size", tile_size, 1)
+    meta["tile_size"] = a.integer("tile_size", tile_size, 1, _MAX_TILE_SIZE)
     meta["tile_width"] = a.integer("tile_width", tile_width, 1)
     meta["tile_height"] = a.integer("tile_height", tile_height, 1)
+    _check_tiles(func, int(meta["n_images"]), int(meta["tile_width"]), int(meta["tile_height"]),
+                 meta["version"])
     out = _run(a, t, meta, threads)
     if not packed:
         out["tiles_per_gauss"] = out["tiles_per_gauss"].reshape(means2d.shape[:2])
     return out
+
+
+def _check_tiles(func: str, n_images: int, tile_width: int, tile_height: int, version: str) -> None:
+    """The library's limit on a tile grid (docs/ORACLE.md): images × tiles at most 2^26 and
+    the image and tile fields of a key in 31 bits."""
+    tiles = tile_width * tile_height
+    if (n_images * tiles > _MAX_PIXELS
+            or _key_bits(version, n_images) + _key_bits(version, tiles) > 31):
+        raise ValueError(
+            f"{func}(): arguments `n_images`, `tile_width`, `tile_height`: expected at most "
+            f"{_MAX_PIXELS} tiles over all images and a key of at most 31 bits of image and "
+            f"tile, found {n_images} images of {tile_width}x{tile_height} tiles"
+        )
 
 
 def _key_bits(version: str, count: int) -> int:
@@ -486,6 +501,7 @@ def isect_offset_encode(
     ni = a.integer("n_images", n_images, 1)
     tw = a.integer("tile_width", tile_width, 1)
     th = a.integer("tile_height", tile_height, 1)
+    _check_tiles("isect_offset_encode", ni, tw, th, version)
     bits = _key_bits(version, tw * th)
     key = isect_ids >> 32
     image, tile = key >> bits, key & ((1 << bits) - 1)
@@ -532,9 +548,15 @@ def _r2p_case(func, means2d, conics, colors, opacities, image_width, image_heigh
         )
     if backgrounds is not None:
         t["backgrounds"] = a.array("backgrounds", backgrounds, ("I", "D"))
-    meta["image_width"] = a.integer("image_width", image_width, 1)
-    meta["image_height"] = a.integer("image_height", image_height, 1)
-    meta["tile_size"] = a.integer("tile_size", tile_size, 1)
+    w = meta["image_width"] = a.integer("image_width", image_width, 1, _MAX_SIDE)
+    h = meta["image_height"] = a.integer("image_height", image_height, 1, _MAX_SIDE)
+    ts = meta["tile_size"] = a.integer("tile_size", tile_size, 1, _MAX_TILE_SIZE)
+    grid = (-(-h // ts), -(-w // ts))
+    if isect_offsets.shape[1:] != grid:
+        raise ValueError(
+            f"{func}(): argument `isect_offsets`: expected shape [I,{grid[0]},{grid[1]}] (the "
+            f"tiles of a {w}x{h} image in tiles of {ts}), found shape {_shape(isect_offsets.shape)}"
+        )
     if not packed:
         for k in ("means2d", "conics", "colors", "opacities"):
             t[k] = t[k].reshape((-1,) + t[k].shape[2:])
@@ -665,14 +687,14 @@ def _raster_case(func, means, quats, scales, opacities, colors, viewmats, Ks, wi
     t["Ks"] = a.array("Ks", Ks, ("C", 3, 3))
     if backgrounds is not None:
         t["backgrounds"] = a.array("backgrounds", backgrounds, ("C", d))
-    meta["width"] = a.integer("width", width, 1)
-    meta["height"] = a.integer("height", height, 1)
+    meta["width"] = a.integer("width", width, 1, _MAX_SIDE)
+    meta["height"] = a.integer("height", height, 1, _MAX_SIDE)
     meta["near_plane"] = a.scalar("near_plane", near_plane)
     meta["far_plane"] = a.scalar("far_plane", far_plane)
     meta["radius_clip"] = a.scalar("radius_clip", radius_clip)
     meta["eps2d"] = a.scalar("eps2d", eps2d)
     meta["packed"] = _flag(a, "packed", packed)
-    meta["tile_size"] = a.integer("tile_size", tile_size, 1)
+    meta["tile_size"] = a.integer("tile_size", tile_size, 1, _MAX_TILE_SIZE)
     _only(a, "render_mode", render_mode, "RGB")
     _only(a, "sparse_grad", sparse_grad, False)
     _flag(a, "absgrad", absgrad)
