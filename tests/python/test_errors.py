@@ -317,3 +317,16 @@ def test_sizes_are_bounded_naming_the_argument(raster):
         gs.rasterize_to_pixels(*args, 24, 100000, 16, **rest)
     with pytest.raises(ValueError, match=r"rasterize_to_pixels\(\): argument `tile_size`: expected an integer in 1..=1024, found 2048"):
         gs.rasterize_to_pixels(*args, 24, 16, 2048, **rest)
+
+
+def test_metadata_text_and_tolerance_numbers():
+    """A metadata string with a lone surrogate was a UnicodeEncodeError naming no key; a
+    numpy longdouble in a tolerances dict recursed without end."""
+    from liquid_splat.testing import compare
+
+    t, m = ls.load(CASES / "loss_f64.input.safetensors")
+    with pytest.raises(ValueError, match=r"metadata\['stage'\]: expected UTF-8 text, found 'loss\\ud800'"):
+        ls.run_case(t, {**m, "stage": "loss\ud800"})
+    with pytest.raises(ValueError, match=r"metadata\['activation'\]: expected UTF-8 text"):
+        ls.CfCField.new(D=1, W=4, activation="\ud800")
+    assert compare(t, t, tolerances={"default": {"atol": np.longdouble(1e-3)}}).passed

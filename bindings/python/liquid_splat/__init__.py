@@ -82,8 +82,21 @@ def _meta_value(v: Any) -> Any:
     return v
 
 
+def _meta_text(k: Any, v: Any) -> Any:
+    """A str metadata value the library can read (UTF-8); others as :func:`_meta_value`."""
+    v = _meta_value(v)
+    if isinstance(v, str):
+        try:
+            v.encode("utf-8")
+        except UnicodeEncodeError as e:
+            raise ValueError(
+                f"metadata[{k!r}]: expected UTF-8 text, found {v!r} ({e.reason} at position {e.start})"
+            ) from None
+    return v
+
+
 def _metadata(metadata: Mapping[Any, Any]) -> Dict[Any, Any]:
-    return {k: _meta_value(v) for k, v in metadata.items()}
+    return {k: _meta_text(k, v) for k, v in metadata.items()}
 
 
 def _mapping(func: str, name: str, x: Any) -> Dict[Any, Any]:

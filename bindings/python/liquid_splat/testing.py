@@ -99,8 +99,12 @@ def _tolerance(name: str, x: Any) -> Optional[float]:
 
 def _json_number(x: Any) -> Any:
     """numpy scalars in a tolerances dict as the Python numbers ``json`` writes."""
-    if isinstance(x, (np.bool_, np.integer, np.floating)):
-        return x.item()
+    if isinstance(x, np.bool_):
+        return bool(x)
+    if isinstance(x, np.integer):
+        return int(x)
+    if isinstance(x, np.floating):  # (float(), not .item(): a longdouble's item is itself)
+        return float(x)
     raise TypeError(f"expected JSON values (numbers, bools, strings, dicts), found {type(x).__name__}")
 
 
