@@ -983,3 +983,35 @@ fn errors_name_the_file_and_field() {
     liquid_splat::io::image::write_png::<f32>(&first, &[0.5; 3 * 8 * 8], 8, 8).unwrap();
     refused(&["inspect", s(&data)], &["r_000.png", "first image"]);
 }
+
+/// A nerfies image size (at the layout's ratio) that `--downscale` does not
+/// divide is refused naming the camera file's `image_size` and the factor;
+/// it was reported as the first image disagreeing with a camera of the
+/// truncated size ("image is 6x6, its camera says 4x4").
+#[test]
+fn a_nerfies_size_the_downscale_does_not_divide_is_named() {
+    let d = tmp("nerfies-downscale");
+    let data = d.join("scene");
+    ok(&[
+        "synth",
+        "swing",
+        s(&data),
+        "--layout",
+        "nerfies",
+        "--resolution",
+        "12",
+        "--frames",
+        "4",
+        "--eval-frames",
+        "1",
+        "--supersampling",
+        "1",
+    ]);
+    // Ratio 0.5 (the parent folder's name is not one of upstream's): 6x6.
+    ok(&["inspect", s(&data), "--downscale", "2"]);
+    let text = refused(
+        &["inspect", s(&data), "--downscale", "4"],
+        &["camera", "image_size", "6x6", "downscale factor 4"],
+    );
+    assert!(!text.contains("its camera says"), "{text}");
+}

@@ -247,6 +247,18 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         crate::camera::check_rotation(&rot).map_err(|w| Error::field(&cp, "orientation", w))?;
         let t = (-(dmat3_from_rows(&rot) * DVec3::from_slice(&pos))).to_array();
         let r = opts.downscale;
+        // The box filter takes whole r×r blocks: a size it does not divide
+        // would give a camera of another size than the filtered image.
+        if !w.is_multiple_of(r) || !h.is_multiple_of(r) {
+            return Err(Error::field(
+                &cp,
+                "image_size",
+                format!(
+                    "{w}x{h} pixels at this scale ({folder}) are not divisible by the \
+                     downscale factor {r} (--downscale)"
+                ),
+            ));
+        }
         let camera = Camera::from_w2c(rot, t, fx, fy, w, h)
             .map_err(|e| Error::field(&cp, "orientation/position", e.to_string()))?;
         let time = if max_t > 0.0 {
