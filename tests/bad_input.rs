@@ -1015,3 +1015,72 @@ fn a_nerfies_size_the_downscale_does_not_divide_is_named() {
     );
     assert!(!text.contains("its camera says"), "{text}");
 }
+
+/// Rewrite the JSON header of the safetensors file at `p` with `edit`,
+/// keeping the data bytes.
+fn edit_header(p: &Path, edit: impl FnOnce(&mut serde_json::Map<String, serde_json::Value>)) {
+    let bytes = std::fs::read(p).unwrap();
+    let n = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let mut header: serde_json::Map<String, serde_json::Value> =
+        serde_json::from_slice(&bytes[8..8 + n]).unwrap();
+    edit(&mut header);
+    let mut h = serde_json::to_vec(&header).unwrap();
+    h.resize(h.len().next_multiple_of(8), b' ');
+    let mut out = (h.len() as u64).to_le_bytes().to_vec();
+    out.extend(h);
+    out.extend(&bytes[8 + n..]);
+    std::fs::write(p, out).unwrap();
+}
+
+/// A safetensors header whose tensor sizes or offsets disagree with its
+/// data is refused naming the tensor, its dtype, shape and offsets; the
+/// messages were "TensorInvalidInfo" (no tensor) and an `InvalidOffset`
+/// naming only the tensor after a gap.
+#[test]
+fn safetensors_size_and_offset_errors_name_the_tensor() {
+    let d = tmp("st-header");
+    let o = d.join("out.safetensors");
+    let p = case(d.as_path(), "a.safetensors", &["loss"], |_| {});
+    let original = std::fs::read(&p).unwrap();
+    // The tensor that starts the data.
+    let mut first = String::new();
+    edit_header(&p, |h| {
+        let (name, info) = h
+            .iter_mut()
+            .filter(|(k, _)| *k != "__metadata__")
+            .find(|(_, v)| v["data_offsets"][0] == 0)
+            .unwrap();
+        first = name.clone();
+        let shape = info["shape"].as_array_mut().unwrap();
+        let d0 = shape[0].as_u64().unwrap();
+        shape[0] = (d0 + 1).into();
+    });
+    let text = refused(
+        &["case", "run", s(&p), s(&o)],
+        &[s(&p), &first, "data_offsets [0, ", "for dtype"],
+    );
+    assert!(!text.contains("TensorInvalidInfo"), "{text}");
+
+    // A tensor missing from the header leaves a gap before the next one.
+    std::fs::write(&p, &original).unwrap();
+    edit_header(&p, |h| {
+        h.remove(&first);
+    });
+    let text = refused(
+        &["case", "run", s(&p), s(&o)],
+        &[
+            s(&p),
+            "without gaps or overlaps",
+            "the data begins at byte 0",
+        ],
+    );
+    assert!(!text.contains("InvalidOffset"), "{text}");
+
+    // Bytes after the last tensor.
+    let mut longer = original.clone();
+    longer.extend([0u8; 8]);
+    std::fs::write(&p, &longer).unwrap();
+    refused(&["case", "run", s(&p), s(&o)], &[s(&p), "after the header"]);
+    std::fs::write(&p, &original).unwrap();
+    ok(&["case", "run", s(&p), s(&o)]);
+}

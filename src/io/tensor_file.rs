@@ -196,22 +196,94 @@ fn check_offsets(path: &Path, bytes: &[u8]) -> Result<()> {
             ));
         }
     }
+    let tensor_err = |name: &str, expected: String, found: String| Error::Tensor {
+        context: path.display().to_string(),
+        name: name.to_string(),
+        expected,
+        found,
+    };
+    // (name, dtype, shape, start, end) of each tensor whose entry has this shape.
+    let mut entries = Vec::new();
     for (name, info) in header.iter().filter(|(k, _)| *k != "__metadata__") {
         let Some(offsets) = info.get("data_offsets").and_then(|o| o.as_array()) else {
             continue;
         };
         for o in offsets.iter().filter_map(|o| o.as_u64()) {
             if o > data {
-                return Err(Error::Tensor {
-                    context: path.display().to_string(),
-                    name: name.clone(),
-                    expected: format!("data_offsets within the file's {data} bytes of data"),
-                    found: format!("offset {o}"),
-                });
+                return Err(tensor_err(
+                    name,
+                    format!("data_offsets within the file's {data} bytes of data"),
+                    format!("offset {o}"),
+                ));
             }
         }
+        let offsets: Vec<u64> = offsets.iter().filter_map(|o| o.as_u64()).collect();
+        let dtype = info.get("dtype").and_then(|d| d.as_str());
+        let shape = info
+            .get("shape")
+            .and_then(|d| d.as_array())
+            .map(|a| a.iter().map(|x| x.as_u64()).collect::<Option<Vec<u64>>>());
+        if let (&[a, b], Some(dtype), Some(Some(shape))) = (&offsets[..], dtype, shape) {
+            entries.push((name, dtype, shape, a, b));
+        }
+    }
+    // The crate's own errors for what follows name no tensor
+    // (`TensorInvalidInfo`) or the one after a gap (`InvalidOffset`).
+    let complete = entries.len() == header.keys().filter(|k| *k != "__metadata__").count();
+    entries.sort_by_key(|e| (e.3, e.4));
+    let mut end = 0;
+    for (name, dtype, shape, a, b) in entries {
+        let offsets = format!("data_offsets [{a}, {b}]");
+        if a != end || b < a {
+            let before = if end == 0 {
+                "the data begins at byte 0".to_string()
+            } else {
+                format!("the tensors before it end at byte {end}")
+            };
+            return Err(tensor_err(
+                name,
+                format!("offsets that cover the data in order without gaps or overlaps ({before})"),
+                offsets,
+            ));
+        }
+        end = b;
+        let size = match dtype {
+            "BOOL" | "U8" | "I8" | "F8_E5M2" | "F8_E4M3" => 1u64,
+            "I16" | "U16" | "F16" | "BF16" => 2,
+            "I32" | "U32" | "F32" => 4,
+            "I64" | "U64" | "F64" => 8,
+            _ => continue,
+        };
+        let bytes = shape
+            .iter()
+            .try_fold(size, |n, &d| n.checked_mul(d))
+            .filter(|&n| usize::try_from(n).is_ok());
+        if bytes != Some(b - a) {
+            let want = match bytes {
+                Some(n) => format!("{n} bytes"),
+                None => "a size that overflows".to_string(),
+            };
+            return Err(tensor_err(
+                name,
+                format!(
+                    "{want} for dtype {dtype} and shape {}",
+                    shape_str_u64(&shape)
+                ),
+                format!("{offsets}: {} bytes", b - a),
+            ));
+        }
+    }
+    if complete && end != data {
+        return Err(bad(format!(
+            "the tensors' data ends at byte {end}, but the file holds {data} bytes after the header"
+        )));
     }
     Ok(())
+}
+
+fn shape_str_u64(shape: &[u64]) -> String {
+    let dims: Vec<String> = shape.iter().map(u64::to_string).collect();
+    format!("[{}]", dims.join(","))
 }
 
 impl TensorFile {
