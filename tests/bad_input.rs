@@ -1084,3 +1084,37 @@ fn safetensors_size_and_offset_errors_name_the_tensor() {
     std::fs::write(&p, &original).unwrap();
     ok(&["case", "run", s(&p), s(&o)]);
 }
+
+/// The experiment's scene names, folder names and seeds are checked before
+/// the first run trains: an unknown scene was refused only after the runs
+/// before it, and a repeated name or seed was "done earlier, kept" with the
+/// first one's results (runs are recorded by name, field and seed).
+#[test]
+fn experiment_names_and_seeds_are_checked_before_training() {
+    let d = tmp("exp-names");
+    let out = d.join("exp");
+    let other = d.join("other").join("swing");
+    copy_dir(Path::new(SWING), &other);
+    let base = ["experiment", "--iterations", "100000", "--out", s(&out)];
+    for (extra, needles) in [
+        (&["--scenes", "swing,,blob"][..], &["--scenes", "``"][..]),
+        (&["--scenes", "swing,nope"], &["--scenes", "`nope`"]),
+        (
+            &["--scenes", "swing,blob,swing"],
+            &["--scenes", "`swing`", "twice"],
+        ),
+        (
+            &["--scenes", "swing", "--seeds", "1,2,1"],
+            &["--seeds", "1", "twice"],
+        ),
+        (
+            &[SWING, s(&other)],
+            &["dataset folder", "same name `swing`"],
+        ),
+    ] {
+        let mut a = base.to_vec();
+        a.extend(extra);
+        refused_within(&a, Duration::from_secs(20), needles);
+        assert!(!out.join("training").exists(), "{a:?} trained");
+    }
+}

@@ -179,6 +179,59 @@ impl Experiment {
                 })
                 .collect()
         };
+        // Every name and seed before the first run trains: runs are recorded
+        // by scene name, field and seed, so a repeated one would be reported
+        // as "done earlier, kept" with another run's results.
+        if self.data.is_empty() {
+            if let Some(bad) = self
+                .scenes
+                .iter()
+                .find(|s| crate::dataset::synth::SceneName::parse(s).is_none())
+            {
+                let names: Vec<&str> = crate::dataset::synth::SceneName::ALL
+                    .iter()
+                    .map(|n| n.name())
+                    .collect();
+                return Err(Error::invalid(
+                    "--scenes",
+                    format!("`{bad}` is not one of {}", names.join(", ")),
+                ));
+            }
+        }
+        for (i, (scene, _)) in scenes.iter().enumerate() {
+            if let Some((_, (_, first))) = scenes[..i]
+                .iter()
+                .enumerate()
+                .find(|(_, (s, _))| s == scene)
+            {
+                return Err(if self.data.is_empty() {
+                    Error::invalid("--scenes", format!("`{scene}` is given twice"))
+                } else {
+                    let shown = |s: &RunSpec| {
+                        s.data
+                            .as_ref()
+                            .map_or(String::new(), |d| d.display().to_string())
+                    };
+                    Error::invalid(
+                        "dataset folder",
+                        format!(
+                            "{} and {} have the same name `{scene}` (runs are recorded by \
+                             folder name)",
+                            shown(first),
+                            shown(&scenes[i].1)
+                        ),
+                    )
+                });
+            }
+        }
+        if let Some((_, seed)) = self
+            .seeds
+            .iter()
+            .enumerate()
+            .find(|(i, s)| self.seeds[..*i].contains(s))
+        {
+            return Err(Error::invalid("--seeds", format!("{seed} is given twice")));
+        }
         let all_fields = fields(self.ablations);
         let mut plan = Vec::new();
         for (i, (scene, base)) in scenes.iter().enumerate() {
