@@ -96,8 +96,14 @@ pub fn check_rotation(r: &[[f64; 3]; 3]) -> std::result::Result<(), String> {
         .fold(0.0f64, |w, c| w.max(c.abs().max_element()));
     let det = m.determinant();
     if worst > ROTATION_TOLERANCE || (det - 1.0).abs() > ROTATION_TOLERANCE {
+        // A huge determinant in `{:.6}` would be hundreds of digits.
+        let det = if det.abs() < 1e6 {
+            format!("{det:.6}")
+        } else {
+            format!("{det:.3e}")
+        };
         return Err(format!(
-            "{r:?} is not a rotation: max |RᵀR − I| = {worst:.3e}, det = {det:.6} (tolerance {ROTATION_TOLERANCE:e})"
+            "{r:?} is not a rotation: max |RᵀR − I| = {worst:.3e}, det = {det} (tolerance {ROTATION_TOLERANCE:e})"
         ));
     }
     Ok(())
@@ -145,7 +151,10 @@ impl Camera {
         check_finite("camera translation", &translation)?;
         for (name, fov) in [("fov_x", fov_x), ("fov_y", fov_y)] {
             if !(fov > 0.0 && fov < std::f64::consts::PI) {
-                return Err(Error::invalid(name, format!("{fov} is not in (0, pi)")));
+                return Err(Error::invalid(
+                    name,
+                    format!("{} is not in (0, pi)", crate::error::shown(fov)),
+                ));
             }
         }
         if width == 0 || height == 0 {

@@ -178,6 +178,16 @@ impl Outcome {
     }
 }
 
+/// `v` for a message: as `{}` writes it, but in exponent form when that
+/// would be long (`1e308` is 309 digits in `{}`, `1e-300` over 300).
+pub fn shown(v: f64) -> String {
+    if v == 0.0 || !v.is_finite() || (1e-4..1e15).contains(&v.abs()) {
+        format!("{v}")
+    } else {
+        format!("{v:e}")
+    }
+}
+
 /// The process exit code of a command's result: [`EXIT_SUCCESS`],
 /// [`EXIT_CHECK_FAILED`], or [`EXIT_UNUSABLE_INPUT`] for every error. The one
 /// place results become exit codes (the CLI, the binary and the Python

@@ -851,6 +851,14 @@ fn degenerate_cameras_and_times_are_refused() {
             &["transforms_train.json", "frames[0].transform_matrix"],
         );
     }
+    // A huge element: the determinant is printed in exponent form, not as
+    // hundreds of digits.
+    let huge = edit_frame("huge", &|f| m(f, 1, 2, -1e308));
+    let text = refused(
+        &["inspect", s(&huge)],
+        &["frames[0].transform_matrix", "not a rotation", "det = "],
+    );
+    assert!(text.len() < 1000, "{text}");
     let late = edit_frame("late", &|f| f["time"] = 1e308.into());
     refused(
         &["inspect", s(&late)],
@@ -1117,4 +1125,86 @@ fn experiment_names_and_seeds_are_checked_before_training() {
         refused_within(&a, Duration::from_secs(20), needles);
         assert!(!out.join("training").exists(), "{a:?} trained");
     }
+}
+
+/// Extreme numbers are named in exponent form: `{}` wrote 1e308 as 309
+/// digits. A nerfies focal length of 1e308 (a field of view of about
+/// 1e-308, a tangent that is 0 in f32) is refused like D-NeRF's
+/// `camera_angle_x` below 1e-6; it was accepted.
+#[test]
+fn extreme_numbers_are_refused_in_short_messages() {
+    let d = tmp("extreme");
+    let short = |args: &[&str], needles: &[&str]| {
+        let text = refused(args, needles);
+        assert!(!text.contains("0000000000"), "{text}");
+    };
+    let n = d.join("nerfies");
+    copy_dir(Path::new(BLOB_NERFIES), &n);
+    let edit = |file: &Path, edit: &dyn Fn(&mut serde_json::Value)| -> Vec<u8> {
+        let original = std::fs::read(file).unwrap();
+        let mut v: serde_json::Value = serde_json::from_slice(&original).unwrap();
+        edit(&mut v);
+        std::fs::write(file, serde_json::to_vec(&v).unwrap()).unwrap();
+        original
+    };
+    let cam = n.join("camera").join("00000.json");
+    for (key, value, needles) in [
+        (
+            "focal_length",
+            1e308,
+            &["focal_length", "5e307 pixels", "[1e-6, pi - 1e-6]"][..],
+        ),
+        ("focal_length", -1e308, &["focal_length", "-5e307"]),
+        ("focal_length", 1e-308, &["focal_length", "5e-309"]),
+    ] {
+        let original = edit(&cam, &|v| v[key] = value.into());
+        short(&["inspect", s(&n)], needles);
+        std::fs::write(&cam, original).unwrap();
+    }
+    let original = edit(&cam, &|v| v["image_size"][0] = 1e308.into());
+    short(&["inspect", s(&n)], &["image_size", "5e307x"]);
+    std::fs::write(&cam, original).unwrap();
+    let scene = n.join("scene.json");
+    let original = edit(&scene, &|v| v["scale"] = (-1e308).into());
+    short(&["inspect", s(&n)], &["scale", "-1e308"]);
+    std::fs::write(&scene, original).unwrap();
+    let meta = n.join("metadata.json");
+    edit(&meta, &|v| {
+        let id = v.as_object().unwrap().keys().next().unwrap().clone();
+        v[&id]["time_id"] = (-1e308).into();
+    });
+    short(&["inspect", s(&n)], &["time_id", "-1e308"]);
+
+    let data = d.join("swing");
+    copy_dir(Path::new(SWING), &data);
+    edit(&data.join("transforms_test.json"), &|v| {
+        v["frames"][0]["time"] = 1e308.into()
+    });
+    short(
+        &["inspect", s(&data)],
+        &["frames[0].time", "1e308 is not in [0, 1]"],
+    );
+
+    let a = case(d.as_path(), "a.safetensors", &["loss"], |_| {});
+    short(
+        &["case", "compare", s(&a), s(&a), "--atol", "-1e308"],
+        &["atol", "-1e308"],
+    );
+    short(
+        &[
+            "case",
+            "compare",
+            s(&a),
+            s(&a),
+            "--max-mismatch-fraction",
+            "1e300",
+        ],
+        &["max_mismatch_fraction", "1e300"],
+    );
+    let run = d.join("run");
+    train(SWING, &run, &[]);
+    short(
+        &["export", s(&run), "--times", "1e300"],
+        &["--times", "1e300"],
+    );
 }

@@ -529,7 +529,10 @@ fn check_times(times: &[f64], name: impl Fn(f64) -> String) -> Result<()> {
     if let Some(t) = times.iter().find(|t| !t.is_finite() || t.abs() > MAX_TIME) {
         return Err(Error::invalid(
             "--times",
-            format!("{t} (finite, at most {MAX_TIME:e} in magnitude)"),
+            format!(
+                "{} (finite, at most {MAX_TIME:e} in magnitude)",
+                crate::error::shown(*t)
+            ),
         ));
     }
     let mut names: Vec<String> = times.iter().map(|&t| name(t)).collect();

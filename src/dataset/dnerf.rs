@@ -82,7 +82,7 @@ fn read_split(dir: &Path, split: &str) -> Result<SplitSpec> {
             return Err(Error::field(
                 &file,
                 &t_field,
-                format!("{time} is not in [0, 1]"),
+                format!("{} is not in [0, 1]", crate::error::shown(time)),
             ));
         }
         let m_field = format!("frames[{i}].transform_matrix");

@@ -22,7 +22,7 @@
 use super::image::{box_downscale, to_chw};
 use super::{json, par_map_ordered, Dataset, DatasetKind, Frame, LoadOptions, NerfiesSplit};
 use crate::camera::{focal2fov, Camera};
-use crate::error::{Error, Result};
+use crate::error::{shown, Error, Result};
 use crate::gaussians::init::{InitialPoints, RANDOM_CUBE_HALF_EXTENT};
 use crate::io::png::read as read_png;
 use crate::math::vec::dmat3_from_rows;
@@ -144,7 +144,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         return Err(Error::field(
             &scene_path,
             "scale",
-            format!("{scale} (must be finite and > 0)"),
+            format!("{} (must be finite and > 0)", shown(scale)),
         ));
     }
     let center = json::vector(
@@ -162,7 +162,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             return Err(Error::field(
                 &meta_path,
                 &f,
-                format!("{t} (must be finite and >= 0)"),
+                format!("{} (must be finite and >= 0)", shown(t)),
             ));
         }
         Ok(t)
@@ -206,21 +206,28 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
                 &cp,
                 "image_size",
                 format!(
-                    "{w}x{h} pixels at this scale (each side at least 1, at most {} pixels)",
+                    "{}x{} pixels at this scale (each side at least 1, at most {} pixels)",
+                    shown(w),
+                    shown(h),
                     crate::render::MAX_PIXELS
                 ),
             ));
         }
-        // Both fields of view must be in (0, pi).
+        // Both fields of view in [1e-6, pi - 1e-6], as D-NeRF's
+        // `camera_angle_x` (narrower ones give a tangent that rounds to 0 in
+        // f32; a focal length of 1e308 gave 1e-308).
         let (fx, fy) = (focal2fov(focal, w), focal2fov(focal, h));
-        let pi = std::f64::consts::PI;
-        if !(focal > 0.0 && fx > 0.0 && fy > 0.0 && fx < pi && fy < pi) {
+        let fovs = 1e-6..=std::f64::consts::PI - 1e-6;
+        if !(focal > 0.0 && fovs.contains(&fx) && fovs.contains(&fy)) {
             return Err(Error::field(
                 &cp,
                 "focal_length",
                 format!(
-                    "{focal} pixels at this scale for a {w}x{h} image: fields of view {fx} and \
-                     {fy} radians (each must be in (0, pi))"
+                    "{} pixels at this scale for a {w}x{h} image: fields of view {} and {} \
+                     radians (each must be in [1e-6, pi - 1e-6])",
+                    shown(focal),
+                    shown(fx),
+                    shown(fy)
                 ),
             ));
         }

@@ -185,7 +185,7 @@ impl ToleranceSpec {
                 if !(v.is_finite() && v >= 0.0) {
                     return Err(Error::invalid(
                         format!("{at}.{field}"),
-                        format!("{v} is not a finite number >= 0"),
+                        format!("{} is not a finite number >= 0", crate::error::shown(v)),
                     ));
                 }
             }
@@ -194,7 +194,7 @@ impl ToleranceSpec {
             if !(0.0..=1.0).contains(&v) {
                 return Err(Error::invalid(
                     format!("{at}.max_mismatch_fraction"),
-                    format!("{v} is not in [0, 1]"),
+                    format!("{} is not in [0, 1]", crate::error::shown(v)),
                 ));
             }
         }
