@@ -156,3 +156,22 @@ fn corrupted_and_truncated_files_exit_2() {
     }
     std::fs::remove_dir_all(&d).unwrap();
 }
+
+/// A `--report` path that cannot be written is refused before the
+/// comparison: the table and "PASS" were printed, then exit 2.
+#[test]
+fn an_unwritable_report_path_is_refused_before_the_verdict() {
+    let d = scratch("report-path");
+    let e = write(&d, "e.safetensors", &[1.0, 2.0, 3.0], vec![1, 2]);
+    for report in [d.join("missing").join("r.json"), d.to_path_buf()] {
+        let (code, out, err) = run(&[
+            e.as_os_str(),
+            e.as_os_str(),
+            "--report".as_ref(),
+            report.as_os_str(),
+        ]);
+        assert_eq!(code, 2, "{out}{err}");
+        assert!(err.contains("--report"), "{err}");
+        assert!(!out.contains("PASS"), "{out}");
+    }
+}

@@ -261,7 +261,32 @@ fn run_case(input: &Path, output: &Path) -> crate::Result<Outcome> {
     Ok(Outcome::Success)
 }
 
+/// Refuses a `--report` path that cannot be written (a folder, or in a
+/// folder that does not exist) before the comparison prints its verdict.
+fn check_report_path(p: &std::path::Path) -> crate::Result<()> {
+    let why = if p.is_dir() {
+        Some("is a folder")
+    } else {
+        match p.parent() {
+            Some(d) if !d.as_os_str().is_empty() && !d.is_dir() => {
+                Some("is in no folder that exists")
+            }
+            _ => None,
+        }
+    };
+    match why {
+        Some(why) => Err(crate::Error::invalid(
+            "--report",
+            format!("{} {why}", p.display()),
+        )),
+        None => Ok(()),
+    }
+}
+
 fn run_compare(args: CompareArgs) -> crate::Result<Outcome> {
+    if let Some(p) = &args.report {
+        check_report_path(p)?;
+    }
     let mut tol = match &args.tolerances {
         Some(p) => Tolerances::load(p)?,
         None => Tolerances::default(),
