@@ -238,6 +238,18 @@ fn resumed_run_ends_bit_identical_to_the_uninterrupted_run() {
     let last = checkpoint::latest(&a.join("checkpoints")).unwrap().unwrap();
     let t = checkpoint::load::<f32>(&last, &cfg, &binding(&data)).unwrap();
     assert_eq!(format!("{:016x}", t.state_hash()), full.state_hash);
+    // Renamed as an earlier checkpoint, it is refused (a resumed run would
+    // name its next checkpoints from the state's iteration).
+    let renamed = tmp("renamed").join("checkpoints").join("iteration_000030");
+    copy_dir(&last, &renamed);
+    let err = checkpoint::load::<f32>(&renamed, &cfg, &binding(&data))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("__metadata__.iteration")
+            && err.contains("90, but the checkpoint's folder is named for iteration 30"),
+        "{err}"
+    );
     let ply = liquid_splat::gaussians::ply::read_gaussians::<f32>(&last.join(checkpoint::PLY_FILE))
         .unwrap();
     assert_eq!(ply.xyz, t.model().gaussians.xyz);

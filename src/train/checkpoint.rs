@@ -360,8 +360,27 @@ fn load_checked<T: Real>(
         active_sh_degree: f.meta_parse("active_sh_degree")?,
         background,
     };
+    let iteration: u64 = f.meta_parse("iteration")?;
+    // `latest` picks a run's checkpoint by its folder's number, and resumed
+    // runs name their next checkpoints from the state's: the two must agree.
+    if let Some(named) = ckpt
+        .file_name()
+        .and_then(|n| n.to_str())
+        .and_then(|n| n.strip_prefix("iteration_"))
+        .and_then(|n| n.parse::<u64>().ok())
+    {
+        if named != iteration {
+            return Err(Error::field(
+                &path,
+                "__metadata__.iteration",
+                format!(
+                    "{iteration}, but the checkpoint's folder is named for iteration {named}                      (a folder renamed or copied over another)"
+                ),
+            ));
+        }
+    }
     let progress = Progress {
-        iteration: f.meta_parse("iteration")?,
+        iteration,
         sampler: CameraSampler::from_state(views, stack, f.meta_parse("sampler.rng")?),
         ast_rng: Rng::new(f.meta_parse("ast.rng")?),
     };
