@@ -190,5 +190,22 @@ fn export_and_render_times_commands() {
     assert_eq!(r.status.code(), Some(2), "{}", text(&r));
     let r = cli(&["export", d.join("none").to_str().unwrap(), "--times", "0.5"]);
     assert_eq!(r.status.code(), Some(2), "{}", text(&r));
+    // A time that rounds to zero is named t0.000000 whatever its sign, so it
+    // meets 0 in one name and is refused beside it.
+    let r = cli(&["export", o, "--times", "-1e-7"]);
+    assert!(r.status.success(), "{}", text(&r));
+    assert!(
+        text(&r).contains("t0.000000.ply") && !text(&r).contains("t-0"),
+        "{}",
+        text(&r)
+    );
+    for args in [
+        &["export", o, "--times", "0,-0"][..],
+        &["render", o, "--sweep-frames", "0", "--times", "-1e-7,0"],
+    ] {
+        let r = cli(args);
+        assert_eq!(r.status.code(), Some(2), "{args:?}: {}", text(&r));
+        assert!(text(&r).contains("same file name"), "{}", text(&r));
+    }
     let _ = std::fs::remove_dir_all(&d);
 }

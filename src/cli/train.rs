@@ -441,7 +441,7 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
         })?)
     };
     // The stem of `--times`' files: `r_000_t0.250000`.
-    let time_stem = |stem: &str, t: f64| format!("{stem}_t{t:.6}");
+    let time_stem = |stem: &str, t: f64| format!("{stem}_t{}", train::export::time_label(t));
     if let Some(v) = sweep_view {
         let stem = file_stem(&v.name);
         check_times(&a.times, |t| format!("{}.png", time_stem(&stem, t)))?;

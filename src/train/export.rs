@@ -124,9 +124,20 @@ pub fn deformed_gaussians<T: Real>(
     Ok((out, report))
 }
 
+/// A time as file names show it: 6 decimals, `0.250000`. A time that rounds
+/// to zero is `0.000000` whatever its sign (`-0` and `-1e-7` too), so one
+/// name never stands for two renderings of the same rounded time.
+pub fn time_label(time: f64) -> String {
+    let s = format!("{time:.6}");
+    match s.strip_prefix('-') {
+        Some(rest) if rest.bytes().all(|b| b == b'0' || b == b'.') => rest.to_string(),
+        _ => s,
+    }
+}
+
 /// The file name of the export at `time`: `t0.250000.ply`.
 pub fn file_name(time: f64) -> String {
-    format!("t{time:.6}.ply")
+    format!("t{}.ply", time_label(time))
 }
 
 /// Write the deformed Gaussians at each of `times` into `dir`
