@@ -237,6 +237,12 @@ impl Tolerances {
     pub fn validate(&self) -> Result<()> {
         self.default.validate("default")?;
         for (name, spec) in &self.tensors {
+            if name.is_empty() {
+                return Err(Error::invalid(
+                    "tensors",
+                    "an entry named \"\" (it can match no tensor)",
+                ));
+            }
             spec.validate(&format!("tensors.{name}"))?;
         }
         Ok(())

@@ -231,6 +231,14 @@ fn tolerance_entries_that_apply_to_nothing_are_listed() {
 
     let r = compare(&e, &e, &Tolerances::default()).unwrap();
     assert!(r.unused_tolerances.is_empty());
+    // An empty name is refused outright.
+    let err = Tolerances::from_json(Path::new("t.json"), r#"{"tensors": {"": {"rtol": 1}}}"#)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("t.json") && err.contains("named \"\""),
+        "{err}"
+    );
     assert!(!r.to_string().contains("tolerance entries"));
 }
 
