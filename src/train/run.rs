@@ -441,8 +441,22 @@ pub fn write_metrics(
             serde_json::to_value(info).map_err(|e| Error::invalid("lpips_info", e.to_string()))?;
         views["lpips"] = l.into();
     }
-    write_json(&out.join("results.json"), &results)?;
-    write_json(&out.join("per_view.json"), &views)
+    // Both or neither: a folder in either's place is refused before the
+    // first is written.
+    let files = [
+        (out.join("results.json"), results),
+        (out.join("per_view.json"), views),
+    ];
+    if let Some((path, _)) = files.iter().find(|(p, _)| p.is_dir()) {
+        return Err(Error::invalid(
+            "output path",
+            format!("{} is a folder", path.display()),
+        ));
+    }
+    for (path, v) in &files {
+        write_json(path, v)?;
+    }
+    Ok(())
 }
 
 /// Write `v` as pretty JSON to `path`, atomically.
