@@ -370,6 +370,17 @@ fn sizes_checked_before_the_allocation() {
     )
     .unwrap();
     refused_within(&["eval", s(&run)], quick, &["has no render"]);
+    // A folder in per_view.json's place: neither metrics file is written.
+    ok(&["render", s(&run), "--sweep-frames", "0"]);
+    let results = std::fs::read(run.join("results.json")).unwrap();
+    std::fs::remove_file(run.join("per_view.json")).unwrap();
+    std::fs::create_dir(run.join("per_view.json")).unwrap();
+    std::fs::write(run.join("results.json"), b"{}").unwrap();
+    refused_within(&["eval", s(&run)], quick, &["per_view.json", "is a folder"]);
+    assert_eq!(std::fs::read(run.join("results.json")).unwrap(), b"{}");
+    std::fs::remove_dir(run.join("per_view.json")).unwrap();
+    ok(&["eval", s(&run)]);
+    assert_eq!(std::fs::read(run.join("results.json")).unwrap(), results);
     // The outputs of a case written over the case.
     let p = d.join("sizes_case.safetensors");
     ok(&["case", "new", "loss", s(&p)]);
@@ -1010,8 +1021,6 @@ fn a_nerfies_size_the_downscale_does_not_divide_is_named() {
         "12",
         "--frames",
         "4",
-        "--eval-frames",
-        "1",
         "--supersampling",
         "1",
     ]);
