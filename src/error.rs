@@ -66,12 +66,15 @@ pub enum Error {
     },
 
     /// Tensors present that nothing uses.
-    #[error("{context}: unexpected tensor(s): {names}")]
+    #[error("{context}: unexpected tensor(s): {names} (the tensors it may hold: {known})")]
     UnexpectedTensors {
         /// Where the tensors were found (a file or a stage).
         context: String,
         /// Their names, comma-separated.
         names: String,
+        /// The names it may hold, comma-separated (the first 40, then how
+        /// many more).
+        known: String,
     },
 
     /// An argument or configuration value is out of its domain.

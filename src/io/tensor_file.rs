@@ -672,7 +672,8 @@ impl TensorFile {
     /// Fail if the file holds tensors outside `known` (catches typos in
     /// hand-written case files and state dicts).
     pub fn reject_unknown<'a>(&self, known: impl IntoIterator<Item = &'a str>) -> Result<()> {
-        let known: BTreeSet<&str> = known.into_iter().collect();
+        let order: Vec<&str> = known.into_iter().collect();
+        let known: BTreeSet<&str> = order.iter().copied().collect();
         let extra: Vec<&str> = self
             .tensors
             .keys()
@@ -682,9 +683,15 @@ impl TensorFile {
         if extra.is_empty() {
             Ok(())
         } else {
+            const SHOWN: usize = 40;
+            let mut shown = order[..order.len().min(SHOWN)].join(", ");
+            if order.len() > SHOWN {
+                shown += &format!(" and {} more", order.len() - SHOWN);
+            }
             Err(Error::UnexpectedTensors {
                 context: self.ctx(),
                 names: extra.join(", "),
+                known: shown,
             })
         }
     }
@@ -693,6 +700,27 @@ impl TensorFile {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn unknown_tensors_are_named_with_those_the_file_may_hold() {
+        let mut f = TensorFile::new("case.safetensors");
+        f.insert_i32("imgae", vec![1], vec![0]);
+        let err = f.reject_unknown(["image", "gt"]).unwrap_err().to_string();
+        assert!(
+            err.contains("unexpected tensor(s): imgae (the tensors it may hold: image, gt)"),
+            "{err}"
+        );
+        let many: Vec<String> = (0..45).map(|i| format!("w{i}")).collect();
+        let err = f
+            .reject_unknown(many.iter().map(String::as_str))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("w0, w1,") && err.contains("w39 and 5 more)"),
+            "{err}"
+        );
+        assert!(!err.contains("w40"), "{err}");
+    }
 
     #[test]
     fn round_trip_preserves_bits_and_metadata() {
