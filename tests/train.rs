@@ -247,7 +247,7 @@ fn resumed_run_ends_bit_identical_to_the_uninterrupted_run() {
         .to_string();
     assert!(
         err.contains("__metadata__.iteration")
-            && err.contains("90, but the checkpoint's folder is named for iteration 30"),
+            && err.contains("90, but the checkpoint's folder is named for iteration 30 (a folder renamed or copied over another)"),
         "{err}"
     );
     let ply = liquid_splat::gaussians::ply::read_gaussians::<f32>(&last.join(checkpoint::PLY_FILE))

@@ -374,7 +374,7 @@ fn load_checked<T: Real>(
                 &path,
                 "__metadata__.iteration",
                 format!(
-                    "{iteration}, but the checkpoint's folder is named for iteration {named}                      (a folder renamed or copied over another)"
+                    "{iteration}, but the checkpoint's folder is named for iteration {named} (a folder renamed or copied over another)"
                 ),
             ));
         }
