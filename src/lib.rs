@@ -75,8 +75,9 @@
 #![warn(clippy::undocumented_unsafe_blocks)]
 
 /// `println!` for the tool's results on standard output: when the output
-/// was closed (a pipe whose reader has gone), the command ends by an unwind
-/// carrying [`cli::StdoutClosed`] instead of a panic (see [`cli::print_out`]).
+/// cannot be written (a pipe whose reader has gone), the command ends by an
+/// unwind carrying [`cli::StdoutError`] instead of a panic (see
+/// [`cli::print_out`]).
 macro_rules! outln {
     () => { $crate::cli::print_out(format_args!("\n")) };
     ($($arg:tt)*) => { $crate::cli::print_out(format_args!("{}\n", format_args!($($arg)*))) };

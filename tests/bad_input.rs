@@ -510,6 +510,20 @@ fn a_closed_pipe_is_not_a_panic() {
         status.success() || status.signal() == Some(libc::SIGPIPE),
         "{status:?}: {err}"
     );
+    // Another write error (a full disk) is a message and exit 2, not a panic.
+    if let Ok(full) = std::fs::OpenOptions::new().write(true).open("/dev/full") {
+        let out = Command::new(env!("CARGO_BIN_EXE_liquid-splat"))
+            .args(["case", "compare", &e, &e])
+            .stdout(full)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{err}");
+        assert!(
+            err.starts_with("error: cannot write the standard output") && !err.contains("panicked"),
+            "{err}"
+        );
+    }
 }
 
 // ---- 3: the PLY element guard ----

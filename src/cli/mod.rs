@@ -75,24 +75,25 @@ enum Command {
     },
 }
 
-/// The payload of the unwind that ends a command whose standard output was
-/// closed. The binary never sees it (SIGPIPE ends the process first, as it
-/// ends other tools); the Python package's `cli` turns it into
-/// `BrokenPipeError`, as Python's own `print` does.
+/// The payload of the unwind that ends a command whose standard output
+/// cannot be written (closed, or any other write error). On Unix a closed
+/// pipe never gets here (SIGPIPE ends the binary first, as it ends other
+/// tools); otherwise the binary exits quietly with 141 for a closed output,
+/// as a shell reports a process that SIGPIPE ended, and with a message and
+/// [`EXIT_UNUSABLE_INPUT`] for other errors. The Python package's `cli`
+/// raises `BrokenPipeError` or `OSError` with the error's errno, as
+/// Python's own `print` does.
 #[derive(Debug)]
-pub struct StdoutClosed;
+pub struct StdoutError(pub std::io::Error);
 
 /// Write the tool's output to standard output (what `outln!` expands to).
-/// A closed output (`EPIPE`) unwinds with [`StdoutClosed`] without running
-/// the panic hook, so nothing is printed about it; any other write error
-/// panics as `println!` does.
+/// A write error unwinds with [`StdoutError`] without running the panic
+/// hook (nothing is printed about a closed output), instead of the panic
+/// of `println!`.
 pub fn print_out(args: std::fmt::Arguments<'_>) {
     use std::io::Write;
     if let Err(e) = std::io::stdout().lock().write_fmt(args) {
-        if e.kind() == std::io::ErrorKind::BrokenPipe {
-            std::panic::resume_unwind(Box::new(StdoutClosed));
-        }
-        panic!("failed printing to stdout: {e}");
+        std::panic::resume_unwind(Box::new(StdoutError(e)));
     }
 }
 

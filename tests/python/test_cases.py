@@ -101,6 +101,7 @@ def test_the_console_script_runs_the_tool(tmp_path):
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals and file names")
 def test_the_console_entry_point_ends_like_the_native_tool(tmp_path):
+    import errno
     import os
     import signal
 
@@ -131,10 +132,18 @@ def test_the_console_entry_point_ends_like_the_native_tool(tmp_path):
     os.close(r)
     code = ("import liquid_splat as ls, sys\n"
             "try:\n    ls.cli('case', 'compare', sys.argv[1], sys.argv[1])\n"
-            "except BrokenPipeError as e:\n    sys.stderr.write(f'caught {e}')\n")
+            "except BrokenPipeError as e:\n    sys.stderr.write(f'caught {e.errno} {e}')\n")
     q = subprocess.run([sys.executable, "-c", code, case], stdout=w, stderr=subprocess.PIPE)
     os.close(w)
-    assert q.returncode == 0 and q.stderr.decode() == "caught [Errno 32] Broken pipe: standard output was closed", q.stderr.decode()
+    assert q.returncode == 0 and q.stderr.decode() == f"caught {errno.EPIPE} [Errno {errno.EPIPE}] Broken pipe: standard output was closed", q.stderr.decode()
+    # Another write error (a full disk) is an OSError with its errno.
+    if os.path.exists("/dev/full"):
+        code = ("import liquid_splat as ls, sys\n"
+                "try:\n    ls.cli('case', 'compare', sys.argv[1], sys.argv[1])\n"
+                "except OSError as e:\n    sys.stderr.write(f'caught {type(e).__name__} {e.errno} {e}')\n")
+        with open("/dev/full", "w") as full:
+            q = subprocess.run([sys.executable, "-c", code, case], stdout=full, stderr=subprocess.PIPE)
+        assert q.returncode == 0 and q.stderr.decode().startswith(f"caught OSError {errno.ENOSPC} [Errno {errno.ENOSPC}] cannot write the standard output"), q.stderr.decode()
     # A file name that is not UTF-8 is a usage error (exit 2) with a message.
     q = subprocess.run(tool + ["case", "run", b"x\xff.safetensors", str(tmp_path / "o")],
                        capture_output=True)

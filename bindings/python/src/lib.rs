@@ -24,7 +24,7 @@ use liquid_splat::oracle::{self, Tolerances};
 use numpy::ndarray::ArrayD;
 use numpy::PyUntypedArrayMethods;
 use numpy::{PyArray, PyArrayDescrMethods, PyArrayDyn, PyArrayMethods, PyUntypedArray};
-use pyo3::exceptions::{PyBrokenPipeError, PyRuntimeError, PyTypeError, PyValueError};
+use pyo3::exceptions::{PyBrokenPipeError, PyOSError, PyRuntimeError, PyTypeError, PyValueError};
 use pyo3::prelude::*;
 use pyo3::types::{PyBool, PyDict, PyInt, PyString};
 use std::panic::{catch_unwind, AssertUnwindSafe};
@@ -71,19 +71,29 @@ fn compute<R: Send>(
     });
     match outcome {
         Ok(result) => result.map_err(to_py_err),
-        Err(payload) if payload.is::<liquid_splat::cli::StdoutClosed>() => Err(
-            PyBrokenPipeError::new_err("[Errno 32] Broken pipe: standard output was closed"),
-        ),
-        Err(payload) => {
-            let what = payload
-                .downcast_ref::<&str>()
-                .map(|s| s.to_string())
-                .or_else(|| payload.downcast_ref::<String>().cloned())
-                .unwrap_or_else(|| "unknown panic".to_string());
-            Err(PyRuntimeError::new_err(format!(
-                "liquid-splat internal error (a bug, please report it): {what}"
-            )))
-        }
+        Err(payload) => match payload.downcast::<liquid_splat::cli::StdoutError>() {
+            Ok(e) => {
+                let errno = e.0.raw_os_error().unwrap_or(0);
+                Err(if e.0.kind() == std::io::ErrorKind::BrokenPipe {
+                    PyBrokenPipeError::new_err((errno, "Broken pipe: standard output was closed"))
+                } else {
+                    PyOSError::new_err((
+                        errno,
+                        format!("cannot write the standard output: {}", e.0),
+                    ))
+                })
+            }
+            Err(payload) => {
+                let what = payload
+                    .downcast_ref::<&str>()
+                    .map(|s| s.to_string())
+                    .or_else(|| payload.downcast_ref::<String>().cloned())
+                    .unwrap_or_else(|| "unknown panic".to_string());
+                Err(PyRuntimeError::new_err(format!(
+                    "liquid-splat internal error (a bug, please report it): {what}"
+                )))
+            }
+        },
     }
 }
 
@@ -177,7 +187,7 @@ fn meta_value(key: &str, v: &Bound<'_, PyAny>) -> PyResult<String> {
     }
     // (A Python int of any size, exactly.)
     if v.downcast::<PyInt>().is_ok() {
-        return Ok(v.str()?.extract::<String>()?);
+        return v.str()?.extract::<String>();
     }
     if let Ok(i) = v.extract::<i64>() {
         return Ok(i.to_string());
