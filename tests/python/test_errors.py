@@ -241,7 +241,7 @@ def test_integers_beyond_float_range_are_named(raster):
 
     ins, kw = raster
     for key in ("tanfovx", "scale_modifier"):
-        with pytest.raises(ValueError, match=rf"rasterize\(\): argument `{key}`: expected a finite .*number, found an integer of 401 digits"):
+        with pytest.raises(ValueError, match=rf"rasterize\(\): argument `{key}`: expected a finite .*number, found an integer of 1329 bits"):
             ls.rasterize(**ins, **{**kw, key: 10**400})
     t, _ = ls.load(CASES / "loss_f64.input.safetensors")
     with pytest.raises(ValueError, match=r"loss\(\): argument `lambda_dssim`: expected a finite number, found an integer"):
@@ -330,3 +330,10 @@ def test_metadata_text_and_tolerance_numbers():
     with pytest.raises(ValueError, match=r"metadata\['activation'\]: expected UTF-8 text"):
         ls.CfCField.new(D=1, W=4, activation="\ud800")
     assert compare(t, t, tolerances={"default": {"atol": np.longdouble(1e-3)}}).passed
+    # Keys too: a tensor name or a metadata key with a lone surrogate.
+    with pytest.raises(ValueError, match=r"tensor names: expected UTF-8 text, found 'x\\ud800'"):
+        ls.run_case({**t, "x\ud800": t["image"]}, m)
+    with pytest.raises(ValueError, match=r"metadata: keys: expected UTF-8 text"):
+        ls.run_case(t, {**m, "k\ud800": "v"})
+    with pytest.raises(TypeError, match=r"tensor names: expected str, found int"):
+        ls.run_case({**t, 1: t["image"]}, m)

@@ -43,6 +43,10 @@ def test_tolerances_and_overrides():
     assert compare(e, a, tolerances={"tensors": {"x": {"rtol": 1e-6}}}).passed
     nan = {"x": np.array([np.nan])}
     assert not compare(nan, nan).passed and compare(nan, nan, equal_nan=True).passed
+    # 0-d arrays are numbers, in arguments and in tolerance dicts.
+    assert compare(e, a, atol=np.array(1e-5)).passed
+    assert compare(e, a, tolerances={"tensors": {"x": {"rtol": np.array(1e-6)}}}).passed
+    assert recommended_tolerances(np.float32) == recommended_tolerances("float32")
     typo = compare(e, a, tolerances={"tensors": {"X": {"rtol": 1e-6}, "x*": {"rtol": 0}}})
     assert not typo.passed and typo.unused_tolerances == ["X"]
     assert "apply to no tensor here: X" in str(typo)

@@ -348,7 +348,7 @@ class _Args:
         except OverflowError:  # an int beyond float's range: not finite either
             raise ValueError(
                 f"{where}: expected a finite{' positive' if positive else ''} number, found an "
-                f"integer of {len(str(abs(int(x))))} digits, beyond float's range"
+                f"integer of {int(x).bit_length()} bits, beyond float's range"
             ) from None
         if not math.isfinite(v) or (positive and not v > 0):
             raise ValueError(

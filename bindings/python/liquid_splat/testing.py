@@ -60,9 +60,9 @@ class CompareReport:
 
 
 def _array(name: str, v: Any) -> np.ndarray:
-    if hasattr(v, "detach") and hasattr(v, "cpu"):  # a torch tensor
-        v = v.detach().cpu().numpy()
     try:
+        if hasattr(v, "detach") and hasattr(v, "cpu"):  # a torch tensor
+            v = v.detach().cpu().numpy()
         return np.ascontiguousarray(np.asarray(v))
     except (TypeError, ValueError) as e:  # a ragged list, a bfloat16 tensor, ...
         raise TypeError(f"compare(): {name}: expected an array, found {type(v).__name__} ({e})") from None
@@ -86,6 +86,7 @@ def _tolerance(name: str, x: Any) -> Optional[float]:
     library checks the range and names the field."""
     if x is None:
         return None
+    x = _zero_d(x)
     if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, float, np.integer, np.floating)):
         raise TypeError(f"compare(): argument `{name}`: expected a float or None, found {type(x).__name__}")
     try:
@@ -93,12 +94,25 @@ def _tolerance(name: str, x: Any) -> Optional[float]:
     except OverflowError:  # an int beyond float's range
         raise ValueError(
             f"compare(): argument `{name}`: expected a finite number, found an integer of "
-            f"{len(str(abs(int(x))))} digits, beyond float's range"
+            f"{int(x).bit_length()} bits, beyond float's range"
         ) from None
 
 
+def _zero_d(x: Any) -> Any:
+    """A 0-d numpy array or torch tensor as its scalar; anything else as it is."""
+    if isinstance(x, np.ndarray) and x.ndim == 0:
+        return x[()]
+    if hasattr(x, "detach") and hasattr(x, "dim") and x.dim() == 0:  # a 0-d torch tensor
+        return x.item()
+    return x
+
+
 def _json_number(x: Any) -> Any:
-    """numpy scalars in a tolerances dict as the Python numbers ``json`` writes."""
+    """numpy scalars (and 0-d arrays and tensors) in a tolerances dict as the Python numbers
+    ``json`` writes."""
+    x = _zero_d(x)
+    if isinstance(x, (bool, int, float)):
+        return x
     if isinstance(x, np.bool_):
         return bool(x)
     if isinstance(x, np.integer):
@@ -112,6 +126,8 @@ def recommended_tolerances(dtype: Any = "float32") -> Dict[str, Any]:
     """The recommended tolerance file for a backend in ``dtype`` (float32 or float64;
     ``fixtures/cases/tolerances_f32.json`` / ``tolerances_f64.json``), as a dict."""
     where = "recommended_tolerances(): argument `dtype`"
+    if type(dtype).__module__ == "torch" and type(dtype).__name__ == "dtype":  # torch.float32
+        dtype = str(dtype).removeprefix("torch.")
     try:
         key = np.dtype(dtype).name
     except (TypeError, ValueError):

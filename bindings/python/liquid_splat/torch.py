@@ -180,10 +180,13 @@ def _saved(ctx: Any) -> Tuple[Any, ...]:
     except RuntimeError as e:
         changed = [n for n, ref, v in ctx.saved_names
                    if ref is not None and ref() is not None and ref()._version != v]
-        if not changed:
+        # Only torch's version-counter error is about them (a second backward through a
+        # freed graph, say, is not, even when an optimizer step has changed them since).
+        if not changed or "modified by an inplace operation" not in str(e):
             raise
+        them = "them" if len(changed) > 1 else "it"
         raise RuntimeError(f"{ctx.saved_func}: backward: {', '.join(changed)} changed in place "
-                           f"after the forward, which saved it for the backward ({e})") from e
+                           f"after the forward, which saved {them} for the backward ({e})") from e
 
 
 # The tensors the rasterizer's backward reads again: the Gaussians', then the settings'.

@@ -204,6 +204,26 @@ fn meta_value(key: &str, v: &Bound<'_, PyAny>) -> PyResult<String> {
     )))
 }
 
+/// A dict key as text: a `TypeError` for a key that is not a `str`, a
+/// `ValueError` for a `str` that is not UTF-8 (a lone surrogate); `what`
+/// names the keys in both.
+fn dict_key(k: &Bound<'_, PyAny>, what: impl Fn() -> String) -> PyResult<String> {
+    if let Ok(s) = k.downcast::<PyString>() {
+        return s.to_cow().map(|c| c.into_owned()).map_err(|_| {
+            PyValueError::new_err(format!(
+                "{}: expected UTF-8 text, found {} (a lone surrogate)",
+                what(),
+                k.repr().map_or_else(|_| "?".to_string(), |r| r.to_string())
+            ))
+        });
+    }
+    Err(PyTypeError::new_err(format!(
+        "{}: expected str, found {}",
+        what(),
+        type_name(k)
+    )))
+}
+
 /// A dict of arrays plus a metadata dict as an in-memory tensor file.
 fn tensor_file(
     label: &str,
@@ -213,23 +233,13 @@ fn tensor_file(
 ) -> PyResult<TensorFile> {
     let mut file = TensorFile::new(label);
     for (k, v) in tensors.iter() {
-        let name: String = k.extract().map_err(|_| {
-            PyTypeError::new_err(format!(
-                "{label}: expected str keys (tensor names), found {}",
-                type_name(&k)
-            ))
-        })?;
+        let name = dict_key(&k, || format!("{label}: tensor names"))?;
         let t = tensor_from_array(&format!("{label}['{name}']"), &v, finite)?;
         file.tensors.insert(name, t);
     }
     if let Some(meta) = metadata {
         for (k, v) in meta.iter() {
-            let key: String = k.extract().map_err(|_| {
-                PyTypeError::new_err(format!(
-                    "metadata: expected str keys, found {}",
-                    type_name(&k)
-                ))
-            })?;
+            let key = dict_key(&k, || "metadata: keys".to_string())?;
             let value = meta_value(&key, &v)?;
             file.metadata.insert(key, value);
         }
