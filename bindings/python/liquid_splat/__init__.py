@@ -239,8 +239,13 @@ def save(
         raise err from None
 
 
-def cli(*args: str) -> int:
+def cli(*args: Union[str, bytes, "os.PathLike[str]"]) -> int:
     """Run the ``liquid-splat`` command-line tool in-process; returns its exit code.
+
+    Arguments are passed as a process's arguments are (``str`` encoded as ``os.fsencode``
+    does, ``bytes`` as they are), so the tool sees what the ``liquid-splat`` binary would.
+    A standard output that cannot be written raises ``BrokenPipeError`` (closed) or
+    ``OSError``, as Python's ``print`` does.
 
     The tool writes to file descriptors 1 and 2 directly, not through ``sys.stdout``: in
     pytest, capture it with ``capfd`` (``capsys`` sees nothing). ``--pin-threads`` starts the
@@ -252,17 +257,17 @@ def cli(*args: str) -> int:
             a = os.fspath(a)
         except TypeError:
             raise TypeError(
-                f"cli(): argument `args[{i}]`: expected a str (or os.PathLike), found "
+                f"cli(): argument `args[{i}]`: expected a str, bytes or os.PathLike, found "
                 f"{type(a).__name__}"
             ) from None
         if isinstance(a, bytes):
             a = os.fsdecode(a)
         try:
-            a.encode("utf-8")
+            os.fsencode(a)
         except UnicodeEncodeError as e:
             raise ValueError(
-                f"cli(): argument `args[{i}]`: expected UTF-8 text, found {a!r} "
-                f"({e.reason} at position {e.start})"
+                f"cli(): argument `args[{i}]`: expected text the file system can encode, "
+                f"found {a!r} ({e.reason} at position {e.start})"
             ) from None
         argv.append(a)
     return _native.cli(argv)

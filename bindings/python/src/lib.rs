@@ -419,10 +419,9 @@ fn field_init<'py>(
 /// Run the command-line tool on `args` (without the program name) and
 /// return its exit code (0 ok, 1 check failed, 2 unusable input).
 #[pyfunction]
-fn cli(py: Python<'_>, args: Vec<String>) -> PyResult<u8> {
-    let argv: Vec<String> = std::iter::once("liquid-splat".to_string())
-        .chain(args)
-        .collect();
+fn cli(py: Python<'_>, args: Vec<std::ffi::OsString>) -> PyResult<u8> {
+    let argv: Vec<std::ffi::OsString> =
+        std::iter::once("liquid-splat".into()).chain(args).collect();
     compute(py, None, move || Ok(liquid_splat::cli::run(argv)))
 }
 
