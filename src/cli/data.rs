@@ -17,7 +17,7 @@ pub struct InspectArgs {
     #[arg(long)]
     pub white_background: bool,
     /// Random initial points when the dataset has no point cloud (as `train`'s option).
-    #[arg(long, default_value_t = 2000)]
+    #[arg(long, default_value_t = super::DEFAULT_INIT_POINTS)]
     pub init_points: usize,
 }
 

@@ -40,7 +40,7 @@ pub struct ExperimentArgs {
     #[arg(long)]
     pub downscale: Option<usize>,
     /// Random initial points (scenes without a point cloud).
-    #[arg(long, default_value_t = 2000)]
+    #[arg(long, default_value_t = super::DEFAULT_INIT_POINTS)]
     pub init_points: usize,
     /// Seeds; every configuration runs once per seed.
     #[arg(long, value_delimiter = ',', default_value = "0")]

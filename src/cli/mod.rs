@@ -97,6 +97,11 @@ pub fn print_out(args: std::fmt::Arguments<'_>) {
     }
 }
 
+/// `--init-points`' default (`train`, `experiment`, `inspect`): random initial
+/// points for a scene without a point cloud (upstream's 100,000; fewer keep
+/// CPU runs fast, densification adds more where needed).
+pub const DEFAULT_INIT_POINTS: usize = 2000;
+
 /// The most worker threads `--threads` accepts (far above any core count
 /// the tool is run on; each thread is an OS thread with its own stack).
 pub const MAX_THREADS: usize = 1024;

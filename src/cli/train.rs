@@ -132,7 +132,7 @@ pub struct RunArgs {
     pub frames: usize,
     /// Random initial points when the scene has no point cloud (upstream: 100,000;
     /// fewer keep CPU runs fast, densification adds more where needed).
-    #[arg(long, default_value_t = 2000)]
+    #[arg(long, default_value_t = super::DEFAULT_INIT_POINTS)]
     pub init_points: usize,
     /// Dataset folder: downscale factor 1, 2, 4 or 8.
     #[arg(long, default_value_t = 1, conflicts_with = "scene")]

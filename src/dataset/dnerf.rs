@@ -56,8 +56,7 @@ fn read_split(dir: &Path, split: &str) -> Result<SplitSpec> {
         json::get(&file, &v, "camera_angle_x", "camera_angle_x")?,
         "camera_angle_x",
     )?;
-    // (Narrower fields of view give a tangent that rounds to 0 in f32.)
-    if !((1e-6..=std::f64::consts::PI - 1e-6).contains(&fov)) {
+    if !super::FOV_RANGE.contains(&fov) {
         return Err(Error::field(
             &file,
             "camera_angle_x",

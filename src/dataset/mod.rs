@@ -181,6 +181,11 @@ pub struct Dataset {
     pub warnings: Vec<String>,
 }
 
+/// The fields of view a camera may have, in radians (both loaders): a
+/// narrower one gives a tangent that rounds to 0 in f32, one of pi or more
+/// no finite tangent.
+pub const FOV_RANGE: std::ops::RangeInclusive<f64> = 1e-6..=std::f64::consts::PI - 1e-6;
+
 /// Load the dataset in `dir`, detecting its layout.
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     if !matches!(opts.downscale, 1 | 2 | 4 | 8) {

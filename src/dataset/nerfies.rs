@@ -217,7 +217,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         // `camera_angle_x` (narrower ones give a tangent that rounds to 0 in
         // f32; a focal length of 1e308 gave 1e-308).
         let (fx, fy) = (focal2fov(focal, w), focal2fov(focal, h));
-        let fovs = 1e-6..=std::f64::consts::PI - 1e-6;
+        let fovs = super::FOV_RANGE;
         if !(focal > 0.0 && fovs.contains(&fx) && fovs.contains(&fy)) {
             return Err(Error::field(
                 &cp,

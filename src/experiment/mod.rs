@@ -183,19 +183,8 @@ impl Experiment {
         // by scene name, field and seed, so a repeated one would be reported
         // as "done earlier, kept" with another run's results.
         if self.data.is_empty() {
-            if let Some(bad) = self
-                .scenes
-                .iter()
-                .find(|s| crate::dataset::synth::SceneName::parse(s).is_none())
-            {
-                let names: Vec<&str> = crate::dataset::synth::SceneName::ALL
-                    .iter()
-                    .map(|n| n.name())
-                    .collect();
-                return Err(Error::invalid(
-                    "--scenes",
-                    format!("`{bad}` is not one of {}", names.join(", ")),
-                ));
+            for s in &self.scenes {
+                crate::dataset::synth::SceneName::parse_named("--scenes", s)?;
             }
         }
         for (i, (scene, _)) in scenes.iter().enumerate() {

@@ -241,7 +241,7 @@ const SPLITS: [&str; 3] = ["train", "val", "test"];
 /// [`write`](fn@write) produces (same pixels, cameras and times), with `opts.background` and random
 /// initial points in `[-1.3, 1.3)³` (no `points3d.ply`).
 pub fn builtin(name: &str, opts: &SynthOptions) -> Result<Dataset> {
-    let scene = SceneName::parse(name).ok_or_else(|| unknown(name))?;
+    let scene = SceneName::parse_named("scene name", name)?;
     opts.check()?;
     let res = opts.resolution;
     let mut splits: Vec<Vec<Frame>> = Vec::new();
@@ -287,14 +287,6 @@ pub fn builtin(name: &str, opts: &SynthOptions) -> Result<Dataset> {
     })
 }
 
-fn unknown(name: &str) -> Error {
-    let names: Vec<&str> = SceneName::ALL.iter().map(|n| n.name()).collect();
-    Error::invalid(
-        "scene name",
-        format!("`{name}` is not one of {}", names.join(", ")),
-    )
-}
-
 fn write_json(path: &Path, v: &Value) -> Result<()> {
     let mut s =
         serde_json::to_string_pretty(v).map_err(|e| Error::invalid("JSON", e.to_string()))?;
@@ -308,7 +300,7 @@ fn mkdir(p: &Path) -> Result<()> {
 
 /// Generate scene `name` into `out` in the given layout.
 pub fn write(name: &str, out: &Path, opts: &SynthOptions, layout: Layout) -> Result<()> {
-    let scene = SceneName::parse(name).ok_or_else(|| unknown(name))?;
+    let scene = SceneName::parse_named("scene name", name)?;
     opts.check()?;
     match layout {
         Layout::DNerf => write_dnerf(scene, out, opts),

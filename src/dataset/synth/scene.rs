@@ -205,6 +205,15 @@ impl SceneName {
         SceneName::ALL.into_iter().find(|n| n.name() == s)
     }
 
+    /// Parse a scene name given as `what` (an option, an argument); an
+    /// unknown one is an error naming `what` and the scenes there are.
+    pub fn parse_named(what: &str, s: &str) -> crate::Result<SceneName> {
+        SceneName::parse(s).ok_or_else(|| {
+            let names: Vec<&str> = SceneName::ALL.iter().map(|n| n.name()).collect();
+            crate::Error::invalid(what, format!("`{s}` is not one of {}", names.join(", ")))
+        })
+    }
+
     /// The scene's name.
     pub fn name(self) -> &'static str {
         match self {
