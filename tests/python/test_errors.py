@@ -309,6 +309,10 @@ def test_sizes_are_bounded_naming_the_argument(raster):
         gs.isect_tiles(**{**isect, "tile_size": 2**63})
     with pytest.raises(ValueError, match=r"isect_tiles\(\): arguments `n_images`, `tile_width`, `tile_height`: .* found 2 images of 2147483648x1 tiles"):
         gs.isect_tiles(**{**isect, "tile_width": 2**31})
+    dense = dict(means2d=t["means2d"][None], radii=t["radii"][None], depths=t["depths"][None],
+                 tile_size=16, tile_width=2**31, tile_height=1)
+    with pytest.raises(ValueError, match=r"isect_tiles\(\): arguments `means2d`'s C, `tile_width`, `tile_height`: .* found 1 images of 2147483648x1 tiles"):
+        gs.isect_tiles(**dense)
     _, ids, _ = gs.isect_tiles(**isect)
     for key, value in (("n_images", 2**31), ("tile_width", 2**63), ("tile_height", 2**40)):
         with pytest.raises(ValueError, match=r"isect_offset_encode\(\): arguments `n_images`, `tile_width`, `tile_height`: expected at most 67108864 tiles"):
@@ -316,7 +320,7 @@ def test_sizes_are_bounded_naming_the_argument(raster):
     r, rm = ls.load(CASES / "gsplat_rasterize_to_pixels_f64_v16_gsplat.input.safetensors")
     args = [r[k] for k in ("means2d", "conics", "colors", "opacities")]
     rest = dict(isect_offsets=r["isect_offsets"], flatten_ids=r["flatten_ids"], backgrounds=r["backgrounds"], packed=True)
-    with pytest.raises(ValueError, match=r"rasterize_to_pixels\(\): argument `isect_offsets`: expected shape \[I,1,1\] \(the tiles of a 1x16 image in tiles of 16\), found shape \[2,1,2\]"):
+    with pytest.raises(ValueError, match=r"rasterize_to_pixels\(\): argument `isect_offsets`: expected shape \[I,1,1\] \(the tile grid of a 1x16 image with tile_size 16\), found shape \[2,1,2\]"):
         gs.rasterize_to_pixels(*args, 1, 16, 16, **rest)
     with pytest.raises(ValueError, match=r"rasterize_to_pixels\(\): argument `image_height`: expected an integer in 1..=65536, found 100000"):
         gs.rasterize_to_pixels(*args, 24, 100000, 16, **rest)

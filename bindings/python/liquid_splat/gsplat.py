@@ -449,21 +449,23 @@ def _isect(means2d, radii, depths, tile_size, tile_width, tile_height, sort, seg
     meta["tile_width"] = a.integer("tile_width", tile_width, 1)
     meta["tile_height"] = a.integer("tile_height", tile_height, 1)
     _check_tiles(func, int(meta["n_images"]), int(meta["tile_width"]), int(meta["tile_height"]),
-                 meta["version"])
+                 meta["version"], images="`n_images`" if packed else "`means2d`'s C")
     out = _run(a, t, meta, threads)
     if not packed:
         out["tiles_per_gauss"] = out["tiles_per_gauss"].reshape(means2d.shape[:2])
     return out
 
 
-def _check_tiles(func: str, n_images: int, tile_width: int, tile_height: int, version: str) -> None:
+def _check_tiles(func: str, n_images: int, tile_width: int, tile_height: int, version: str,
+                 images: str = "`n_images`") -> None:
     """The library's limit on a tile grid (docs/ORACLE.md): images × tiles at most 2^26 and
-    the image and tile fields of a key in 31 bits."""
+    the image and tile fields of a key in 31 bits. ``images`` names where the image count
+    came from."""
     tiles = tile_width * tile_height
     if (n_images * tiles > _MAX_PIXELS
             or _key_bits(version, n_images) + _key_bits(version, tiles) > 31):
         raise ValueError(
-            f"{func}(): arguments `n_images`, `tile_width`, `tile_height`: expected at most "
+            f"{func}(): arguments {images}, `tile_width`, `tile_height`: expected at most "
             f"{_MAX_PIXELS} tiles over all images and a key of at most 31 bits of image and "
             f"tile, found {n_images} images of {tile_width}x{tile_height} tiles"
         )
@@ -555,7 +557,7 @@ def _r2p_case(func, means2d, conics, colors, opacities, image_width, image_heigh
     if isect_offsets.shape[1:] != grid:
         raise ValueError(
             f"{func}(): argument `isect_offsets`: expected shape [I,{grid[0]},{grid[1]}] (the "
-            f"tiles of a {w}x{h} image in tiles of {ts}), found shape {_shape(isect_offsets.shape)}"
+            f"tile grid of a {w}x{h} image with tile_size {ts}), found shape {_shape(isect_offsets.shape)}"
         )
     if not packed:
         for k in ("means2d", "conics", "colors", "opacities"):
