@@ -163,7 +163,12 @@ fn corrupted_and_truncated_files_exit_2() {
 fn an_unwritable_report_path_is_refused_before_the_verdict() {
     let d = scratch("report-path");
     let e = write(&d, "e.safetensors", &[1.0, 2.0, 3.0], vec![1, 2]);
-    for report in [d.join("missing").join("r.json"), d.to_path_buf()] {
+    let missing_folder = std::path::PathBuf::from(format!("{}/", d.join("new").display()));
+    for report in [
+        d.join("missing").join("r.json"),
+        d.to_path_buf(),
+        missing_folder,
+    ] {
         let (code, out, err) = run(&[
             e.as_os_str(),
             e.as_os_str(),

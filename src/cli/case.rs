@@ -264,7 +264,12 @@ fn run_case(input: &Path, output: &Path) -> crate::Result<Outcome> {
 /// Refuses a `--report` path that cannot be written (a folder, or in a
 /// folder that does not exist) before the comparison prints its verdict.
 fn check_report_path(p: &std::path::Path) -> crate::Result<()> {
-    let why = if p.is_dir() {
+    // (A name ending in a separator is a folder's, existing or not.)
+    let why = if p.is_dir()
+        || p.as_os_str()
+            .to_string_lossy()
+            .ends_with(std::path::is_separator)
+    {
         Some("is a folder")
     } else {
         match p.parent() {
