@@ -223,11 +223,11 @@ def test_paths_the_file_system_cannot_encode_are_named(tmp_path):
         compare("\ud800", x)
     with pytest.raises(ValueError, match=r"compare\(\): argument `tolerances`: expected a path"):
         compare(x, x, tolerances="\ud800.json")
-    with pytest.raises(ValueError, match=r"cli\(\): argument `args\[1\]`: expected text the file system can encode"):
+    with pytest.raises(ValueError, match=r"cli\(\): argument `args\[1\]`: expected an argument the file system can encode"):
         ls.cli("case", "\ud800")
     for call, msg in ((lambda: ls.load(3), r"load\(\): argument `path`: expected a path .* found int"),
                       (lambda: ls.save(None, x), r"save\(\): argument `path`: expected a path .* found NoneType"),
-                      (lambda: ls.cli("case", 2), r"cli\(\): argument `args\[1\]`: expected a str, bytes or os.PathLike, found int")):
+                      (lambda: ls.cli("case", 2), r"cli\(\): argument `args\[1\]`: expected an argument \(str, bytes or os.PathLike\), found int")):
         with pytest.raises(TypeError, match=msg):
             call()
     # bytes paths name the same files as their decoded str.

@@ -139,16 +139,16 @@ def _run_case(
     return _native.run_case(tensors, _metadata(metadata), _threads(func, threads))
 
 
-def _path(func: str, name: str, x: Any) -> str:
+def _path(func: str, name: str, x: Any, what: str = "a path") -> str:
     """A path argument as the ``str`` the library opens: a ``str``, ``bytes`` or
     ``os.PathLike``. A name the file system cannot encode (a lone surrogate such as
-    ``"\\ud800"``) is a ``ValueError`` naming the argument."""
+    ``"\\ud800"``) is a ``ValueError`` naming the argument; ``what`` says what was expected."""
     where = f"{func}(): argument `{name}`"
     try:
         p = os.fspath(x)
     except TypeError:
         raise TypeError(
-            f"{where}: expected a path (str, bytes or os.PathLike), found {type(x).__name__}"
+            f"{where}: expected {what} (str, bytes or os.PathLike), found {type(x).__name__}"
         ) from None
     if isinstance(p, bytes):
         p = os.fsdecode(p)
@@ -156,7 +156,7 @@ def _path(func: str, name: str, x: Any) -> str:
         os.fsencode(p)
     except UnicodeEncodeError as e:
         raise ValueError(
-            f"{where}: expected a path the file system can encode, found {p!r} "
+            f"{where}: expected {what} the file system can encode, found {p!r} "
             f"({e.reason} at position {e.start})"
         ) from None
     return p
@@ -251,25 +251,7 @@ def cli(*args: Union[str, bytes, "os.PathLike[str]"]) -> int:
     pytest, capture it with ``capfd`` (``capsys`` sees nothing). ``--pin-threads`` starts the
     process's global worker pool pinned (unless an earlier call started it), and every later
     call with ``threads=None`` in this process runs on that pinned pool."""
-    argv = []
-    for i, a in enumerate(args):
-        try:
-            a = os.fspath(a)
-        except TypeError:
-            raise TypeError(
-                f"cli(): argument `args[{i}]`: expected a str, bytes or os.PathLike, found "
-                f"{type(a).__name__}"
-            ) from None
-        if isinstance(a, bytes):
-            a = os.fsdecode(a)
-        try:
-            os.fsencode(a)
-        except UnicodeEncodeError as e:
-            raise ValueError(
-                f"cli(): argument `args[{i}]`: expected text the file system can encode, "
-                f"found {a!r} ({e.reason} at position {e.start})"
-            ) from None
-        argv.append(a)
+    argv = [_path("cli", f"args[{i}]", a, "an argument") for i, a in enumerate(args)]
     return _native.cli(argv)
 
 
