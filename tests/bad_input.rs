@@ -967,6 +967,18 @@ fn unusable_splits_paths_and_views_fail_before_the_work() {
         &["render", s(&out), "--sweep-view", "99"],
         &["--sweep-view", "99"],
     );
+    // Without a sweep or --times it would apply to nothing.
+    refused(
+        &[
+            "render",
+            s(&out),
+            "--sweep-frames",
+            "0",
+            "--sweep-view",
+            "0",
+        ],
+        &["--sweep-view", "given without a time sweep"],
+    );
     assert!(!out.join("test").exists(), "rendered before the check");
 }
 

@@ -396,9 +396,10 @@ pub struct RenderArgs {
     /// Frames of the time sweep (0: no sweep; at most 100000).
     #[arg(long, default_value_t = 30)]
     pub sweep_frames: usize,
-    /// Test view (index) the time sweep and --times are rendered from.
-    #[arg(long, default_value_t = 0)]
-    pub sweep_view: usize,
+    /// Test view (index) the time sweep and --times are rendered from [default: 0]; refused
+    /// with neither.
+    #[arg(long)]
+    pub sweep_view: Option<usize>,
     /// Also render these times (comma-separated, finite, |t| at most 1e9; the dataset's span
     /// is 0..1) into OUT/times/VIEW_tT.png and .exr (T with 6 decimals; files of earlier
     /// calls at other times stay). Prints the names written.
@@ -430,13 +431,20 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
             format!("{} (at most {MAX_SWEEP_FRAMES})", a.sweep_frames),
         ));
     }
+    let sweep_index = a.sweep_view.unwrap_or(0);
     let sweep_view = if a.sweep_frames == 0 && a.times.is_empty() {
+        if a.sweep_view.is_some() {
+            return Err(Error::invalid(
+                "--sweep-view",
+                "given without a time sweep (--sweep-frames 0) or --times, which it applies to",
+            ));
+        }
         None
     } else {
-        Some(test.get(a.sweep_view).ok_or_else(|| {
+        Some(test.get(sweep_index).ok_or_else(|| {
             Error::invalid(
                 "--sweep-view",
-                format!("{} (there are {} test views)", a.sweep_view, test.len()),
+                format!("{sweep_index} (there are {} test views)", test.len()),
             )
         })?)
     };
@@ -483,7 +491,7 @@ fn render_as<T: Real>(a: &RenderArgs) -> Result<Outcome> {
         }
         eprintln!(
             "time sweep of test view {} ({}): {} frames, t = {}, in {}",
-            a.sweep_view,
+            sweep_index,
             file_stem(&v.name),
             a.sweep_frames,
             if a.sweep_frames == 1 { "0" } else { "0..1" },
