@@ -136,7 +136,8 @@ impl Tensor {
     }
 }
 
-fn shape_str(s: &[usize]) -> String {
+/// A shape as messages and reports show it: `[2,3]`.
+pub(crate) fn shape_str<D: std::fmt::Display>(s: &[D]) -> String {
     format!(
         "[{}]",
         s.iter()
@@ -208,16 +209,14 @@ fn check_offsets(path: &Path, bytes: &[u8]) -> Result<()> {
         let Some(offsets) = info.get("data_offsets").and_then(|o| o.as_array()) else {
             continue;
         };
-        for o in offsets.iter().filter_map(|o| o.as_u64()) {
-            if o > data {
-                return Err(tensor_err(
-                    name,
-                    format!("data_offsets within the file's {data} bytes of data"),
-                    format!("offset {o}"),
-                ));
-            }
-        }
         let offsets: Vec<u64> = offsets.iter().filter_map(|o| o.as_u64()).collect();
+        if let Some(o) = offsets.iter().find(|&&o| o > data) {
+            return Err(tensor_err(
+                name,
+                format!("data_offsets within the file's {data} bytes of data"),
+                format!("offset {o}"),
+            ));
+        }
         let dtype = info.get("dtype").and_then(|d| d.as_str());
         let shape = info
             .get("shape")
@@ -265,10 +264,7 @@ fn check_offsets(path: &Path, bytes: &[u8]) -> Result<()> {
             };
             return Err(tensor_err(
                 name,
-                format!(
-                    "{want} for dtype {dtype} and shape {}",
-                    shape_str_u64(&shape)
-                ),
+                format!("{want} for dtype {dtype} and shape {}", shape_str(&shape)),
                 format!("{offsets}: {} bytes", b - a),
             ));
         }
@@ -279,11 +275,6 @@ fn check_offsets(path: &Path, bytes: &[u8]) -> Result<()> {
         )));
     }
     Ok(())
-}
-
-fn shape_str_u64(shape: &[u64]) -> String {
-    let dims: Vec<String> = shape.iter().map(u64::to_string).collect();
-    format!("[{}]", dims.join(","))
 }
 
 impl TensorFile {

@@ -68,6 +68,7 @@
 //! `"-inf"` and `"nan"` (JSON has no literal for them).
 
 use crate::error::{Error, Result};
+use crate::io::tensor_file::shape_str;
 use crate::io::{Tensor, TensorFile};
 use serde::{Deserialize, Serialize, Serializer};
 use std::collections::BTreeMap;
@@ -515,16 +516,6 @@ pub fn compare(
         extra,
         unused_tolerances,
     })
-}
-
-fn shape_str(s: &[usize]) -> String {
-    format!(
-        "[{}]",
-        s.iter()
-            .map(|d| d.to_string())
-            .collect::<Vec<_>>()
-            .join(",")
-    )
 }
 
 fn compare_tensor(name: &str, e: &Tensor, a: &Tensor, tol: &Tolerances) -> TensorReport {
