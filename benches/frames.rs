@@ -14,9 +14,9 @@
 //!   and backward and of the binning (with the gather).
 //!
 //! The binning column is the stages `bin` and `gather`. On two threads
-//! these frames sort each half of the Gaussians inside the projection's
-//! tasks (`render::project_and_bin_in_halves`), so there it holds the
-//! merge of the two halves and the gather only.
+//! these frames sort each worker's run of the Gaussians inside the
+//! projection (`render::project_and_bin_in_two_runs`), so there it holds
+//! the merge of the two runs and the gather only.
 //!
 //! The passes' forwards run with the stage clock on (`render::stages`),
 //! so their times include its clock reads (a few µs), which `bench

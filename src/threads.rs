@@ -27,7 +27,7 @@
 //! as long as a whole parallel stage of a small frame.
 
 use std::cell::{Cell, RefCell, UnsafeCell};
-use std::sync::atomic::{AtomicBool, AtomicU8, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicU8, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use std::time::{Duration, Instant};
 
@@ -138,55 +138,16 @@ pub fn current_thread_is_pinned() -> bool {
     }
 }
 
-/// `(a(), b())`, as [`rayon::join`], except in how the caller waits: the
-/// caller runs `a` and then `b` too if no other worker has started it;
-/// otherwise it spins until `b` ends ([`spin_until`]: for up to 100 µs,
-/// then it waits in rayon), instead of waiting in rayon at once, where a
+/// `work(part)` for every part of `parts`, on the workers of the current
+/// pool: the caller runs the first part, then every part no other worker
+/// has started, and then spins until the others end (as long as
+/// [`spin_until`] does), instead of waiting in rayon at once, where a
 /// waiting worker soon yields its CPU or sleeps and must then be woken.
 /// For the short parallel steps of a small frame, whose parts end within a
 /// few microseconds of each other: on the 2-core development machine, the
 /// 64×64 bench frame's backward spent a median 4.5–5.0 µs between the end
 /// of its per-tile step and the start of its per-Gaussian step on two
-/// threads when the caller waited in rayon (1.1 µs on one thread). A panic
-/// in either propagates.
-pub(crate) fn spin_join<RA: Send, RB: Send>(
-    a: impl FnOnce() -> RA + Send,
-    b: impl FnOnce() -> RB + Send,
-) -> (RA, RB) {
-    if rayon::current_num_threads() < 2 {
-        return (a(), b());
-    }
-    // `b` is taken once, by whoever locks it first.
-    let b = Mutex::new(Some(b));
-    let rb = Mutex::new(None);
-    let done = AtomicBool::new(false);
-    let run_b = || {
-        let taken = b.lock().unwrap_or_else(PoisonError::into_inner).take();
-        taken.map(|b| {
-            let _done = SetOnDrop(&done);
-            *rb.lock().unwrap_or_else(|p| p.into_inner()) = Some(b());
-        })
-    };
-    let ra = rayon::scope(|s| {
-        s.spawn(|_| {
-            run_b();
-        });
-        let ra = a();
-        if run_b().is_none() {
-            spin_until(&done);
-        }
-        ra
-    });
-    // The scope has ended, so `b` has run to its end (a panic in it has
-    // propagated from the scope).
-    let rb = rb.into_inner().unwrap_or_else(|p| p.into_inner());
-    (ra, rb.expect("b ran"))
-}
-
-/// `work(part)` for every part of `parts`, on the workers of the current
-/// pool, waiting as [`spin_join`] does: the caller runs the first part,
-/// then every part no other worker has started, and then spins until the
-/// others end (as long as [`spin_until`] does). For a few parts of about equal cost (see
+/// threads when the caller waited in rayon (1.1 µs on one thread). For a few parts of about equal cost (see
 /// [`balanced_parts`]); a panic in any part propagates once every part has
 /// ended.
 pub(crate) fn run_parts<P: Send>(parts: Vec<P>, work: impl Fn(P) + Sync) {
@@ -486,6 +447,168 @@ impl Drop for Ended<'_> {
             self.failed.store(true, Ordering::Release);
         }
         self.state.store(self.to, Ordering::Release);
+    }
+}
+
+/// `work(&mut state, k, item)` for every item `k`, on two workers of the
+/// current pool: the caller takes items from the front, in ascending
+/// order, another worker from the back, in descending order, each a piece
+/// at a time, until they meet. A piece is a quarter of the items left (at
+/// least one, at most [`MOST_PER_PIECE`]), so the last pieces are single
+/// items and the two end within about one item's time of each other, even
+/// when one core runs slower than the other (on a shared machine it may),
+/// while each works through one contiguous run of items: neighbouring
+/// items that read the same data stay on one worker, but where the two
+/// meet. Each worker makes its state with `init` (told whether it takes
+/// items from the front) and, once no item is left
+/// for it, hands it to `finish` with whether it took items from the front
+/// (before waiting for the other, so that work on a worker's own items can
+/// follow at once); the two results are returned, the front's first. The
+/// items one worker ran are consecutive: the front's from 0, the back's up
+/// to the last. The caller waits for the other worker by spinning, as
+/// [`run_parts`] does; if the other has not started by the time the caller
+/// finds no items left, the caller runs its `finish` too (with a state no
+/// item touched). On one thread everything runs on the caller, the front
+/// first. Which worker runs an item changes no result; a panic in any item
+/// propagates once both workers have ended.
+pub(crate) fn from_both_ends<I: Send, S, R: Send>(
+    items: Vec<I>,
+    init: impl Fn(bool) -> S + Sync,
+    work: impl Fn(&mut S, usize, I) + Sync,
+    finish: impl Fn(S, bool) -> R + Sync,
+) -> (R, R) {
+    let n = items.len();
+    if rayon::current_num_threads() < 2 || n < 2 || n > u32::MAX as usize {
+        let mut state = init(true);
+        for (k, item) in items.into_iter().enumerate() {
+            work(&mut state, k, item);
+        }
+        return (finish(state, true), finish(init(false), false));
+    }
+    let items = Items(
+        items
+            .into_iter()
+            .map(|i| UnsafeCell::new(Some(i)))
+            .collect(),
+    );
+    // The items left: `front..back`, front in the low 32 bits.
+    let left = Padded(AtomicU64::new((n as u64) << 32));
+    // A piece from the front (`true`) or the back, if any item is left.
+    let take = |front: bool| -> Option<std::ops::Range<usize>> {
+        let mut v = left.0.load(Ordering::Relaxed);
+        loop {
+            let (f, b) = (v & 0xffff_ffff, v >> 32);
+            if f >= b {
+                return None;
+            }
+            let p = ((b - f) / 4).clamp(1, MOST_PER_PIECE);
+            let (piece, next) = if front {
+                (f..f + p, (b << 32) | (f + p))
+            } else {
+                (b - p..b, ((b - p) << 32) | f)
+            };
+            match left
+                .0
+                .compare_exchange_weak(v, next, Ordering::Relaxed, Ordering::Relaxed)
+            {
+                Ok(_) => return Some(piece.start as usize..piece.end as usize),
+                Err(now) => v = now,
+            }
+        }
+    };
+    // Run every piece one side can take, then `finish`.
+    let side = |front: bool| {
+        let mut state = init(front);
+        while let Some(piece) = take(front) {
+            let mut run = |k: usize| {
+                // SAFETY: `take` hands each index to one worker only.
+                if let Some(item) = unsafe { items.take(k) } {
+                    work(&mut state, k, item);
+                }
+            };
+            if front {
+                piece.for_each(&mut run);
+            } else {
+                piece.rev().for_each(&mut run);
+            }
+        }
+        finish(state, front)
+    };
+    // The other worker's state (not started, running, ended) and result.
+    let back_state = Padded(AtomicU8::new(NOT_STARTED));
+    let back_result: Mutex<Option<R>> = Mutex::new(None);
+    let back = || {
+        if back_state
+            .0
+            .compare_exchange(
+                NOT_STARTED,
+                FIRST_STARTED,
+                Ordering::Acquire,
+                Ordering::Relaxed,
+            )
+            .is_ok()
+        {
+            let never = AtomicBool::new(false);
+            let _ended = Ended {
+                state: &back_state.0,
+                to: FIRST_ENDED,
+                failed: &never,
+            };
+            let r = side(false);
+            *back_result.lock().unwrap_or_else(PoisonError::into_inner) = Some(r);
+        }
+    };
+    let (front, unstarted) = rayon::scope(|s| {
+        s.spawn(|_| back());
+        let front = side(true);
+        // The other worker never starts now, or the caller waits for it.
+        let unstarted = back_state
+            .0
+            .compare_exchange(
+                NOT_STARTED,
+                FIRST_ENDED,
+                Ordering::Acquire,
+                Ordering::Relaxed,
+            )
+            .is_ok();
+        if !unstarted {
+            spin_while(|| back_state.0.load(Ordering::Acquire) != FIRST_ENDED);
+        }
+        (front, unstarted)
+    });
+    // The scope has ended, so the other worker's task has too (a panic in
+    // it has propagated from the scope).
+    let back = back_result
+        .into_inner()
+        .unwrap_or_else(PoisonError::into_inner);
+    let back = match back {
+        Some(r) => r,
+        None => {
+            debug_assert!(unstarted, "a started back side left its result");
+            finish(init(false), false)
+        }
+    };
+    (front, back)
+}
+
+/// The most items in one piece of [`from_both_ends`].
+const MOST_PER_PIECE: u64 = 16;
+
+/// The items of [`from_both_ends`], each taken by one worker only.
+struct Items<I>(Vec<UnsafeCell<Option<I>>>);
+
+// SAFETY: an item is taken (moved out) only by the worker whose
+// compare-exchange claimed its index, so no two threads touch one cell.
+unsafe impl<I: Send> Sync for Items<I> {}
+
+impl<I> Items<I> {
+    /// Item `k`, moved out.
+    ///
+    /// # Safety
+    /// No other thread takes item `k`, now or later.
+    unsafe fn take(&self, k: usize) -> Option<I> {
+        // SAFETY: as the caller promises.
+        self.0.get(k).and_then(|c| unsafe { (*c.get()).take() })
     }
 }
 
@@ -1170,10 +1293,10 @@ mod parts_tests {
     }
 
     #[test]
-    fn run_parts_and_spin_join_propagate_a_panic_without_hanging() {
-        // The caller's own part (or `a`) waits until another worker has
-        // started the part that panics, so that on two or more threads the
-        // caller waits for a panicking worker.
+    fn run_parts_and_from_both_ends_propagate_a_panic_without_hanging() {
+        // The caller's own part (or first item) waits until another worker
+        // has started the part (or item) that panics, so that on two or
+        // more threads the caller waits for a panicking worker.
         for threads in 1..=3 {
             let (parts, join_b, join_a) = within_a_minute(move || {
                 pool(threads).unwrap().install(|| {
@@ -1190,16 +1313,27 @@ mod parts_tests {
                     }));
                     let started = AtomicBool::new(false);
                     let join_b = catch_unwind(AssertUnwindSafe(|| {
-                        spin_join(
-                            || wait_a_while_for(&started),
-                            || -> u32 {
-                                started.store(true, Ordering::Release);
-                                panic!("b")
+                        from_both_ends(
+                            (0..8).collect(),
+                            |_| (),
+                            |_, _, k| match k {
+                                0 => wait_a_while_for(&started),
+                                7 => {
+                                    started.store(true, Ordering::Release);
+                                    panic!("the back's first item")
+                                }
+                                _ => {}
                             },
+                            |_, _| (),
                         )
                     }));
                     let join_a = catch_unwind(AssertUnwindSafe(|| {
-                        spin_join(|| -> u32 { panic!("a") }, || 2)
+                        from_both_ends(
+                            (0..8).collect(),
+                            |_| (),
+                            |_, _, k: usize| assert_ne!(k, 0, "the front's first item"),
+                            |_, _| (),
+                        )
                     }));
                     (parts.is_err(), join_b.is_err(), join_a.is_err())
                 })
@@ -1325,12 +1459,34 @@ mod parts_tests {
     }
 
     #[test]
-    fn spin_join_returns_both_results() {
+    fn from_both_ends_runs_each_item_once_in_two_consecutive_runs() {
         for threads in 1..=3 {
-            let r = pool(threads)
-                .unwrap()
-                .install(|| spin_join(|| (0..1000u64).sum::<u64>(), || "b".to_string()));
-            assert_eq!(r, (499_500, "b".to_string()), "{threads} threads");
+            for n in [0usize, 1, 2, 3, 5, 64, 1000] {
+                let (front, back) = within_a_minute(move || {
+                    pool(threads).unwrap().install(|| {
+                        from_both_ends(
+                            (0..n).map(|k| k * 10).collect(),
+                            |front| (front, Vec::new()),
+                            |(_, ran): &mut (bool, Vec<usize>), k, item| {
+                                assert_eq!(item, k * 10, "item {k}");
+                                ran.push(k);
+                            },
+                            |(side, ran), front| {
+                                assert_eq!(side, front, "finish told the side init was");
+                                (front, ran)
+                            },
+                        )
+                    })
+                });
+                let tag = format!("{threads} threads, {n} items");
+                assert!(front.0 && !back.0, "{tag}: front's result first");
+                let m = front.1.len();
+                assert_eq!(front.1, (0..m).collect::<Vec<_>>(), "{tag}: the front");
+                assert_eq!(back.1, (m..n).rev().collect::<Vec<_>>(), "{tag}: the back");
+                if threads == 1 {
+                    assert_eq!(m, n, "{tag}: one thread runs every item from the front");
+                }
+            }
         }
     }
 }

@@ -44,9 +44,11 @@
 //! functions (see the private module `preprocess`); then the binned list
 //! gathers one record per entry, and the blend runs in parallel over image
 //! rows (each row owns its pixels). Small frames on two or more threads
-//! project each half of the Gaussians and sort its keys on one task, then
-//! merge the two halves' orders in two tasks (see the private module
-//! `tiles`), so that no sort runs on one thread while the other waits.
+//! run on two workers that take their work from both ends (the private
+//! `threads::from_both_ends`): each projects a consecutive run of
+//! the Gaussians and sorts its keys, the two merge the two runs' orders
+//! (see the private module `tiles`), so that no sort runs on one thread
+//! while the other waits, and, on a pool of two, they blend the rows.
 //! Backward: each tile accumulates into a buffer
 //! indexed by list position, per entry the fixed pairwise sum of a row's 16
 //! pixels, rows in ascending order; each Gaussian then sums its entries in
@@ -72,6 +74,7 @@ use crate::math::Real;
 use project::{Intrinsics, Projected};
 use rasterize::{Blended, Splat};
 use rayon::prelude::*;
+use std::mem::MaybeUninit;
 
 pub use rasterize_vjp::rasterize_vjp;
 
@@ -525,20 +528,21 @@ fn forward<T: Real>(
 }
 
 /// The per-Gaussian stage and the binning of a small frame on two or more
-/// threads ([`tiles::two_runs_apply`]): each half of the Gaussians is
-/// projected, and its keys collected, counted and sorted into a
-/// [`tiles::Run`], on one task, so that the sort runs in parallel on data
-/// its thread has just written; then [`tiles::merge_runs`]. Stage `project`
+/// threads ([`tiles::two_runs_apply`]): each of two workers projects a
+/// consecutive run of the Gaussians (`preprocess::preprocess_in_two_runs`)
+/// and collects, counts and sorts its keys into a [`tiles::Run`], so that
+/// the sort runs in parallel on data its thread has just written; then
+/// [`tiles::merge_runs`]. Stage `project`
 /// includes the runs, `bin` the merge and the gather. The same list as
 /// [`tiles::bin`].
-fn project_and_bin_in_halves<T: Real, K: tiles::Key>(
+fn project_and_bin_in_two_runs<T: Real, K: tiles::Key>(
     intr: &Intrinsics<T>,
     input: &RasterInput<T>,
     n: usize,
     ndc_offset: Option<&[T]>,
 ) -> Result<(preprocess::Preprocessed<T>, tiles::Binning, Vec<Splat<T>>)> {
     let (pre, runs) =
-        preprocess::preprocess_in_halves(intr, input, n, ndc_offset, |first, proj| {
+        preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
             tiles::run::<T, K>(first, proj, intr.grid)
         });
     stages::mark("project");
@@ -546,6 +550,22 @@ fn project_and_bin_in_halves<T: Real, K: tiles::Key>(
     stages::mark("bin");
     Ok((pre, binning, splats))
 }
+
+/// One image row's pieces of the forward's outputs: its three colour
+/// rows, depth, final transmittance and contributor count (not yet
+/// written), its blend records, their per-tile ends (not yet written), and
+/// the slot for the worker that blends it.
+type RowSlices<'a, T> = (
+    &'a mut [MaybeUninit<T>],
+    &'a mut [MaybeUninit<T>],
+    &'a mut [MaybeUninit<T>],
+    &'a mut [MaybeUninit<T>],
+    &'a mut [MaybeUninit<T>],
+    &'a mut [MaybeUninit<u32>],
+    &'a mut Vec<Blended>,
+    &'a mut [MaybeUninit<u32>],
+    &'a mut u16,
+);
 
 fn forward_stages<T: Real>(
     input: &RasterInput<T>,
@@ -560,14 +580,14 @@ fn forward_stages<T: Real>(
 
     // 1. Per-Gaussian preprocessing, and 2. binning, with the splat data
     //    of every entry in list order.
-    // A small frame on two or more threads: the halves' path, and the rows'
+    // A small frame on two or more threads: the two runs' path, and the rows'
     // write hints ([`rasterize::RowOut::prefetch_write`]).
     let small = tiles::two_runs_apply(n);
     let (pre, binning, splats) = if small {
         if std::mem::size_of::<T>() <= 4 {
-            project_and_bin_in_halves::<T, u64>(&intr, input, n, ndc_offset)?
+            project_and_bin_in_two_runs::<T, u64>(&intr, input, n, ndc_offset)?
         } else {
-            project_and_bin_in_halves::<T, u128>(&intr, input, n, ndc_offset)?
+            project_and_bin_in_two_runs::<T, u128>(&intr, input, n, ndc_offset)?
         }
     } else {
         let pre = preprocess::preprocess(&intr, input, n, ndc_offset);
@@ -615,43 +635,77 @@ fn forward_stages<T: Real>(
     stages::mark("allocate");
     let (c0, rest) = out.color.spare_capacity_mut()[..3 * hw].split_at_mut(hw);
     let (c1, c2) = rest.split_at_mut(hw);
-    let evaluated: u64 = (
-        c0.par_chunks_mut(w),
-        c1.par_chunks_mut(w),
-        c2.par_chunks_mut(w),
-        out.depth.spare_capacity_mut()[..hw].par_chunks_mut(w),
-        out.final_t.spare_capacity_mut()[..hw].par_chunks_mut(w),
-        out.n_contrib.spare_capacity_mut()[..hw].par_chunks_mut(w),
-        blended.par_iter_mut(),
-        blended_end.spare_capacity_mut()[..h * grid_x].par_chunks_mut(grid_x),
-        row_worker.par_iter_mut(),
-    )
-        .into_par_iter()
-        // Stealable pieces of at most half a tile row: the rows' costs are
-        // very uneven, and rayon's adaptive split alone left one thread
-        // idle for up to a third of the blend.
-        .with_max_len(8)
-        .enumerate()
-        .map(
-            |(py, (c0, c1, c2, depth, final_t, n_contrib, blended, blended_end, rw))| {
-                *rw = crate::threads::worker_index() as u16;
-                let mut row = rasterize::RowOut {
-                    color: [c0, c1, c2],
-                    depth,
-                    final_t,
-                    n_contrib,
-                    blended,
-                    blended_end,
-                };
-                if small {
-                    row.prefetch_write();
-                }
-                let mut ev = 0u64;
-                rasterize::forward_row(&frame, py, &mut row, &mut ev);
-                ev
-            },
+    // One row's blend: its pixels' outputs and records, and its worker.
+    let blend_row = |py: usize,
+                     (c0, c1, c2, depth, final_t, n_contrib, blended, blended_end, rw): RowSlices<
+        '_,
+        T,
+    >| {
+        *rw = crate::threads::worker_index() as u16;
+        let mut row = rasterize::RowOut {
+            color: [c0, c1, c2],
+            depth,
+            final_t,
+            n_contrib,
+            blended,
+            blended_end,
+        };
+        if small {
+            row.prefetch_write();
+        }
+        let mut ev = 0u64;
+        rasterize::forward_row(&frame, py, &mut row, &mut ev);
+        ev
+    };
+    let evaluated: u64 = if small && rayon::current_num_threads() == 2 {
+        // A small frame on two workers: rows from both ends
+        // ([`crate::threads::from_both_ends`]), so that each worker walks
+        // one run of tile rows and the two end within about a row's time of
+        // each other. On the 64×64 bench frame on a 2-core shared machine
+        // (one binary alternating the two by pass), the forward's median
+        // pass was 0.3–4.4 µs shorter (of about 300) than with rayon's
+        // pieces of 8 rows in quiet minutes (benches/README.md,
+        // "Rasterizer: small frames' steps handed out from both ends").
+        let rows: Vec<RowSlices<'_, T>> = c0
+            .chunks_mut(w)
+            .zip(c1.chunks_mut(w))
+            .zip(c2.chunks_mut(w))
+            .zip(out.depth.spare_capacity_mut()[..hw].chunks_mut(w))
+            .zip(out.final_t.spare_capacity_mut()[..hw].chunks_mut(w))
+            .zip(out.n_contrib.spare_capacity_mut()[..hw].chunks_mut(w))
+            .zip(blended.iter_mut())
+            .zip(blended_end.spare_capacity_mut()[..h * grid_x].chunks_mut(grid_x))
+            .zip(row_worker.iter_mut())
+            .map(|((((((((c0, c1), c2), d), f), n), b), e), rw)| (c0, c1, c2, d, f, n, b, e, rw))
+            .collect();
+        let (a, b) = crate::threads::from_both_ends(
+            rows,
+            |_| 0u64,
+            |ev, py, row| *ev += blend_row(py, row),
+            |ev, _| ev,
+        );
+        a + b
+    } else {
+        (
+            c0.par_chunks_mut(w),
+            c1.par_chunks_mut(w),
+            c2.par_chunks_mut(w),
+            out.depth.spare_capacity_mut()[..hw].par_chunks_mut(w),
+            out.final_t.spare_capacity_mut()[..hw].par_chunks_mut(w),
+            out.n_contrib.spare_capacity_mut()[..hw].par_chunks_mut(w),
+            blended.par_iter_mut(),
+            blended_end.spare_capacity_mut()[..h * grid_x].par_chunks_mut(grid_x),
+            row_worker.par_iter_mut(),
         )
-        .sum();
+            .into_par_iter()
+            // Stealable pieces of at most half a tile row: the rows' costs
+            // are very uneven, and rayon's adaptive split alone left one
+            // thread idle for up to a third of the blend.
+            .with_max_len(8)
+            .enumerate()
+            .map(|(py, row)| blend_row(py, row))
+            .sum()
+    };
     // SAFETY: the rows are the consecutive `w`-long (`grid_x`-long) pieces
     // of each buffer's first `hw` (`h·grid_x`) spare slots, and every row
     // wrote every slot of its pieces (`forward_row`: each of the `grid_x`

@@ -26,12 +26,11 @@
 //!
 //! Small frames on two or more threads ([`two_runs_apply`]) are binned
 //! another way, in two parallel steps with no serial sort between them:
-//! each half of the Gaussians (by index) is collected, counted per tile and
-//! radix-sorted into a [`Run`] on its own task, right after that task
-//! projected it (`render::project_and_bin_in_halves`); then
-//! [`merge_runs`] writes the list from the two runs' merge, one task from
-//! the front of every tile and one from the back. The list and ranges are
-//! the same.
+//! each of two workers collects, counts per tile and radix-sorts into a
+//! [`Run`] the consecutive Gaussians it has just projected
+//! (`render::project_and_bin_in_two_runs`); then [`merge_runs`] writes the
+//! list from the two runs' merge, one worker from the front of every tile
+//! and one from the back. The list and ranges are the same.
 
 use super::project::Projected;
 use crate::error::{Error, Result};
@@ -182,26 +181,32 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
     }
 }
 
-/// The binning of [`bin`] from the runs of the two halves of the Gaussians,
-/// and `payload[g]` (one value per Gaussian) of every list entry `g` in
-/// list order.
+/// The binning of [`bin`] from the runs of two consecutive pieces of the
+/// Gaussians, and `payload[g]` (one value per Gaussian) of every list entry
+/// `g` in list order.
 ///
 /// The merge of two runs sorted by `(depth bits, index)`, with distinct
 /// indices, is the one sorted order. After the tiles' ranges (the prefix
-/// sum of the runs' counts), two tasks split that order at its middle
-/// ([`middle_cut`]) with no hand-off: one merges the keys
-/// before the cut and writes their entries from each tile's first slot
-/// upwards, the other merges the rest and writes their entries from each
-/// tile's last slot downwards, last key first. Every tile's entries are
-/// then those of [`bin`], on any thread count; each entry's payload is
-/// copied as it is written.
+/// sum of the runs' counts), two workers take that order in blocks of
+/// [`MERGE_BLOCK`] keys from both ends ([`crate::threads::from_both_ends`])
+/// with no hand-off: the one that takes blocks from the front writes their
+/// entries from each tile's first slot upwards, the other, last key first,
+/// from each tile's last slot downwards. Each worker's blocks are
+/// consecutive, so every key before the point where the two meet is
+/// written upwards and every other downwards, and every tile's entries are
+/// those of [`bin`], on any thread count and wherever they meet; each
+/// entry's payload is copied as it is written. (Until they were handed out
+/// in blocks, the two took the halves of the order split at its middle;
+/// measured on the 64×64 bench frame on a 2-core shared machine, one binary
+/// alternating the two by pass, the blocks were 0.7–1 µs faster in the
+/// median pass in quiet minutes, benches/README.md.)
 ///
-/// Each task puts its keys in merged order before it writes any entry
-/// ([`merged`]), as two merges at once with no branch in the source on which run the
-/// next key comes from: that varies from key to key, so a branch would be
-/// mispredicted about half the time. (Merging and writing in one loop with
-/// a branch, as before, took 0.9 µs more per task on the 64×64 bench frame,
-/// benches/README.md.)
+/// Each block's keys are put in merged order before any of its entries is
+/// written ([`merged_into`]), as two merges at once with no branch in the
+/// source on which run the next key comes from: that varies from key to
+/// key, so a branch would be mispredicted about half the time. (Merging and
+/// writing in one loop with a branch took 0.9 µs more per task on the 64×64
+/// bench frame, benches/README.md.)
 // (Kept out of line: inlined into the forward, it left the blend 1–2%
 // slower on one thread and on two, in a build where nothing else changed.)
 #[inline(never)]
@@ -235,53 +240,93 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
         grid_x: grid[0],
         len: total,
     };
-    let cut = middle_cut(&runs);
-    crate::threads::spin_join(
-        || {
-            let mut next: Vec<u32> = ranges.iter().map(|r| r[0]).collect();
-            let order = merged(&runs, [0, 0], cut);
-            for (x, &(g, r)) in order.iter().enumerate() {
-                if let Some(&(ahead, _)) = order.get(x + PREFETCH_AHEAD) {
-                    prefetch_value(payload, ahead as usize);
-                }
-                for t in out.tiles(r) {
-                    let s = next[t];
-                    next[t] += 1;
-                    out.prefetch_write(s as usize + WRITE_AHEAD);
-                    // SAFETY: the keys before the cut write upwards from
-                    // each tile's first slot, the others (the other task)
-                    // downwards from its end, and the runs counted each
-                    // tile's entries: every slot below `total` (the
-                    // capacity) is written once.
-                    unsafe { out.write(s as usize, g) };
-                }
-            }
-        },
-        || {
-            let mut end: Vec<u32> = ranges.iter().map(|r| r[1]).collect();
-            let order = merged(&runs, cut, [a.len(), b.len()]);
-            for (x, &(g, r)) in order.iter().enumerate().rev() {
-                if let Some(ahead) = x.checked_sub(PREFETCH_AHEAD) {
-                    prefetch_value(payload, order[ahead].0 as usize);
-                }
-                for t in out.tiles(r) {
-                    end[t] -= 1;
-                    out.prefetch_write((end[t] as usize).wrapping_sub(WRITE_AHEAD));
-                    // SAFETY: see the first task.
-                    unsafe { out.write(end[t] as usize, g) };
-                }
-            }
-        },
-    );
+    merge_from_both_ends(&runs, &ranges, &out);
     // SAFETY: every one of the first `total` slots of both vectors was
-    // written (see the tasks); a panic in a task propagates before these
-    // lines, leaving the vectors empty.
+    // written (see `merge_from_both_ends`); a panic in a worker propagates
+    // before these lines, leaving the vectors empty.
     unsafe {
         list.set_len(total);
         gathered.set_len(total);
     }
     Ok((Binning { list, ranges }, gathered))
 }
+
+/// The fill of [`merge_runs`] (see there).
+fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
+    runs: &[Run<K>; 2],
+    ranges: &[[u32; 2]],
+    out: &Entries<'_, P>,
+) {
+    let keys = runs[0].len() + runs[1].len();
+    let blocks: Vec<()> = vec![(); keys.div_ceil(MERGE_BLOCK)];
+    // Per worker: whether it takes blocks from the front, the next slot of
+    // each tile (the front) or the slot after
+    // the last one left (the back), the block it ran last and the cut of the
+    // merged order where that block ended (the front) or began (the back),
+    // and the block's keys in merged order.
+    struct Fill {
+        front: bool,
+        slots: Vec<u32>,
+        last: Option<(usize, [usize; 2])>,
+        order: Vec<(u32, [u32; 4])>,
+    }
+    crate::threads::from_both_ends(
+        blocks,
+        |front| Fill {
+            front,
+            slots: ranges
+                .iter()
+                .map(|r| if front { r[0] } else { r[1] })
+                .collect(),
+            last: None,
+            order: Vec::with_capacity(MERGE_BLOCK),
+        },
+        |fill, b, ()| {
+            let (lo, hi) = (b * MERGE_BLOCK, ((b + 1) * MERGE_BLOCK).min(keys));
+            let (from, to) = match fill.last {
+                // The front's blocks ascend, the back's descend.
+                Some((k, cut)) if k + 1 == b => (cut, cut_at(runs, hi)),
+                Some((k, cut)) if b + 1 == k => (cut_at(runs, lo), cut),
+                _ => (cut_at(runs, lo), cut_at(runs, hi)),
+            };
+            merged_into(runs, from, to, &mut fill.order);
+            let order = &fill.order;
+            if fill.front {
+                fill.last = Some((b, to));
+                for (x, &(g, r)) in order.iter().enumerate() {
+                    if let Some(&(ahead, _)) = order.get(x + PREFETCH_AHEAD) {
+                        prefetch_value(out.payload, ahead as usize);
+                    }
+                    for t in out.tiles(r) {
+                        let s = fill.slots[t];
+                        fill.slots[t] += 1;
+                        out.prefetch_write(s as usize + WRITE_AHEAD);
+                        // SAFETY: see `merge_runs`.
+                        unsafe { out.write(s as usize, g) };
+                    }
+                }
+            } else {
+                fill.last = Some((b, from));
+                for (x, &(g, r)) in order.iter().enumerate().rev() {
+                    if let Some(ahead) = x.checked_sub(PREFETCH_AHEAD) {
+                        prefetch_value(out.payload, order[ahead].0 as usize);
+                    }
+                    for t in out.tiles(r) {
+                        fill.slots[t] -= 1;
+                        let s = fill.slots[t];
+                        out.prefetch_write((s as usize).wrapping_sub(WRITE_AHEAD));
+                        // SAFETY: see `merge_runs`.
+                        unsafe { out.write(s as usize, g) };
+                    }
+                }
+            }
+        },
+        |_, _| (),
+    );
+}
+
+/// Keys per block of [`merge_from_both_ends`].
+const MERGE_BLOCK: usize = 128;
 
 /// How many keys ahead in its merged order each task of [`merge_runs`] asks
 /// for a key's payload: half of the payloads were written by the other
@@ -295,12 +340,10 @@ const PREFETCH_AHEAD: usize = 8;
 /// writing").
 const WRITE_AHEAD: usize = 4;
 
-/// The cut of the two runs' merged order at its middle (after its first
-/// `k` = half the keys), as the number of keys of each run before it: a
-/// binary search for the first run's share.
-fn middle_cut<K: Key>(runs: &[Run<K>; 2]) -> [usize; 2] {
+/// The cut of the two runs' merged order after its first `k` keys (at most
+/// all of them), as the number of keys of each run before it.
+fn cut_at<K: Key>(runs: &[Run<K>; 2], k: usize) -> [usize; 2] {
     let [a, b] = runs;
-    let k = (a.len() + b.len()) / 2;
     // Real keys sit one place on in `keys` (after the lower bound). The
     // first run's share `i` is the smallest such that its key `i` (if any)
     // is above the second run's key `k − i − 1`.
@@ -352,15 +395,22 @@ fn step_down<K: Key>(runs: &[Run<K>; 2], i: &mut usize, j: &mut usize) -> (u32, 
 /// The keys of the runs between the cuts `from` and `to` of their merged
 /// order (keys of each run before them; `to` not before `from` in either;
 /// each a cut of the merged order, every key before it preceding every key
-/// after it), in merged order, as each one's Gaussian and tile rectangle.
+/// after it), in merged order, as each one's Gaussian and tile rectangle, into `order`
+/// (its old contents dropped).
 ///
 /// Two merges at once, half of the keys each: one upwards from `from`,
 /// one downwards from `to`. A merge that has taken all of one run's keys
 /// between the cuts compares the other's against a key beyond the cut or
 /// a bound, which loses, so the two never take the same key.
-fn merged<K: Key>(runs: &[Run<K>; 2], from: [usize; 2], to: [usize; 2]) -> Vec<(u32, [u32; 4])> {
+fn merged_into<K: Key>(
+    runs: &[Run<K>; 2],
+    from: [usize; 2],
+    to: [usize; 2],
+    order: &mut Vec<(u32, [u32; 4])>,
+) {
     let len = (to[0] + to[1]) - (from[0] + from[1]);
-    let mut order: Vec<(u32, [u32; 4])> = Vec::with_capacity(len);
+    order.clear();
+    order.reserve(len);
     let o = &mut order.spare_capacity_mut()[..len];
     // Positions in `keys` (which start with the lower bound): the upward
     // merge's next keys, and the downward merge's last keys taken plus one.
@@ -376,7 +426,6 @@ fn merged<K: Key>(runs: &[Run<K>; 2], from: [usize; 2], to: [usize; 2]) -> Vec<(
     // SAFETY: the upward merge wrote the ranks `0..up`, the downward one
     // `up..len` (from `len − 1` down): all of `0..len`.
     unsafe { order.set_len(len) };
-    order
 }
 
 /// The most entries a frame's list may hold (2^28: with each entry's splat
@@ -905,18 +954,23 @@ mod tests {
                         }
                     };
                     let runs = [run(ka), run(kb)];
-                    let cut = middle_cut(&runs);
-                    assert_eq!(cut[0] + cut[1], n / 2, "na {na}, nb {nb}, mask {mask:b}");
-                    let mut got = merged(&runs, [0, 0], cut);
-                    got.extend(merged(&runs, cut, [na, nb]));
-                    assert_eq!(got, want, "na {na}, nb {nb}, mask {mask:b}");
+                    for k in 0..=n {
+                        let cut = cut_at(&runs, k);
+                        let tag = format!("na {na}, nb {nb}, mask {mask:b}, cut at {k}");
+                        assert_eq!(cut[0] + cut[1], k, "{tag}");
+                        let (mut got, mut rest) = (Vec::new(), Vec::new());
+                        merged_into(&runs, [0, 0], cut, &mut got);
+                        merged_into(&runs, cut, [na, nb], &mut rest);
+                        got.extend(rest);
+                        assert_eq!(got, want, "{tag}");
+                    }
                 }
             }
         }
     }
 
     #[test]
-    fn middle_cut_and_merged_on_every_interleaving() {
+    fn cuts_and_merges_on_every_interleaving() {
         cut_and_merge_every_interleaving::<u64>();
         cut_and_merge_every_interleaving::<u128>();
     }
