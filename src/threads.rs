@@ -535,25 +535,19 @@ pub(crate) fn from_both_ends<I: Send, S, R: Send>(
         finish(state, front)
     };
     // The other worker's state (not started, running, ended) and result.
-    let back_state = Padded(AtomicU8::new(NOT_STARTED));
+    const WAITING: u8 = 0;
+    const RUNNING: u8 = 1;
+    const ENDED: u8 = 2;
+    let back_state = Padded(AtomicU8::new(WAITING));
     let back_result: Mutex<Option<R>> = Mutex::new(None);
     let back = || {
         if back_state
             .0
-            .compare_exchange(
-                NOT_STARTED,
-                FIRST_STARTED,
-                Ordering::Acquire,
-                Ordering::Relaxed,
-            )
+            .compare_exchange(WAITING, RUNNING, Ordering::Acquire, Ordering::Relaxed)
             .is_ok()
         {
-            let never = AtomicBool::new(false);
-            let _ended = Ended {
-                state: &back_state.0,
-                to: FIRST_ENDED,
-                failed: &never,
-            };
+            // `ENDED` once the side returns or its panic unwinds.
+            let _ended = StoreOnDrop(&back_state.0, ENDED);
             let r = side(false);
             *back_result.lock().unwrap_or_else(PoisonError::into_inner) = Some(r);
         }
@@ -564,15 +558,10 @@ pub(crate) fn from_both_ends<I: Send, S, R: Send>(
         // The other worker never starts now, or the caller waits for it.
         let unstarted = back_state
             .0
-            .compare_exchange(
-                NOT_STARTED,
-                FIRST_ENDED,
-                Ordering::Acquire,
-                Ordering::Relaxed,
-            )
+            .compare_exchange(WAITING, ENDED, Ordering::Acquire, Ordering::Relaxed)
             .is_ok();
         if !unstarted {
-            spin_while(|| back_state.0.load(Ordering::Acquire) != FIRST_ENDED);
+            spin_while(|| back_state.0.load(Ordering::Acquire) != ENDED);
         }
         (front, unstarted)
     });
@@ -589,6 +578,15 @@ pub(crate) fn from_both_ends<I: Send, S, R: Send>(
         }
     };
     (front, back)
+}
+
+/// Stores its value in its atomic when dropped.
+struct StoreOnDrop<'a>(&'a AtomicU8, u8);
+
+impl Drop for StoreOnDrop<'_> {
+    fn drop(&mut self) {
+        self.0.store(self.1, Ordering::Release);
+    }
 }
 
 /// The most items in one piece of [`from_both_ends`].
