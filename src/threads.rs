@@ -147,9 +147,9 @@ pub fn current_thread_is_pinned() -> bool {
 /// few microseconds of each other: on the 2-core development machine, the
 /// 64×64 bench frame's backward spent a median 4.5–5.0 µs between the end
 /// of its per-tile step and the start of its per-Gaussian step on two
-/// threads when the caller waited in rayon (1.1 µs on one thread). For a few parts of about equal cost (see
-/// [`balanced_parts`]); a panic in any part propagates once every part has
-/// ended.
+/// threads when the caller waited in rayon (1.1 µs on one thread). For a
+/// few parts of about equal cost (see [`balanced_parts`]); a panic in any
+/// part propagates once every part has ended.
 pub(crate) fn run_parts<P: Send>(parts: Vec<P>, work: impl Fn(P) + Sync) {
     if parts.len() <= 1 || rayon::current_num_threads() < 2 {
         parts.into_iter().for_each(work);
@@ -379,12 +379,13 @@ pub(crate) fn run_on_named_workers<J: Send, S, R: Send>(
     })
 }
 
-/// The jobs of [`run_on_named_workers`], a queue per worker, each job
-/// taken by one task only.
+/// The jobs of [`run_on_named_workers`], a queue per worker (the items of
+/// [`from_both_ends`], one queue), each job taken by one task only.
 struct Claimed<J>(Vec<Vec<UnsafeCell<Option<J>>>>);
 
 // SAFETY: a job is taken (moved out) only by the task whose `fetch_add`
-// claimed its place, so no two threads touch one cell.
+// (or compare-exchange, in `from_both_ends`) claimed its place, so no two
+// threads touch one cell.
 unsafe impl<J: Send> Sync for Claimed<J> {}
 
 impl<J> Claimed<J> {
@@ -459,18 +460,20 @@ impl Drop for Ended<'_> {
 /// when one core runs slower than the other (on a shared machine it may),
 /// while each works through one contiguous run of items: neighbouring
 /// items that read the same data stay on one worker, but where the two
-/// meet. Each worker makes its state with `init` (told whether it takes
-/// items from the front) and, once no item is left
-/// for it, hands it to `finish` with whether it took items from the front
-/// (before waiting for the other, so that work on a worker's own items can
-/// follow at once); the two results are returned, the front's first. The
-/// items one worker ran are consecutive: the front's from 0, the back's up
-/// to the last. The caller waits for the other worker by spinning, as
-/// [`run_parts`] does; if the other has not started by the time the caller
-/// finds no items left, the caller runs its `finish` too (with a state no
-/// item touched). On one thread everything runs on the caller, the front
-/// first. Which worker runs an item changes no result; a panic in any item
-/// propagates once both workers have ended.
+/// meet. The items one worker ran are consecutive: the front's from 0, the
+/// back's up to the last.
+///
+/// Each side makes its state with `init(front)` (`front`: whether it takes
+/// items from the front) and, once no item is left for it, hands the state
+/// to `finish(state, front)` before waiting for the other side, so that
+/// work on a side's own items can follow at once; the two results are
+/// returned, the front's first. The caller waits for the other worker by
+/// spinning, as [`run_parts`] does; if the other has not started by the
+/// time the caller finds no item left, the caller runs the back's `init`
+/// and `finish` itself. On one thread (and for fewer than two items or more
+/// than `u32::MAX`) every item runs on the caller, as the front. Which
+/// worker runs an item changes no result; a panic in any item propagates
+/// once both workers have ended.
 pub(crate) fn from_both_ends<I: Send, S, R: Send>(
     items: Vec<I>,
     init: impl Fn(bool) -> S + Sync,
@@ -485,12 +488,11 @@ pub(crate) fn from_both_ends<I: Send, S, R: Send>(
         }
         return (finish(state, true), finish(init(false), false));
     }
-    let items = Items(
-        items
-            .into_iter()
-            .map(|i| UnsafeCell::new(Some(i)))
-            .collect(),
-    );
+    // One queue of [`run_on_named_workers`]' kind.
+    let items = Claimed(vec![items
+        .into_iter()
+        .map(|i| UnsafeCell::new(Some(i)))
+        .collect()]);
     // The items left: `front..back`, front in the low 32 bits.
     let left = Padded(AtomicU64::new((n as u64) << 32));
     // A piece from the front (`true`) or the back, if any item is left.
@@ -522,7 +524,7 @@ pub(crate) fn from_both_ends<I: Send, S, R: Send>(
         while let Some(piece) = take(front) {
             let mut run = |k: usize| {
                 // SAFETY: `take` hands each index to one worker only.
-                if let Some(item) = unsafe { items.take(k) } {
+                if let Some(Some(item)) = unsafe { items.take(0, k) } {
                     work(&mut state, k, item);
                 }
             };
@@ -534,81 +536,36 @@ pub(crate) fn from_both_ends<I: Send, S, R: Send>(
         }
         finish(state, front)
     };
-    // The other worker's state (not started, running, ended) and result.
-    const WAITING: u8 = 0;
-    const RUNNING: u8 = 1;
-    const ENDED: u8 = 2;
-    let back_state = Padded(AtomicU8::new(WAITING));
+    // The other worker's side is taken once, by whoever sets `claimed`
+    // first: the other worker (which then sets `done` when its side ends
+    // or its panic unwinds), or the caller, once it finds no item left.
+    let (claimed, done) = (Padded(AtomicBool::new(false)), AtomicBool::new(false));
     let back_result: Mutex<Option<R>> = Mutex::new(None);
-    let back = || {
-        if back_state
-            .0
-            .compare_exchange(WAITING, RUNNING, Ordering::Acquire, Ordering::Relaxed)
-            .is_ok()
-        {
-            // `ENDED` once the side returns or its panic unwinds.
-            let _ended = StoreOnDrop(&back_state.0, ENDED);
-            let r = side(false);
-            *back_result.lock().unwrap_or_else(PoisonError::into_inner) = Some(r);
-        }
-    };
-    let (front, unstarted) = rayon::scope(|s| {
-        s.spawn(|_| back());
+    let front = rayon::scope(|s| {
+        s.spawn(|_| {
+            if !claimed.0.swap(true, Ordering::AcqRel) {
+                let _done = SetOnDrop(&done);
+                let r = side(false);
+                *back_result.lock().unwrap_or_else(PoisonError::into_inner) = Some(r);
+            }
+        });
         let front = side(true);
-        // The other worker never starts now, or the caller waits for it.
-        let unstarted = back_state
-            .0
-            .compare_exchange(WAITING, ENDED, Ordering::Acquire, Ordering::Relaxed)
-            .is_ok();
-        if !unstarted {
-            spin_while(|| back_state.0.load(Ordering::Acquire) != ENDED);
+        if claimed.0.swap(true, Ordering::AcqRel) {
+            spin_until(&done);
         }
-        (front, unstarted)
+        front
     });
     // The scope has ended, so the other worker's task has too (a panic in
-    // it has propagated from the scope).
+    // it has propagated from the scope); no result: it never ran its side.
     let back = back_result
         .into_inner()
-        .unwrap_or_else(PoisonError::into_inner);
-    let back = match back {
-        Some(r) => r,
-        None => {
-            debug_assert!(unstarted, "a started back side left its result");
-            finish(init(false), false)
-        }
-    };
+        .unwrap_or_else(PoisonError::into_inner)
+        .unwrap_or_else(|| finish(init(false), false));
     (front, back)
-}
-
-/// Stores its value in its atomic when dropped.
-struct StoreOnDrop<'a>(&'a AtomicU8, u8);
-
-impl Drop for StoreOnDrop<'_> {
-    fn drop(&mut self) {
-        self.0.store(self.1, Ordering::Release);
-    }
 }
 
 /// The most items in one piece of [`from_both_ends`].
 const MOST_PER_PIECE: u64 = 16;
-
-/// The items of [`from_both_ends`], each taken by one worker only.
-struct Items<I>(Vec<UnsafeCell<Option<I>>>);
-
-// SAFETY: an item is taken (moved out) only by the worker whose
-// compare-exchange claimed its index, so no two threads touch one cell.
-unsafe impl<I: Send> Sync for Items<I> {}
-
-impl<I> Items<I> {
-    /// Item `k`, moved out.
-    ///
-    /// # Safety
-    /// No other thread takes item `k`, now or later.
-    unsafe fn take(&self, k: usize) -> Option<I> {
-        // SAFETY: as the caller promises.
-        self.0.get(k).and_then(|c| unsafe { (*c.get()).take() })
-    }
-}
 
 /// Split `jobs`, each with its estimated cost, into `parts` lists (at
 /// least one) of close to equal total cost, each list in ascending `order`

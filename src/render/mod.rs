@@ -657,6 +657,18 @@ fn forward_stages<T: Real>(
         rasterize::forward_row(&frame, py, &mut row, &mut ev);
         ev
     };
+    let rows: Vec<RowSlices<'_, T>> = c0
+        .chunks_mut(w)
+        .zip(c1.chunks_mut(w))
+        .zip(c2.chunks_mut(w))
+        .zip(out.depth.spare_capacity_mut()[..hw].chunks_mut(w))
+        .zip(out.final_t.spare_capacity_mut()[..hw].chunks_mut(w))
+        .zip(out.n_contrib.spare_capacity_mut()[..hw].chunks_mut(w))
+        .zip(blended.iter_mut())
+        .zip(blended_end.spare_capacity_mut()[..h * grid_x].chunks_mut(grid_x))
+        .zip(row_worker.iter_mut())
+        .map(|((((((((c0, c1), c2), d), f), n), b), e), rw)| (c0, c1, c2, d, f, n, b, e, rw))
+        .collect();
     let evaluated: u64 = if small && rayon::current_num_threads() == 2 {
         // A small frame on two workers: rows from both ends
         // ([`crate::threads::from_both_ends`]), so that each worker walks
@@ -666,18 +678,6 @@ fn forward_stages<T: Real>(
         // pass was 0.3–4.4 µs shorter (of about 300) than with rayon's
         // pieces of 8 rows in quiet minutes (benches/README.md,
         // "Rasterizer: small frames' steps handed out from both ends").
-        let rows: Vec<RowSlices<'_, T>> = c0
-            .chunks_mut(w)
-            .zip(c1.chunks_mut(w))
-            .zip(c2.chunks_mut(w))
-            .zip(out.depth.spare_capacity_mut()[..hw].chunks_mut(w))
-            .zip(out.final_t.spare_capacity_mut()[..hw].chunks_mut(w))
-            .zip(out.n_contrib.spare_capacity_mut()[..hw].chunks_mut(w))
-            .zip(blended.iter_mut())
-            .zip(blended_end.spare_capacity_mut()[..h * grid_x].chunks_mut(grid_x))
-            .zip(row_worker.iter_mut())
-            .map(|((((((((c0, c1), c2), d), f), n), b), e), rw)| (c0, c1, c2, d, f, n, b, e, rw))
-            .collect();
         let (a, b) = crate::threads::from_both_ends(
             rows,
             |_| 0u64,
@@ -686,18 +686,7 @@ fn forward_stages<T: Real>(
         );
         a + b
     } else {
-        (
-            c0.par_chunks_mut(w),
-            c1.par_chunks_mut(w),
-            c2.par_chunks_mut(w),
-            out.depth.spare_capacity_mut()[..hw].par_chunks_mut(w),
-            out.final_t.spare_capacity_mut()[..hw].par_chunks_mut(w),
-            out.n_contrib.spare_capacity_mut()[..hw].par_chunks_mut(w),
-            blended.par_iter_mut(),
-            blended_end.spare_capacity_mut()[..h * grid_x].par_chunks_mut(grid_x),
-            row_worker.par_iter_mut(),
-        )
-            .into_par_iter()
+        rows.into_par_iter()
             // Stealable pieces of at most half a tile row: the rows' costs
             // are very uneven, and rayon's adaptive split alone left one
             // thread idle for up to a third of the blend.

@@ -115,7 +115,7 @@ pub(crate) fn preprocess<T: Real>(
             // the trained hellwarrior frames' projection on two threads
             // took 5.8 ms for 10 cameras against 8.2 without (4.8 against
             // 4.7 in quiet minutes).
-            out.prefetch_write(0, BATCH);
+            out.prefetch_write();
             batch(k, input, ndc_offset, b * BATCH, &mut out);
         });
     // SAFETY: the chunks above cover all of `out`, and `batch_body` writes
@@ -197,22 +197,26 @@ pub(crate) fn preprocess_in_two_runs<T: Real, R: Send>(
     let n_batches = batches.len();
     let (a, b) = crate::threads::from_both_ends(
         batches,
-        // The batches a worker ran, `[first, end)`.
-        |_| None,
-        |ran: &mut Option<[usize; 2]>, b, mut out| {
+        // The number of batches a worker ran: consecutive, from the first
+        // (the front) or up to the last (`from_both_ends`).
+        |_| 0usize,
+        |ran, b, mut out| {
             // The batch's output lines, asked for before its arithmetic
             // ([`BatchOut::prefetch_write`]).
-            out.prefetch_write(0, BATCH);
+            out.prefetch_write();
             batch(k, input, ndc_offset, b * BATCH, &mut out);
-            *ran = Some(ran.map_or([b, b + 1], |[lo, hi]| [lo.min(b), hi.max(b + 1)]));
+            *ran += 1;
         },
         |ran, front| {
-            let [lo, hi] = ran.unwrap_or(if front { [0, 0] } else { [n_batches; 2] });
+            let [lo, hi] = if front {
+                [0, ran]
+            } else {
+                [n_batches - ran, n_batches]
+            };
             let (first, end) = ((lo * BATCH).min(n), (hi * BATCH).min(n));
-            // SAFETY: this worker ran the batches `lo..hi` (consecutive,
-            // `from_both_ends`), and `batch_body` writes every element of
-            // the batch it is given; the other worker writes only its own
-            // batches.
+            // SAFETY: this worker ran the batches `lo..hi`, and `batch_body`
+            // writes every element of the batch it is given; the other
+            // worker writes only its own batches.
             then(first, unsafe { proj.get(first, end) })
         },
     );
@@ -252,24 +256,22 @@ unsafe fn assume_init<X>(s: &[MaybeUninit<X>]) -> &[X] {
 }
 
 impl<'a, T> BatchOut<'a, T> {
-    /// Ask for the lines of the outputs of the `len` Gaussians from
-    /// `start` for writing (clipped; only a hint). The other core may have
-    /// read them in the pass before (when the allocator hands back the
-    /// same blocks, as it usually does for a frame rendered again), and in
-    /// the machine's slow periods each such line costs a long round trip
-    /// between the CPUs: asked for ahead (one batch ahead in a small
-    /// frame's halves, before its own arithmetic for a batch of the
-    /// parallel split), the round trips overlap the batch's arithmetic
-    /// (benches/README.md, "Lines the other core read, asked for before
-    /// writing").
-    fn prefetch_write(&self, start: usize, len: usize) {
+    /// Ask for all the lines of these outputs for writing (only a hint).
+    /// The other core may have read them in the pass before (when the
+    /// allocator hands back the same blocks, as it usually does for a frame
+    /// rendered again), and in the machine's slow periods each such line
+    /// costs a long round trip between the CPUs: asked for before a batch's
+    /// arithmetic, the round trips overlap it (benches/README.md, "Lines
+    /// the other core read, asked for before writing").
+    fn prefetch_write(&self) {
         use crate::kernels::prefetch_write as pw;
-        pw(self.proj, start, len);
-        pw(self.colors, start, len);
-        pw(self.cov3d, start, len);
-        pw(self.splats, start, len);
-        pw(self.radii, start, len);
-        pw(self.means2d, 2 * start, 2 * len);
+        let len = self.proj.len();
+        pw(self.proj, 0, len);
+        pw(self.colors, 0, len);
+        pw(self.cov3d, 0, len);
+        pw(self.splats, 0, len);
+        pw(self.radii, 0, len);
+        pw(self.means2d, 0, 2 * len);
     }
 
     /// The outputs of each batch of [`BATCH`] Gaussians, in order (the last
@@ -718,7 +720,7 @@ mod tests {
     /// [`preprocess_in_two_runs`] gives the results of [`preprocess`], and
     /// hands each worker's projections to its callback: two consecutive
     /// runs of whole batches that cover all the Gaussians.
-    fn check_halves<T: Real>() {
+    fn check_two_runs<T: Real>() {
         for (n, seed) in [(203usize, 7u64), (33, 8), (16, 9), (1, 10), (0, 11)] {
             let [means, scales, rots, opac, sh, _] = scene::<T>(n, seed);
             let cam = camera::<T>(61, 47);
@@ -745,7 +747,7 @@ mod tests {
                     .num_threads(threads)
                     .build()
                     .unwrap();
-                let (got, halves) = pool.install(|| {
+                let (got, runs) = pool.install(|| {
                     preprocess_in_two_runs(&k, &input, n, None, |first, proj| {
                         (first, format!("{proj:?}"))
                     })
@@ -753,22 +755,22 @@ mod tests {
                 // Debug prints every value's shortest round trip: equal
                 // text, equal values.
                 assert_eq!(format!("{got:?}"), format!("{want:?}"), "n {n}");
-                let half = halves[1].0;
-                assert!(half % BATCH == 0 || half == n, "n {n}: {half}");
-                assert!(half <= n, "n {n}: {half}");
+                let cut = runs[1].0;
+                assert!(cut % BATCH == 0 || cut == n, "n {n}: {cut}");
+                assert!(cut <= n, "n {n}: {cut}");
                 if threads == 1 {
-                    assert_eq!(half, n, "one thread runs every batch from the front");
+                    assert_eq!(cut, n, "one thread runs every batch from the front");
                 }
-                assert_eq!(halves[0], (0, format!("{:?}", &want.proj[..half])), "n {n}");
-                assert_eq!(halves[1].1, format!("{:?}", &want.proj[half..]), "n {n}");
+                assert_eq!(runs[0], (0, format!("{:?}", &want.proj[..cut])), "n {n}");
+                assert_eq!(runs[1].1, format!("{:?}", &want.proj[cut..]), "n {n}");
             }
         }
     }
 
     #[test]
-    fn halves_match_the_parallel_stage() {
-        check_halves::<f32>();
-        check_halves::<f64>();
+    fn two_runs_match_the_parallel_stage() {
+        check_two_runs::<f32>();
+        check_two_runs::<f64>();
     }
 
     fn check_all_paths<T: Real>() {

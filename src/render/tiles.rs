@@ -259,15 +259,15 @@ fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
 ) {
     let keys = runs[0].len() + runs[1].len();
     let blocks: Vec<()> = vec![(); keys.div_ceil(MERGE_BLOCK)];
-    // Per worker: whether it takes blocks from the front, the next slot of
-    // each tile (the front) or the slot after
-    // the last one left (the back), the block it ran last and the cut of the
-    // merged order where that block ended (the front) or began (the back),
-    // and the block's keys in merged order.
+    // Per worker: whether it takes blocks from the front; each tile's next
+    // slot (the front) or the slot after the last one left (the back); the
+    // cut of the merged order at its edge of the keys it has written (the
+    // front's blocks ascend from the first key, the back's descend from the
+    // last); and a block's keys in merged order.
     struct Fill {
         front: bool,
         slots: Vec<u32>,
-        last: Option<(usize, [usize; 2])>,
+        edge: [usize; 2],
         order: Vec<(u32, [u32; 4])>,
     }
     crate::threads::from_both_ends(
@@ -278,21 +278,19 @@ fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
                 .iter()
                 .map(|r| if front { r[0] } else { r[1] })
                 .collect(),
-            last: None,
+            edge: if front {
+                [0, 0]
+            } else {
+                [runs[0].len(), runs[1].len()]
+            },
             order: Vec::with_capacity(MERGE_BLOCK),
         },
         |fill, b, ()| {
-            let (lo, hi) = (b * MERGE_BLOCK, ((b + 1) * MERGE_BLOCK).min(keys));
-            let (from, to) = match fill.last {
-                // The front's blocks ascend, the back's descend.
-                Some((k, cut)) if k + 1 == b => (cut, cut_at(runs, hi)),
-                Some((k, cut)) if b + 1 == k => (cut_at(runs, lo), cut),
-                _ => (cut_at(runs, lo), cut_at(runs, hi)),
-            };
-            merged_into(runs, from, to, &mut fill.order);
-            let order = &fill.order;
             if fill.front {
-                fill.last = Some((b, to));
+                let to = cut_at(runs, ((b + 1) * MERGE_BLOCK).min(keys));
+                merged_into(runs, fill.edge, to, &mut fill.order);
+                fill.edge = to;
+                let order = &fill.order;
                 for (x, &(g, r)) in order.iter().enumerate() {
                     if let Some(&(ahead, _)) = order.get(x + PREFETCH_AHEAD) {
                         prefetch_value(out.payload, ahead as usize);
@@ -306,7 +304,10 @@ fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
                     }
                 }
             } else {
-                fill.last = Some((b, from));
+                let from = cut_at(runs, b * MERGE_BLOCK);
+                merged_into(runs, from, fill.edge, &mut fill.order);
+                fill.edge = from;
+                let order = &fill.order;
                 for (x, &(g, r)) in order.iter().enumerate().rev() {
                     if let Some(ahead) = x.checked_sub(PREFETCH_AHEAD) {
                         prefetch_value(out.payload, order[ahead].0 as usize);
@@ -395,8 +396,8 @@ fn step_down<K: Key>(runs: &[Run<K>; 2], i: &mut usize, j: &mut usize) -> (u32, 
 /// The keys of the runs between the cuts `from` and `to` of their merged
 /// order (keys of each run before them; `to` not before `from` in either;
 /// each a cut of the merged order, every key before it preceding every key
-/// after it), in merged order, as each one's Gaussian and tile rectangle, into `order`
-/// (its old contents dropped).
+/// after it), in merged order, as each one's Gaussian and tile rectangle,
+/// into `order` (its old contents dropped).
 ///
 /// Two merges at once, half of the keys each: one upwards from `from`,
 /// one downwards from `to`. A merge that has taken all of one run's keys
