@@ -75,6 +75,25 @@ pub fn cores() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
+/// How many of the current pool's workers can run at once: its threads,
+/// but at most the CPUs this process may use (read once per process, or as
+/// [`cores`] says while pinning is on). Work split into one fixed part per
+/// worker uses this many parts: on a pool with more workers than CPUs
+/// (`--threads 3` on two cores), one part per worker would leave a CPU
+/// running two parts while the other's ends early (the 64×64 bench frame's
+/// backward took 0.37 ms on 3 threads against 0.28 on 2 on a 2-core
+/// machine, benches/README.md, "More workers than CPUs"). Speed only,
+/// never results.
+pub(crate) fn workers_with_a_cpu() -> usize {
+    static CPUS_AT_START: OnceLock<usize> = OnceLock::new();
+    let cpus = if pinning() {
+        cores()
+    } else {
+        *CPUS_AT_START.get_or_init(cores)
+    };
+    rayon::current_num_threads().min(cpus.max(1))
+}
+
 /// Pin the calling thread to the `i`-th CPU (wrapping) when [`pinning`] is
 /// on; otherwise do nothing. Best effort: a refusal leaves it unpinned.
 pub fn pin_current_thread(i: usize) {
@@ -1118,6 +1137,20 @@ mod parts_tests {
                     "{parts} parts, {n} jobs: {t:?}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn workers_with_a_cpu_are_the_pools_threads_up_to_the_cpus() {
+        // (Unpinned: pinning is process-wide state that another test may
+        // turn on; `cores` then reads the CPUs read when it was.)
+        let cpus = std::thread::available_parallelism().map_or(1, |n| n.get());
+        for threads in [1, 2, cpus, cpus + 1, cpus + 3] {
+            let got = pool(threads).unwrap().install(workers_with_a_cpu);
+            if !pinning() {
+                assert_eq!(got, threads.min(cpus), "{threads} threads on {cpus} CPUs");
+            }
+            assert!((1..=threads).contains(&got), "{threads} threads: {got}");
         }
     }
 

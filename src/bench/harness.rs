@@ -81,12 +81,13 @@ pub fn available_cores() -> usize {
     crate::threads::cores()
 }
 
-/// The thread counts a scaling measurement runs on: 1 and every core (1
-/// alone on a one-core machine).
-pub fn one_and_all_cores() -> Vec<usize> {
-    let cores = available_cores();
-    if cores > 1 {
-        vec![1, cores]
+/// The thread counts a scaling measurement runs on: 1 and the current
+/// rayon pool's workers (`--threads N`, by default every core; 1 alone on
+/// a pool of one).
+pub fn one_and_pool_threads() -> Vec<usize> {
+    let threads = rayon::current_num_threads();
+    if threads > 1 {
+        vec![1, threads]
     } else {
         vec![1]
     }

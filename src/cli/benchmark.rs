@@ -21,7 +21,8 @@ fn count_in<const LO: usize, const HI: usize>(s: &str) -> Result<usize, String> 
 #[derive(Subcommand)]
 pub enum BenchWhat {
     /// Rasterizer forward and backward at 800x800/50k, 400x400/20k and 64x64/2.6k Gaussians,
-    /// on 1 thread and all cores: ms, pairs evaluated, pairs/s and % of the FMA peak.
+    /// on 1 thread and on --threads (default all cores): ms, pairs evaluated, pairs/s and % of
+    /// the FMA peak.
     Raster {
         /// Repetitions per measurement (the minimum is reported).
         #[arg(long, default_value_t = 3, value_parser = count_in::<1, 1_000_000>)]
@@ -69,7 +70,7 @@ pub enum BenchWhat {
 /// Run a `bench` subcommand.
 pub fn run(what: BenchWhat) -> crate::Result<Outcome> {
     match what {
-        BenchWhat::Raster { reps } => bench::raster(reps, &bench::harness::one_and_all_cores())?,
+        BenchWhat::Raster { reps } => bench::raster(reps, &bench::harness::one_and_pool_threads())?,
         BenchWhat::Train { run } => bench::train(&run.spec())?,
         BenchWhat::Deform {
             n,

@@ -27,7 +27,8 @@
 //! its chunk's sums first and then writing every output of its chunk once,
 //! into result buffers that are never zeroed beforehand). A small frame on
 //! two or more threads runs the same steps in one fixed part per worker
-//! ([`Steps::in_fixed_parts`]). The chain rule runs
+//! that has a CPU ([`crate::threads::workers_with_a_cpu`],
+//! [`Steps::in_fixed_parts`]). The chain rule runs
 //! several Gaussians per vector, each lane computing exactly the scalar
 //! operations of its Gaussian ([`crate::math::pack::Arith`]), so the bits do
 //! not depend on the width: in f32, 16 Gaussians in one AVX-512 register or
@@ -635,7 +636,8 @@ impl<T: Real> Steps<'_, T> {
 
     /// Steps 1 to 3 of a small frame on two or more workers
     /// ([`tiles::two_runs_apply`]) with at most [`FEW_TILES`] tiles with
-    /// entries, in one fixed part per worker and step
+    /// entries, in one fixed part per worker that has a CPU
+    /// ([`crate::threads::workers_with_a_cpu`]) and step
     /// ([`crate::threads::run_parts_in_two_steps`]: a worker goes on to its
     /// part of step 3 as soon as every part of steps 1 and 2 has ended,
     /// with no new job for the pool between them). Steps 1 and 2 are split
@@ -651,7 +653,7 @@ impl<T: Real> Steps<'_, T> {
     /// computes what changes no result.
     fn in_fixed_parts(&self, tiles: Vec<TilePiece<'_, T>>, entry: Written<T>) -> RasterGrads<T> {
         let saved = self.saved;
-        let threads = rayon::current_num_threads();
+        let threads = crate::threads::workers_with_a_cpu();
         let step2: OnceLock<EntriesAndCuts> = OnceLock::new();
         let entries = crate::threads::OneJob::new(|| {
             let (start, index) = gaussian_entries(saved);
@@ -719,7 +721,8 @@ impl<T: Real> Steps<'_, T> {
     /// Step 3, per Gaussian in parallel ([`Ctx::chunk`]), in chunks of
     /// at most [`CHUNK`] Gaussians: for a small frame on two or more
     /// workers ([`tiles::two_runs_apply`]) in one part of consecutive
-    /// Gaussians per worker, each part's chunks in turn, the caller waiting
+    /// Gaussians per worker that has a CPU, each part's chunks in turn, the
+    /// caller waiting
     /// for the others' parts by spinning ([`crate::threads::run_parts`]);
     /// else as rayon hands the chunks out.
     fn gaussian_gradients(
@@ -730,7 +733,7 @@ impl<T: Real> Steps<'_, T> {
     ) -> RasterGrads<T> {
         let ctx = Ctx::new(self.input, self.saved, self.mode);
         let mut grads = ctx.empty_grads();
-        let threads = rayon::current_num_threads();
+        let threads = crate::threads::workers_with_a_cpu();
         if tiles::two_runs_apply(self.saved.len()) {
             let parts = ctx.chunks_in_parts(&mut grads, threads);
             crate::threads::run_parts(parts, |part| ctx.chunks(entry, start, index, part));
