@@ -712,7 +712,8 @@ impl<T: Real> Steps<'_, T> {
         // before this line), writing every slot of its chunks
         // (`Ctx::chunk`), which together cover the Gaussians: the parts'
         // ranges run from `cuts[0] = 0` to `cuts[threads] = n`, and `firsts`
-        // has one part per thread (`balanced_parts`).
+        // has `threads` parts (`balanced_parts`), one per worker that has a
+        // CPU.
         unsafe { ctx.set_lens(&mut grads) };
         super::stages::mark("per Gaussian");
         grads
