@@ -2,7 +2,8 @@
 # Side by side on one machine: `bench raster` of this checkout and of an
 # earlier commit (built from `git archive` in its own target directory), in
 # alternating rounds, with the load average before each round. `bench raster`
-# runs 1 thread and every core; this checkout also prints its stage times.
+# runs 1 thread and every core (both versions: no --threads here); this checkout
+# also prints its stage times.
 #
 #   benches/compare_raster.sh OLD_COMMIT [ROUNDS=3] [REPS=5]
 set -euo pipefail
