@@ -11,24 +11,35 @@
 //!    the two pinned workers takes under 100 ns (the median of five batches'
 //!    means, 2,000 round trips a batch; 40–50 ns in quiet minutes on the
 //!    development VM, 340–400 ns in its slow periods);
-//! 2. runs `PASSES` forward and backward passes on one thread and `PASSES`
-//!    on two (one thread first in even rounds, two threads first in odd
+//! 2. runs `PASSES` forward and backward passes on one thread pinned to the
+//!    first CPU, `PASSES` on one thread pinned to the second, and `PASSES`
+//!    on two (the two-thread passes first in odd rounds, last in even
 //!    ones), and takes the fastest forward and backward of each;
 //! 3. times the round trip again. A round that did not start quiet (the
-//!    wait ran out) or ended slow is printed but left out of the summary.
+//!    wait ran out) or ended slow is printed but left out of the summary,
+//!    and so is one whose two CPUs did not run alike: their one-thread
+//!    forwards (or backwards) more than [`ALIKE`] apart. Such a CPU shares
+//!    its core with another tenant's work for a while (on the Zen 4
+//!    development VM one CPU's one-thread forward went from 0.51 to 0.69 ms
+//!    for minutes while the round trip stayed quiet), and a round timed
+//!    there compares a slowed thread with two others.
 //!
-//! It prints each round's times and two-over-one ratios, then, per
-//! direction, the median (of an even count, the mean of the middle two) and
-//! range of the kept rounds' ratios and the ratio of the fastest passes over
-//! the kept rounds. Linux with pinning and two CPUs only (elsewhere it says
-//! so); with less than two CPUs' worth of time, every round waits out its
-//! two minutes.
+//! The one-thread time of a round is the faster CPU's. It prints each
+//! round's times and two-over-one ratios, then, per direction, the median
+//! (of an even count, the mean of the middle two) and range of the kept
+//! rounds' ratios and the ratio of the fastest passes over the kept rounds.
+//! Linux with pinning and two CPUs only (elsewhere it says so); with less
+//! than two CPUs' worth of time, every round waits out its two minutes.
 use liquid_splat::bench::harness;
 use liquid_splat::render::{self, scene};
 use std::time::{Duration, Instant};
 
 /// The round trip (ns, see [`round_trip_ns`]) under which a minute is quiet.
 const QUIET_NS: f64 = 100.0;
+
+/// The largest relative difference between the two CPUs' fastest
+/// one-thread passes of a kept round.
+const ALIKE: f64 = 0.03;
 
 /// The ns per round trip of one atomic between the pool's two workers: the
 /// median of 5 batches' means, 2,000 round trips a batch.
@@ -71,7 +82,16 @@ fn main() {
         .into_iter()
         .map(|v| v as f32)
         .collect();
-    let pools = [1, 2].map(|t| liquid_splat::threads::pool(t).expect("a pool of pinned threads"));
+    // One thread on the first CPU, one on the second, two threads.
+    let pools = [
+        liquid_splat::threads::pool(1).expect("a pool of pinned threads"),
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .start_handler(|_| liquid_splat::threads::pin_current_thread(1))
+            .build()
+            .expect("a pool of one thread"),
+        liquid_splat::threads::pool(2).expect("a pool of pinned threads"),
+    ];
     // The fastest forward and backward (ms) of `passes` passes on `pool`.
     let fastest = |pool: &rayon::ThreadPool| {
         pool.install(|| {
@@ -92,41 +112,48 @@ fn main() {
     };
     println!(
         "64x64, {n} Gaussians, f32; {rounds} rounds of {passes} passes; fastest pass, ms, \
-         1 thread / 2 threads"
+         1 thread (CPU 0, CPU 1) / 2 threads"
     );
     let mut kept = [Vec::new(), Vec::new()];
     let mut best = [[f64::MAX; 2]; 2];
     for r in 0..rounds {
         let start = Instant::now();
-        let mut started_quiet = round_trip_ns(&pools[1]) < QUIET_NS;
+        let mut started_quiet = round_trip_ns(&pools[2]) < QUIET_NS;
         while !started_quiet && start.elapsed() < Duration::from_secs(120) {
             std::thread::sleep(Duration::from_millis(500));
-            started_quiet = round_trip_ns(&pools[1]) < QUIET_NS;
+            started_quiet = round_trip_ns(&pools[2]) < QUIET_NS;
         }
         let waited = start.elapsed().as_secs_f64();
-        let (one, two) = if r % 2 == 0 {
-            let one = fastest(&pools[0]);
-            (one, fastest(&pools[1]))
-        } else {
-            let two = fastest(&pools[1]);
-            (fastest(&pools[0]), two)
-        };
-        let after = round_trip_ns(&pools[1]);
+        let order = if r % 2 == 0 { [0, 1, 2] } else { [2, 0, 1] };
+        let mut times = [[0.0; 2]; 3];
+        for k in order {
+            times[k] = fastest(&pools[k]);
+        }
+        let [cpu0, cpu1, two] = times;
+        let one = [0, 1].map(|d| cpu0[d].min(cpu1[d]));
+        let alike = (0..2).all(|d| (cpu0[d] - cpu1[d]).abs() <= ALIKE * one[d]);
+        let after = round_trip_ns(&pools[2]);
         let ratio = [one[0] / two[0], one[1] / two[1]];
-        let kept_round = started_quiet && after < QUIET_NS;
+        let kept_round = started_quiet && after < QUIET_NS && alike;
         println!(
-            "round {r}: forward {:.4} / {:.4} ({:.3}x), backward {:.4} / {:.4} ({:.3}x); \
-             waited {waited:.0} s, round trip after {after:.0} ns{}",
+            "round {r}: forward {:.4} ({:.4}, {:.4}) / {:.4} ({:.3}x), backward {:.4} ({:.4}, \
+             {:.4}) / {:.4} ({:.3}x); waited {waited:.0} s, round trip after {after:.0} ns{}",
             one[0],
+            cpu0[0],
+            cpu1[0],
             two[0],
             ratio[0],
             one[1],
+            cpu0[1],
+            cpu1[1],
             two[1],
             ratio[1],
             if !started_quiet {
                 " (no quiet start: left out)"
             } else if after >= QUIET_NS {
                 " (ended slow: left out)"
+            } else if !alike {
+                " (CPUs unlike: left out)"
             } else {
                 ""
             }
@@ -140,7 +167,7 @@ fn main() {
         }
     }
     if kept[0].is_empty() {
-        println!("no round started and ended quiet: no summary");
+        println!("no round started and ended quiet with its CPUs alike: no summary");
         return;
     }
     for (d, name) in ["forward", "backward"].iter().enumerate() {
