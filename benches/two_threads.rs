@@ -112,7 +112,7 @@ fn main() {
     };
     println!(
         "64x64, {n} Gaussians, f32; {rounds} rounds of {passes} passes; fastest pass, ms, \
-         1 thread (CPU 0, CPU 1) / 2 threads"
+         1 thread (first CPU, second CPU) / 2 threads"
     );
     let mut kept = [Vec::new(), Vec::new()];
     let mut best = [[f64::MAX; 2]; 2];
