@@ -101,15 +101,34 @@ pub fn lpips<T: Real>(w: &lpips::LpipsWeights, size: usize, reps: usize) -> crat
 /// pass's use of the FMA units.
 pub const RASTER_FLOP_PER_PAIR: [f64; 2] = [46.0, 69.0];
 
+/// The least time, in seconds, each thread count of [`raster`] spends on
+/// its timed passes in one round.
+pub const RASTER_BLOCK_S: f64 = 0.25;
+
 /// The rasterizer's forward and backward (f32, SH degree 3, exact
 /// gradients) at 800x800/50k, 400x400/20k and 64x64/2.6k Gaussians on each
-/// of `thread_counts`: the fastest of `reps` runs, pairs evaluated, pairs/s
-/// and % of the FMA peak; on two or more threads (at most one per core),
-/// the round trip of a cache line between workers 0 and 1 before the
-/// timed runs and after the stage runs ([`harness::round_trip_ns`]), which
-/// on a shared machine tells a slow period from a quiet one.
-pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
-    let reps = reps.max(1);
+/// of `thread_counts`: the fastest pass, pairs evaluated, pairs/s, % of
+/// the FMA peak and the speed-up over the first thread count; on two or
+/// more threads (at most one per core), the round trip of a cache line
+/// between workers 0 and 1 before the first round and after the last
+/// ([`harness::round_trip_ns`]), which on a shared machine tells a slow
+/// period from a quiet one.
+///
+/// Each frame is timed in `rounds` rounds. In each, every thread count in
+/// turn (the order reversed every other round, so that none always follows
+/// another) runs one untimed forward and backward, then forward and
+/// backward passes, each timed, for at least [`RASTER_BLOCK_S`] (at least
+/// one pair of passes), then one pass of each with the stage clock on. So
+/// the thread counts are timed in the same minutes: a shared machine's
+/// slow periods come and go within minutes, and timing every pass of one
+/// thread count before the next made their ratio swing by a tenth
+/// (benches/README.md, "Rasterizer: `bench raster` in rounds"). The
+/// untimed pair wakes the pool's workers, which sleep while another pool
+/// runs (a small frame's first pass would otherwise wait for them), and
+/// short frames get many timed passes, whose fastest is steadier than the
+/// fastest of a few.
+pub fn raster(rounds: usize, thread_counts: &[usize]) -> crate::Result<()> {
+    let rounds = rounds.max(1);
     outln!("machine threads: {}", harness::available_cores());
     let peaks: Vec<Option<(&str, f64)>> = thread_counts
         .iter()
@@ -130,8 +149,11 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
     let table = Table::new(&[
         ("scene", -16),
         ("thr", 3),
+        ("passes", 6),
         ("fwd ms", 10),
         ("bwd ms", 10),
+        ("fwd x", 6),
+        ("bwd x", 6),
         ("pairs eval", 12),
         ("bwd replayed", 12),
         ("fwd pair/s", 11),
@@ -157,45 +179,67 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
         let backward = |state: &render::RasterizeSaved<f32>| {
             render::rasterize_vjp(&input, state, &grad, None, render::GradientMode::Exact)
         };
-        for (&threads, peak) in thread_counts.iter().zip(&peaks) {
-            let pool = harness::thread_pool(threads)?;
-            // (Only where each worker can have a CPU: the round trip spins
-            // on both sides.)
-            let round_trip = || {
-                (threads <= harness::available_cores())
-                    .then(|| harness::round_trip_ns(&pool, 2_000))
-                    .flatten()
+        let pools = thread_counts
+            .iter()
+            .map(|&t| harness::thread_pool(t))
+            .collect::<crate::Result<Vec<_>>>()?;
+        // (Only where each worker can have a CPU: the round trip spins on
+        // both sides.)
+        let round_trip = |i: usize| {
+            (thread_counts[i] <= harness::available_cores())
+                .then(|| harness::round_trip_ns(&pools[i], 2_000))
+                .flatten()
+        };
+        let trips_before: Vec<Option<f64>> = (0..pools.len()).map(round_trip).collect();
+        let k = pools.len();
+        let mut times = vec![[harness::Samples::new(), harness::Samples::new()]; k];
+        let mut stages = vec![[Vec::new(), Vec::new()]; k];
+        let mut pairs = [0; 2];
+        for round in 0..rounds {
+            let order: Vec<usize> = if round % 2 == 0 {
+                (0..k).collect()
+            } else {
+                (0..k).rev().collect()
             };
-            let trip_before = round_trip();
-            let (fwd, bwd, pairs) = pool.install(|| -> crate::Result<_> {
-                let mut f = harness::Samples::new();
-                let mut b = harness::Samples::new();
-                let mut pairs = [0; 2];
-                for _ in 0..reps {
-                    let (r, t) = harness::timed(|| render::rasterize(&input));
-                    let (_, state) = r?;
-                    f.push(t);
-                    pairs = [state.pairs_evaluated(), state.pairs_replayed()];
-                    let (r, t) = harness::timed(|| backward(&state));
-                    r?;
-                    b.push(t);
-                }
-                // Stage times, in separate runs (each mark reads the
-                // process CPU clock): the stages of the fastest of `reps` runs.
-                let mut stages = [Vec::new(), Vec::new()];
-                for _ in 0..reps {
+            for i in order {
+                let [f, b] = &mut times[i];
+                let staged = &mut stages[i];
+                pools[i].install(|| -> crate::Result<()> {
+                    let (_, state) = render::rasterize(&input)?;
+                    backward(&state)?;
+                    let block = Instant::now();
+                    loop {
+                        let (r, t) = harness::timed(|| render::rasterize(&input));
+                        let (_, state) = r?;
+                        f.push(t);
+                        pairs = [state.pairs_evaluated(), state.pairs_replayed()];
+                        let (r, t) = harness::timed(|| backward(&state));
+                        r?;
+                        b.push(t);
+                        if block.elapsed().as_secs_f64() >= RASTER_BLOCK_S {
+                            break;
+                        }
+                    }
+                    // Stage times in a pass of their own (each mark reads
+                    // the process CPU clock): the stages of the fastest.
                     let (r, fs) = render::stages::record(|| render::rasterize(&input));
                     let (_, state) = r?;
                     let (r, bs) = render::stages::record(|| backward(&state));
                     r?;
-                    for (acc, new) in stages.iter_mut().zip([fs, bs]) {
+                    for (acc, new) in staged.iter_mut().zip([fs, bs]) {
                         fastest_stages(acc, new);
                     }
-                }
-                stage_lines.push((format!("{w}x{h} {n}"), threads, stages));
-                Ok((f.min(), b.min(), pairs))
-            })?;
-            let trips = match (trip_before, round_trip()) {
+                    Ok(())
+                })?;
+            }
+        }
+        let fastest: Vec<[f64; 2]> = times.iter().map(|[f, b]| [f.min(), b.min()]).collect();
+        for (i, ((&threads, peak), stages)) in
+            thread_counts.iter().zip(&peaks).zip(stages).enumerate()
+        {
+            stage_lines.push((format!("{w}x{h} {n}"), threads, stages));
+            let [fwd, bwd] = fastest[i];
+            let trips = match (trips_before[i], round_trip(i)) {
                 (Some(a), Some(b)) => format!("{a:.0}/{b:.0}"),
                 _ => "-".into(),
             };
@@ -214,8 +258,11 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
             table.print_row(&[
                 format!("{w}x{h} {n}"),
                 format!("{threads}"),
+                format!("{}", times[i][0].len()),
                 format!("{:.2}", fwd * 1e3),
                 format!("{:.2}", bwd * 1e3),
+                format!("{:.3}", fastest[0][0] / fwd),
+                format!("{:.3}", fastest[0][1] / bwd),
                 format!("{}", pairs[0]),
                 format!("{}", pairs[1]),
                 format!("{:.3e}", rate[0]),
@@ -227,19 +274,26 @@ pub fn raster(reps: usize, thread_counts: &[usize]) -> crate::Result<()> {
         }
     }
     outln!(
-        "(f32, SH degree 3, exact gradients, minimum over {reps} runs; pairs eval: (pixel, Gaussian) \
+        "(f32, SH degree 3, exact gradients; {rounds} rounds, each running every thread count in \
+         turn: one untimed forward and backward, then passes for at least {RASTER_BLOCK_S} s, then \
+         one with the stage clock on; passes: the timed forward and backward passes of each \
+         thread count; ms: the fastest of them; x: the first thread count's fastest over this \
+         one's; pairs eval: (pixel, Gaussian) \
          pairs the forward evaluated, up to each pixel's stop, and pair/s of both passes those \
          pairs over the pass's time; bwd replayed: the pairs the backward evaluates, each row's \
          pixels of a tile times the entries that blend in one of them; %: FLOP/s over the FMA \
          peak, {} FLOP per pair evaluated (forward) or {} per pair replayed (backward); \
-         x-CPU ns: one cache line's round trip between workers 0 and 1, before the row's timed \
-         runs / after its stage runs, which tells a shared machine's slow periods from its quiet minutes: on the \
-         2-core development VM 40-50 ns quiet and 320-450 ns slow, when small frames on 2 \
+         x-CPU ns: one cache line's round trip between workers 0 and 1, before the first round \
+         / after the last, which tells a shared machine's slow periods from its quiet minutes: on the \
+         2-core development VMs 40-70 ns quiet and 300-450 ns slow, when small frames on 2 \
          threads take up to half as long again (benches/README.md, \"The machine's slow \
          periods\"))",
         RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
     );
-    outln!("stages, ms wall (ms CPU of the process, all threads), of the fastest of {reps} runs:");
+    outln!(
+        "stages, ms wall (ms CPU of the process, all threads), of the fastest of the {rounds} \
+         stage-clocked passes:"
+    );
     for (scene, threads, passes) in &stage_lines {
         for (pass, st) in ["fwd", "bwd"].iter().zip(passes) {
             let cells: Vec<String> = st
