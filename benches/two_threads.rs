@@ -85,11 +85,7 @@ fn main() {
     // One thread on the first CPU, one on the second, two threads.
     let pools = [
         liquid_splat::threads::pool(1).expect("a pool of pinned threads"),
-        rayon::ThreadPoolBuilder::new()
-            .num_threads(1)
-            .start_handler(|_| liquid_splat::threads::pin_current_thread(1))
-            .build()
-            .expect("a pool of one thread"),
+        liquid_splat::threads::pool_from(1, 1).expect("a pool of pinned threads"),
         liquid_splat::threads::pool(2).expect("a pool of pinned threads"),
     ];
     // The fastest forward and backward (ms) of `passes` passes on `pool`.

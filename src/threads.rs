@@ -122,9 +122,18 @@ fn pinner() -> Option<Pinner> {
 /// A rayon pool of `threads` workers, worker `i` pinned to the `i`-th CPU
 /// (wrapping) when [`pinning`] is on.
 pub fn pool(threads: usize) -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
+    pool_from(threads, 0)
+}
+
+/// [`pool`] with worker `i` pinned to CPU `first + i` (wrapping) when
+/// [`pinning`] is on: the benches time one thread on each CPU with it.
+pub fn pool_from(
+    threads: usize,
+    first: usize,
+) -> Result<rayon::ThreadPool, rayon::ThreadPoolBuildError> {
     let builder = rayon::ThreadPoolBuilder::new().num_threads(threads);
     match pinner() {
-        Some(pin) => builder.start_handler(pin).build(),
+        Some(pin) => builder.start_handler(move |i| pin(first + i)).build(),
         None => builder.build(),
     }
 }
@@ -857,12 +866,23 @@ mod tests {
         // pinned ones, which changes only speed).
         set_pinning(true);
         let pinned = pool(3);
+        let from_second = pool_from(2, 1);
         set_pinning(false);
         let got = pinned
             .unwrap()
             .broadcast(|ctx| (ctx.index(), allowed_cpus()));
         for (i, set) in got {
             assert_eq!(set, vec![cpus[i % cpus.len()]], "worker {i}");
+        }
+        let got = from_second
+            .unwrap()
+            .broadcast(|ctx| (ctx.index(), allowed_cpus()));
+        for (i, set) in got {
+            assert_eq!(
+                set,
+                vec![cpus[(1 + i) % cpus.len()]],
+                "worker {i} from CPU 1"
+            );
         }
     }
 }

@@ -96,7 +96,14 @@ pub fn one_and_pool_threads() -> Vec<usize> {
 /// A rayon pool of `threads` workers, to run a measurement on with
 /// `pool.install`.
 pub fn thread_pool(threads: usize) -> Result<rayon::ThreadPool> {
-    crate::threads::pool(threads).map_err(|e| Error::invalid("thread pool", e.to_string()))
+    thread_pool_from(threads, 0)
+}
+
+/// [`thread_pool`] with its workers pinned from CPU `first` on, when
+/// pinning is on ([`crate::threads::pool_from`]).
+pub fn thread_pool_from(threads: usize, first: usize) -> Result<rayon::ThreadPool> {
+    crate::threads::pool_from(threads, first)
+        .map_err(|e| Error::invalid("thread pool", e.to_string()))
 }
 
 /// The line every measurement states its threads with: the current rayon

@@ -126,7 +126,12 @@ pub const RASTER_BLOCK_S: f64 = 0.25;
 /// untimed pair wakes the pool's workers, which sleep while another pool
 /// runs (a small frame's first pass would otherwise wait for them), and
 /// short frames get many timed passes, whose fastest is steadier than the
-/// fastest of a few.
+/// fastest of a few. With pinned workers (`--pin-threads`), a thread count
+/// below the machine's cores runs on the first CPUs in even rounds and on
+/// the next ones in odd rounds: one CPU of a shared machine can run a third
+/// slower than the other for minutes (benches/README.md, "Rasterizer: one
+/// CPU slowed for minutes"), and one thread always on the first would then
+/// make the others' speed-up look larger than it is.
 pub fn raster(rounds: usize, thread_counts: &[usize]) -> crate::Result<()> {
     let rounds = rounds.max(1);
     outln!("machine threads: {}", harness::available_cores());
@@ -179,15 +184,28 @@ pub fn raster(rounds: usize, thread_counts: &[usize]) -> crate::Result<()> {
         let backward = |state: &render::RasterizeSaved<f32>| {
             render::rasterize_vjp(&input, state, &grad, None, render::GradientMode::Exact)
         };
+        // Per thread count, its pools: with pinned workers and fewer
+        // threads than cores, one on the first CPUs and one on the next
+        // (rounds alternate between them), else one.
         let pools = thread_counts
             .iter()
-            .map(|&t| harness::thread_pool(t))
+            .map(|&t| {
+                let firsts = if crate::threads::pinning() && t < harness::available_cores() {
+                    vec![0, t]
+                } else {
+                    vec![0]
+                };
+                firsts
+                    .into_iter()
+                    .map(|first| harness::thread_pool_from(t, first))
+                    .collect::<crate::Result<Vec<_>>>()
+            })
             .collect::<crate::Result<Vec<_>>>()?;
         // (Only where each worker can have a CPU: the round trip spins on
         // both sides.)
         let round_trip = |i: usize| {
             (thread_counts[i] <= harness::available_cores())
-                .then(|| harness::round_trip_ns(&pools[i], 2_000))
+                .then(|| harness::round_trip_ns(&pools[i][0], 2_000))
                 .flatten()
         };
         let trips_before: Vec<Option<f64>> = (0..pools.len()).map(round_trip).collect();
@@ -204,7 +222,8 @@ pub fn raster(rounds: usize, thread_counts: &[usize]) -> crate::Result<()> {
             for i in order {
                 let [f, b] = &mut times[i];
                 let staged = &mut stages[i];
-                pools[i].install(|| -> crate::Result<()> {
+                let placements = &pools[i];
+                placements[round % placements.len()].install(|| -> crate::Result<()> {
                     let (_, state) = render::rasterize(&input)?;
                     backward(&state)?;
                     let block = Instant::now();
@@ -276,7 +295,8 @@ pub fn raster(rounds: usize, thread_counts: &[usize]) -> crate::Result<()> {
     outln!(
         "(f32, SH degree 3, exact gradients; {rounds} rounds, each running every thread count in \
          turn: one untimed forward and backward, then passes for at least {RASTER_BLOCK_S} s, then \
-         one with the stage clock on; passes: the timed forward and backward passes of each \
+         one with the stage clock on; with pinned workers, fewer threads than cores run on the \
+         first CPUs in even rounds and on the next ones in odd rounds; passes: the timed forward and backward passes of each \
          thread count; ms: the fastest of them; x: the first thread count's fastest over this \
          one's; pairs eval: (pixel, Gaussian) \
          pairs the forward evaluated, up to each pixel's stop, and pair/s of both passes those \
