@@ -372,37 +372,33 @@ mod x86 {
         stride: usize,
     ) {
         let m = ((1u32 << n) - 1) as __mmask16;
+        // Value `j` of the 16 lanes (zeros past `n`).
+        let value = |j: usize| {
+            if j < n {
+                // SAFETY: the caller guarantees `vals` can be read here.
+                unsafe { _mm512_loadu_ps(vals.add(stride * j)) }
+            } else {
+                _mm512_setzero_ps()
+            }
+        };
         if n <= 4 {
-            // SAFETY: as below; each store writes the `n` values of one
-            // lane's row only: the lane `q` of `y[k]` holds row `4q + k`,
-            // and the masked store of the whole vector at the row's address
-            // less `4q` writes its elements `4q .. 4q + n` (the pointer is
-            // only formed, wrapping: no value outside the row is touched).
-            unsafe {
-                let y = t4_lanes(std::array::from_fn(|j| {
-                    if j < n {
-                        _mm512_loadu_ps(vals.add(stride * j))
-                    } else {
-                        _mm512_setzero_ps()
-                    }
-                }));
-                for l in (0..16).filter(|&l| lanes >> l & 1 != 0) {
-                    let (q, k) = (l / 4, l % 4);
-                    _mm512_mask_storeu_ps(row(l).wrapping_sub(4 * q), m << (4 * q), y[k]);
-                }
+            let y = t4_lanes(std::array::from_fn(value));
+            for l in (0..16).filter(|&l| lanes >> l & 1 != 0) {
+                let (q, k) = (l / 4, l % 4);
+                // SAFETY: the caller guarantees row `l` can be written for
+                // `n` values, and this store writes those only: the lane `q`
+                // of `y[k]` holds row `4q + k`, and the masked store of the
+                // whole vector at the row's address less `4q` writes its
+                // elements `4q .. 4q + n` (the pointer is only formed,
+                // wrapping: no value outside the row is touched).
+                unsafe { _mm512_mask_storeu_ps(row(l).wrapping_sub(4 * q), m << (4 * q), y[k]) };
             }
             return;
         }
         // SAFETY: the caller guarantees the extents; masked-off values and
         // lanes are not written.
         unsafe {
-            let t = t16(std::array::from_fn(|j| {
-                if j < n {
-                    _mm512_loadu_ps(vals.add(stride * j))
-                } else {
-                    _mm512_setzero_ps()
-                }
-            }));
+            let t = t16(std::array::from_fn(value));
             for (l, v) in t.iter().enumerate() {
                 if lanes >> l & 1 != 0 {
                     _mm512_mask_storeu_ps(row(l), m, *v);
