@@ -307,7 +307,9 @@ pub fn raster(rounds: usize, thread_counts: &[usize]) -> crate::Result<()> {
          / after the last, which tells a shared machine's slow periods from its quiet minutes: on the \
          2-core development VMs 40-70 ns quiet and 300-450 ns slow, when small frames on 2 \
          threads take up to half as long again (benches/README.md, \"The machine's slow \
-         periods\"))",
+         periods\"), and 27-30 ns at times when the two CPUs apparently shared one core and 2 \
+         threads were only 1.1-1.5x 1 on the small frame (benches/README.md, \"Rasterizer: \
+         `bench raster` in rounds\"))",
         RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
     );
     outln!(
