@@ -305,7 +305,9 @@ mod x86 {
     ) {
         let m = ((1u32 << n) - 1) as __mmask16;
         if n <= 4 {
-            // SAFETY: as below.
+            // SAFETY: the caller guarantees the extents; each masked load
+            // reads the `n` values of one row only, and the stores write
+            // `out` at `stride·j + l` for `j < n`.
             unsafe {
                 // `x[k]`, 128-bit lane `q`: the values of row `4q + k`.
                 let x: [__m512; 4] = std::array::from_fn(|k| {
