@@ -577,9 +577,9 @@ impl<T> Written<T> {
 }
 
 impl<T: Real> Steps<'_, T> {
-    /// Step 1 for one tile: its entries' gradients, written once into its
-    /// piece (accumulated in `scratch`, a buffer of its task).
-    fn tile(&self, rec: &mut Vec<Record<T>>, scratch: &mut Vec<EntryGrad<T>>, t: TilePiece<'_, T>) {
+    /// Step 1 for one tile: its entries' gradients, accumulated in its
+    /// piece, which it zeroes first.
+    fn tile(&self, rec: &mut Vec<Record<T>>, t: TilePiece<'_, T>) {
         let saved = self.saved;
         let (w, h) = (saved.intr.width, saved.intr.height);
         let grid_x = saved.intr.grid[0] as usize;
@@ -597,30 +597,29 @@ impl<T: Real> Steps<'_, T> {
             grad_depth: self.grad_depth,
             mode: self.mode,
         };
-        scratch.clear();
-        scratch.resize(t.out.len(), EntryGrad::ZERO);
         // The rows replay only the entries they blended, a sparse walk the
         // hardware prefetcher does not follow: ask for the tile's whole
         // gathered list first.
         prefetch(job.splats, 0, job.splats.len());
-        // On a small frame's path, the tile's entries' lines too, to be
-        // written once it is done (the other core may have read them in the
-        // pass before, when the allocator hands back the same block).
+        // On a small frame's path, the tile's entries' lines too, before
+        // they are zeroed (the other core may have read them in the pass
+        // before, when the allocator hands back the same block).
         if tiles::two_runs_apply(saved.len()) {
             prefetch_write(t.out, 0, t.out.len());
         }
-        tile_vjp(&job, scratch, rec);
-        for (o, g) in t.out.iter_mut().zip(scratch.iter()) {
-            o.write(*g);
-        }
+        // Accumulated in place, where a scratch buffer of the task, copied
+        // into the piece at the end, left the 64×64 bench frame's backward
+        // 4–8 µs slower on one thread and 5–7 on two (benches/README.md,
+        // "Rasterizer: the backward's tiles accumulated in place").
+        tile_vjp(&job, filled(t.out, EntryGrad::ZERO), rec);
     }
 
     /// Step 1, per tile in parallel: the gradient of every list entry, each
     /// the sum over the tile's rows in ascending order (see the module
     /// docs); with step 2 ([`gaussian_entries`], serial) run beside it on
-    /// the caller. Each tile accumulates in a scratch buffer of its task and
-    /// writes its entries once into its piece, so the result buffer is
-    /// never zeroed and its fresh pages are first touched in parallel.
+    /// the caller. Each tile zeroes its own piece of the result and
+    /// accumulates into it, so the result buffer is never zeroed as a whole
+    /// and its fresh pages are first touched in parallel.
     /// Each tile is offered first to the worker that blended most of its
     /// rows in the forward ([`crate::threads::run_on_named_workers`]): the
     /// tile pass reads the rows' saved records, which that worker wrote.
@@ -640,8 +639,8 @@ impl<T: Real> Steps<'_, T> {
             .collect();
         crate::threads::run_on_named_workers(
             jobs,
-            || (Vec::with_capacity(most), Vec::with_capacity(most)),
-            |(rec, scratch), t| self.tile(rec, scratch, t),
+            || Vec::with_capacity(most),
+            |rec, t| self.tile(rec, t),
             || gaussian_entries(self.saved),
         )
     }
@@ -693,10 +692,10 @@ impl<T: Real> Steps<'_, T> {
             let parts: Vec<_> = firsts.into_iter().zip(0..).collect();
             let first = |part: Vec<Step1<T>>| {
                 let most = part.iter().map(Step1::len).max().unwrap_or(0);
-                let (mut rec, mut scratch) = (Vec::with_capacity(most), Vec::with_capacity(most));
+                let mut rec = Vec::with_capacity(most);
                 for job in part {
                     match job {
-                        Step1::Tile(t) => self.tile(&mut rec, &mut scratch, t),
+                        Step1::Tile(t) => self.tile(&mut rec, t),
                         Step1::Entries => entries.run(),
                     }
                 }
