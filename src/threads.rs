@@ -695,7 +695,7 @@ fn spin_while(busy: impl Fn() -> bool) {
 
 /// Wait until `done()`: spin as [`spin_while`] does, then yield the CPU
 /// between checks, for as long as it takes.
-fn wait_until(done: impl Fn() -> bool) {
+pub(crate) fn wait_until(done: impl Fn() -> bool) {
     spin_while(|| !done());
     while !done() {
         std::thread::yield_now();

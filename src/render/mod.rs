@@ -532,23 +532,23 @@ fn forward<T: Real>(
 /// consecutive run of the Gaussians (`preprocess::preprocess_in_two_runs`)
 /// and collects, counts and sorts its keys into a [`tiles::Run`], so that
 /// the sort runs in parallel on data its thread has just written; then
-/// [`tiles::merge_runs`]. Stage `project`
-/// includes the runs, `bin` the merge and the gather. The same list as
-/// [`tiles::bin`].
+/// [`tiles::merge_runs`]. Stage `project` includes the runs, `bin` the
+/// merge (the splat copies are gathered by the blend,
+/// [`rasterize::TileRowSplats`]). The same list as [`tiles::bin`].
 fn project_and_bin_in_two_runs<T: Real, K: tiles::Key>(
     intr: &Intrinsics<T>,
     input: &RasterInput<T>,
     n: usize,
     ndc_offset: Option<&[T]>,
-) -> Result<(preprocess::Preprocessed<T>, tiles::Binning, Vec<Splat<T>>)> {
+) -> Result<(preprocess::Preprocessed<T>, tiles::Binning)> {
     let (pre, runs) =
         preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
             tiles::run::<T, K>(first, proj, intr.grid)
         });
     stages::mark("project");
-    let (binning, splats) = tiles::merge_runs(runs, &pre.splats, intr.grid)?;
+    let binning = tiles::merge_runs(runs, intr.grid)?;
     stages::mark("bin");
-    Ok((pre, binning, splats))
+    Ok((pre, binning))
 }
 
 /// One image row's pieces of the forward's outputs: its three colour
@@ -583,12 +583,15 @@ fn forward_stages<T: Real>(
     // A small frame on two or more threads: the two runs' path, and the rows'
     // write hints ([`rasterize::RowOut::prefetch_write`]).
     let small = tiles::two_runs_apply(n);
-    let (pre, binning, splats) = if small {
-        if std::mem::size_of::<T>() <= 4 {
+    let (pre, binning, mut splats) = if small {
+        let (pre, binning) = if std::mem::size_of::<T>() <= 4 {
             project_and_bin_in_two_runs::<T, u64>(&intr, input, n, ndc_offset)?
         } else {
             project_and_bin_in_two_runs::<T, u128>(&intr, input, n, ndc_offset)?
-        }
+        };
+        // Gathered by the blend, below.
+        let splats = Vec::with_capacity(binning.list.len());
+        (pre, binning, splats)
     } else {
         let pre = preprocess::preprocess(&intr, input, n, ndc_offset);
         stages::mark("project");
@@ -622,12 +625,31 @@ fn forward_stages<T: Real>(
         n_contrib: Vec::with_capacity(hw),
         means2d: pre.means2d,
     };
-    let frame = rasterize::Frame {
-        splats: &splats,
-        ranges: &binning.ranges,
-        grid_x,
-        width: w,
-        bg: input.background,
+    // SAFETY: while `gather` lives, `splats` is reached only through it
+    // (the rows below read it directly only when there is no `gather`);
+    // `gather` is dropped after the blend, before `splats` is used again.
+    let gather = small.then(|| unsafe {
+        rasterize::TileRowSplats::new(
+            &binning.list,
+            &pre.splats,
+            &binning.ranges,
+            grid_x,
+            &mut splats,
+        )
+    });
+    // Row `py`'s view of the frame.
+    let frame = |py: usize| {
+        let ty = py / BLOCK;
+        let (splats, ranges) = match &gather {
+            Some(g) => g.tile_row(ty),
+            None => (&splats[..], &binning.ranges[ty * grid_x..(ty + 1) * grid_x]),
+        };
+        rasterize::Frame {
+            splats,
+            ranges,
+            width: w,
+            bg: input.background,
+        }
     };
     let mut blended: Vec<Vec<Blended>> = vec![Vec::new(); h];
     let mut blended_end: Vec<u32> = Vec::with_capacity(h * grid_x);
@@ -654,7 +676,7 @@ fn forward_stages<T: Real>(
             row.prefetch_write();
         }
         let mut ev = 0u64;
-        rasterize::forward_row(&frame, py, &mut row, &mut ev);
+        rasterize::forward_row(&frame(py), py, &mut row, &mut ev);
         ev
     };
     let rows: Vec<RowSlices<'_, T>> = c0
@@ -695,6 +717,17 @@ fn forward_stages<T: Real>(
             .map(|(py, row)| blend_row(py, row))
             .sum()
     };
+    if let Some(g) = gather {
+        // Every tile row was gathered (each has at most `BLOCK` image rows
+        // and at least one, and every image row asked for its copies).
+        let written = g.all_written();
+        drop(g);
+        assert!(written, "a tile row's splats were not gathered");
+        // SAFETY: every one of the list's slots was written (above); a
+        // panic in a row propagates before these lines, leaving `splats`
+        // empty.
+        unsafe { splats.set_len(binning.list.len()) };
+    }
     // SAFETY: the rows are the consecutive `w`-long (`grid_x`-long) pieces
     // of each buffer's first `hw` (`h·grid_x`) spare slots, and every row
     // wrote every slot of its pieces (`forward_row`: each of the `grid_x`

@@ -58,6 +58,7 @@ use super::BLOCK;
 use crate::kernels::fastmath;
 use crate::math::Real;
 use std::mem::MaybeUninit;
+use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
 
 /// Pixels per row group (one tile row).
 pub(crate) const LANES: usize = BLOCK;
@@ -555,15 +556,156 @@ pub(crate) fn row_tile_entries(
     start..ends[tx] as usize
 }
 
-/// What every row of a frame reads.
+/// What a row of a frame reads: its tile row's part of the frame.
 pub(crate) struct Frame<'a, T> {
-    /// The gathered list of every tile, in list order.
+    /// Gathered splats, in list order: every entry of the row's tiles.
     pub splats: &'a [Splat<T>],
-    /// `[start, end)` into `splats` per tile (row-major tile order).
+    /// Per tile of the row's tile row, `[start, end)` in `splats`.
     pub ranges: &'a [[u32; 2]],
-    pub grid_x: usize,
     pub width: usize,
     pub bg: [T; 3],
+}
+
+/// A small frame's splat copies in list order (`gathered[slot] =
+/// splats[list[slot]]`), written a tile row at a time by the first blend
+/// row that asks for that tile row ([`TileRowSplats::tile_row`]); the other
+/// rows of the tile row wait until it is written. So the list's merge
+/// writes only the list, and the copies a worker blends are mostly ones it
+/// wrote (benches/README.md, "Rasterizer: small frames' splats gathered by
+/// the blend").
+pub(crate) struct TileRowSplats<'a, T> {
+    list: &'a [u32],
+    splats: &'a [Splat<T>],
+    /// The spare slots of the gathered vector: `list.len()` of them.
+    out: *mut MaybeUninit<Splat<T>>,
+    /// Per tile row.
+    rows: Vec<TileRow>,
+    /// Per tile (row-major), its slots counted from its tile row's first.
+    ranges: Vec<[u32; 2]>,
+    grid_x: usize,
+}
+
+/// One tile row of [`TileRowSplats`].
+struct TileRow {
+    /// Its slots `[start, end)` in the list.
+    slots: [usize; 2],
+    /// Whether some row has taken on its copies.
+    taken: AtomicBool,
+    /// [`PENDING`], [`WRITTEN`] or [`FAILED`].
+    state: AtomicU8,
+}
+
+const PENDING: u8 = 0;
+const WRITTEN: u8 = 1;
+const FAILED: u8 = 2;
+
+/// How many slots ahead [`TileRowSplats::tile_row`] asks for a splat: the
+/// list's order is not the splats' order, which the hardware prefetcher
+/// does not follow, and half of them were written by the other core.
+const GATHER_AHEAD: usize = 8;
+
+// SAFETY: `out` is written only at a tile row's slots, by the one thread
+// that took that tile row, and read only after it is written
+// (`tile_row`).
+unsafe impl<T: Sync> Sync for TileRowSplats<'_, T> {}
+
+impl<'a, T: Copy> TileRowSplats<'a, T> {
+    /// Copies into `gathered`'s spare capacity (at least `list.len()`
+    /// slots) of `splats[g]` for each list entry `g`, tile rows of
+    /// `grid_x` tiles as `ranges` gives them (row-major, consecutive from
+    /// slot 0 to `list.len()`).
+    ///
+    /// # Safety
+    /// `gathered` is not used (moved, resized, read or written) while the
+    /// value returned lives.
+    pub(crate) unsafe fn new(
+        list: &'a [u32],
+        splats: &'a [Splat<T>],
+        ranges: &[[u32; 2]],
+        grid_x: usize,
+        gathered: &mut Vec<Splat<T>>,
+    ) -> Self {
+        assert!(gathered.capacity() >= list.len() && grid_x > 0);
+        let mut rows = Vec::with_capacity(ranges.len() / grid_x);
+        let mut rebased = Vec::with_capacity(ranges.len());
+        let mut next = 0;
+        for r in ranges.chunks(grid_x) {
+            let [first, end] = [r[0][0], r[r.len() - 1][1]];
+            assert!(first as usize == next, "tile rows' slots are consecutive");
+            next = end as usize;
+            rows.push(TileRow {
+                slots: [first as usize, end as usize],
+                taken: AtomicBool::new(false),
+                state: AtomicU8::new(PENDING),
+            });
+            rebased.extend(r.iter().map(|&[s, e]| [s - first, e - first]));
+        }
+        assert!(next == list.len(), "tile rows' slots cover the list");
+        TileRowSplats {
+            list,
+            splats,
+            out: gathered.spare_capacity_mut().as_mut_ptr(),
+            rows,
+            ranges: rebased,
+            grid_x,
+        }
+    }
+
+    /// Tile row `ty`'s copies and its tiles' ranges in them, written here
+    /// if no row has taken them on yet, else once the row that has is done
+    /// with them. Panics if that row's copy panicked.
+    #[inline]
+    pub(crate) fn tile_row(&self, ty: usize) -> (&[Splat<T>], &[[u32; 2]]) {
+        let row = &self.rows[ty];
+        let [s, e] = row.slots;
+        if row.state.load(Ordering::Acquire) != WRITTEN {
+            if !row.taken.swap(true, Ordering::AcqRel) {
+                // Marks the tile row failed if the copy unwinds, so that a
+                // row waiting for it panics instead of waiting for ever.
+                struct Failed<'s>(&'s AtomicU8);
+                impl Drop for Failed<'_> {
+                    fn drop(&mut self) {
+                        self.0.store(FAILED, Ordering::Release);
+                    }
+                }
+                let failed = Failed(&row.state);
+                for slot in s..e {
+                    if let Some(&ahead) = self.list.get(slot + GATHER_AHEAD) {
+                        crate::kernels::prefetch_value(self.splats, ahead as usize);
+                    }
+                    let splat = self.splats[self.list[slot] as usize];
+                    // SAFETY: `slot < list.len()`, within the spare
+                    // capacity, and this thread alone took this tile row's
+                    // slots.
+                    unsafe { (*self.out.add(slot)).write(splat) };
+                }
+                std::mem::forget(failed);
+                row.state.store(WRITTEN, Ordering::Release);
+            } else {
+                crate::threads::wait_until(|| row.state.load(Ordering::Acquire) != PENDING);
+                assert!(
+                    row.state.load(Ordering::Acquire) == WRITTEN,
+                    "the copy of tile row {ty}'s splats panicked on another worker"
+                );
+            }
+        }
+        // SAFETY: the slots `s..e` were written (above, or by the thread
+        // that took them, whose writes the `Acquire` load has made seen)
+        // and are not written again.
+        let copies = unsafe { std::slice::from_raw_parts(self.out.add(s).cast(), e - s) };
+        (
+            copies,
+            &self.ranges[ty * self.grid_x..(ty + 1) * self.grid_x],
+        )
+    }
+
+    /// Whether every tile row's copies are written, so that all `list.len()`
+    /// slots are.
+    pub(crate) fn all_written(&self) -> bool {
+        self.rows
+            .iter()
+            .all(|r| r.state.load(Ordering::Acquire) == WRITTEN)
+    }
 }
 
 /// Render image row `py` (every tile it crosses); adds the pairs evaluated
@@ -576,19 +718,16 @@ fn forward_row_body<V: Lanes>(
     evaluated: &mut u64,
 ) {
     let k = Blend::<V::T>::new();
-    let ty = py / BLOCK;
     // One allocation per row, of the most entries the row can blend (every
     // entry of the tiles it crosses), shrunk when the row is done:
     // growing the vector step by step cost reallocations whose allocator
     // locks the threads contended for.
     out.blended.clear();
-    let row_ranges = &f.ranges[ty * f.grid_x..(ty + 1) * f.grid_x];
     out.blended
-        .reserve(row_ranges.iter().map(|[s, e]| (e - s) as usize).sum());
-    for tx in 0..f.grid_x {
+        .reserve(f.ranges.iter().map(|[s, e]| (e - s) as usize).sum());
+    for (tx, &[s, e]) in f.ranges.iter().enumerate() {
         let x0 = tx * BLOCK;
         let nx = BLOCK.min(f.width - x0);
-        let [s, e] = f.ranges[ty * f.grid_x + tx];
         let st = walk_row::<V>(
             &f.splats[s as usize..e as usize],
             Row { x0, nx, py },
@@ -711,6 +850,7 @@ mod tests {
     use super::*;
     use crate::math::rng::Rng;
     use crate::render::lanes::Scalar;
+    use rayon::prelude::*;
 
     // A splat with a random rotated 2D covariance (condition numbers from 1
     // to 10^7, beyond the bound's limit too), centre around rows 0..height,
@@ -749,6 +889,106 @@ mod tests {
             power_min: pm,
             rows: candidate_rows(xy, conic, pm, height),
         }
+    }
+
+    /// The splat copies of [`TileRowSplats`]: Gaussian `g`'s, with its
+    /// index as depth so that a copy shows which it is.
+    fn indexed_splats(n: usize) -> Vec<Splat<f32>> {
+        let mut rng = Rng::new(5);
+        (0..n)
+            .map(|g| Splat {
+                depth: g as f32,
+                ..random_splat::<f32>(&mut rng, 64)
+            })
+            .collect()
+    }
+
+    #[test]
+    fn tile_rows_are_gathered_once_whoever_asks_first() {
+        // 3×4 tiles with uneven and empty tiles; list entries in no
+        // particular order, repeated Gaussians included.
+        let counts = [3u32, 0, 5, 0, 0, 0, 7, 1, 2, 4, 0, 9];
+        let mut ranges = Vec::new();
+        let mut at = 0;
+        for c in counts {
+            ranges.push([at, at + c]);
+            at += c;
+        }
+        let splats = indexed_splats(11);
+        let list: Vec<u32> = (0..at).map(|k| (k * 7 + 3) % 11).collect();
+        for threads in [1, 2, 3] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .unwrap();
+            // Every image row of every tile row asks, in parallel, in an
+            // order that starts at the bottom.
+            let mut gathered = Vec::with_capacity(list.len());
+            // SAFETY: `gathered` is untouched while `t` lives.
+            let t = unsafe { TileRowSplats::new(&list, &splats, &ranges, 3, &mut gathered) };
+            let seen: Vec<(usize, Vec<u32>, Vec<[u32; 2]>)> = pool.install(|| {
+                (0..4 * BLOCK)
+                    .into_par_iter()
+                    .map(|k| {
+                        let ty = 3 - k / BLOCK;
+                        let (copies, r) = t.tile_row(ty);
+                        (
+                            ty,
+                            copies.iter().map(|s| s.depth as u32).collect(),
+                            r.to_vec(),
+                        )
+                    })
+                    .collect()
+            });
+            assert!(t.all_written());
+            drop(t);
+            // SAFETY: every slot was written (`all_written`).
+            unsafe { gathered.set_len(list.len()) };
+            let by_depth: Vec<u32> = gathered.iter().map(|s| s.depth as u32).collect();
+            assert_eq!(
+                by_depth, list,
+                "{threads} threads: the copies in list order"
+            );
+            for (ty, copies, r) in seen {
+                let first = ranges[3 * ty][0];
+                let want: Vec<[u32; 2]> = ranges[3 * ty..3 * ty + 3]
+                    .iter()
+                    .map(|&[s, e]| [s - first, e - first])
+                    .collect();
+                assert_eq!(r, want, "tile row {ty}'s ranges");
+                let [s, e] = [first as usize, ranges[3 * ty + 2][1] as usize];
+                assert_eq!(copies, list[s..e], "tile row {ty}'s copies");
+            }
+        }
+    }
+
+    #[test]
+    fn a_failed_gather_makes_its_waiters_panic_not_hang() {
+        // Tile row 0 lists a Gaussian that does not exist: its copy panics,
+        // on whichever worker takes it, and the other panics too.
+        let splats = indexed_splats(2);
+        let list = vec![0u32, 1, 7, 1];
+        let ranges = vec![[0u32, 3], [3, 4]];
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(2)
+            .build()
+            .unwrap();
+        let mut gathered = Vec::with_capacity(list.len());
+        // SAFETY: `gathered` is untouched while `t` lives.
+        let t = unsafe { TileRowSplats::new(&list, &splats, &ranges, 1, &mut gathered) };
+        let asks = pool.install(|| {
+            rayon::join(
+                || std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| t.tile_row(0).0.len())),
+                || std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| t.tile_row(0).0.len())),
+            )
+        });
+        assert!(asks.0.is_err() && asks.1.is_err());
+        assert_eq!(
+            t.tile_row(1).0[0].depth,
+            1.0,
+            "another tile row still gathers"
+        );
+        assert!(!t.all_written());
     }
 
     // At every row outside a splat's candidate rows, the power the lanes

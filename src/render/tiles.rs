@@ -34,7 +34,6 @@
 
 use super::project::Projected;
 use crate::error::{Error, Result};
-use crate::kernels::prefetch_value;
 use crate::math::Real;
 use rayon::prelude::*;
 use std::mem::MaybeUninit;
@@ -182,8 +181,8 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
 }
 
 /// The binning of [`bin`] from the runs of two consecutive pieces of the
-/// Gaussians, and `payload[g]` (one value per Gaussian) of every list entry
-/// `g` in list order.
+/// Gaussians (the list only: a small frame's splat copies are gathered a
+/// tile row at a time by the blend, `rasterize::TileRowSplats`).
 ///
 /// The merge of two runs sorted by `(depth bits, index)`, with distinct
 /// indices, is the one sorted order. After the tiles' ranges (the prefix
@@ -194,8 +193,8 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
 /// from each tile's last slot downwards. Each worker's blocks are
 /// consecutive, so every key before the point where the two meet is
 /// written upwards and every other downwards, and every tile's entries are
-/// those of [`bin`], on any thread count and wherever they meet; each
-/// entry's payload is copied as it is written. (Until they were handed out
+/// those of [`bin`], on any thread count and wherever they meet. (Until
+/// they were handed out
 /// in blocks, the two took the halves of the order split at its middle;
 /// measured on the 64×64 bench frame on a 2-core shared machine, one binary
 /// alternating the two by pass, the blocks were 0.7–1 µs faster in the
@@ -210,11 +209,7 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
 // (Kept out of line: inlined into the forward, it left the blend 1–2%
 // slower on one thread and on two, in a build where nothing else changed.)
 #[inline(never)]
-pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
-    runs: [Run<K>; 2],
-    payload: &[P],
-    grid: [u32; 2],
-) -> Result<(Binning, Vec<P>)> {
+pub(crate) fn merge_runs<K: Key>(runs: [Run<K>; 2], grid: [u32; 2]) -> Result<Binning> {
     let [a, b] = &runs;
     debug_assert_eq!(a.counts.len(), b.counts.len(), "runs of one grid");
     // The merges rely on the bounds (a real key equal to one could be
@@ -232,31 +227,21 @@ pub(crate) fn merge_runs<K: Key, P: Copy + Send + Sync>(
     let total = ranges.last().map_or(0, |r| r[1]) as usize;
 
     let mut list: Vec<u32> = Vec::with_capacity(total);
-    let mut gathered: Vec<P> = Vec::with_capacity(total);
     let out = Entries {
         list: Slots(list.spare_capacity_mut().as_mut_ptr()),
-        payload_out: Slots(gathered.spare_capacity_mut().as_mut_ptr()),
-        payload,
         grid_x: grid[0],
         len: total,
     };
     merge_from_both_ends(&runs, &ranges, &out);
-    // SAFETY: every one of the first `total` slots of both vectors was
-    // written (see `merge_from_both_ends`); a panic in a worker propagates
-    // before these lines, leaving the vectors empty.
-    unsafe {
-        list.set_len(total);
-        gathered.set_len(total);
-    }
-    Ok((Binning { list, ranges }, gathered))
+    // SAFETY: every one of the first `total` slots was written (see
+    // `merge_from_both_ends`); a panic in a worker propagates before this
+    // line, leaving the vector empty.
+    unsafe { list.set_len(total) };
+    Ok(Binning { list, ranges })
 }
 
 /// The fill of [`merge_runs`] (see there).
-fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
-    runs: &[Run<K>; 2],
-    ranges: &[[u32; 2]],
-    out: &Entries<'_, P>,
-) {
+fn merge_from_both_ends<K: Key>(runs: &[Run<K>; 2], ranges: &[[u32; 2]], out: &Entries) {
     let keys = runs[0].len() + runs[1].len();
     let blocks: Vec<()> = vec![(); keys.div_ceil(MERGE_BLOCK)];
     // Per worker: whether it takes blocks from the front; each tile's next
@@ -291,10 +276,7 @@ fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
                 merged_into(runs, fill.edge, to, &mut fill.order);
                 fill.edge = to;
                 let order = &fill.order;
-                for (x, &(g, r)) in order.iter().enumerate() {
-                    if let Some(&(ahead, _)) = order.get(x + PREFETCH_AHEAD) {
-                        prefetch_value(out.payload, ahead as usize);
-                    }
+                for &(g, r) in order {
                     for t in out.tiles(r) {
                         let s = fill.slots[t];
                         fill.slots[t] += 1;
@@ -308,10 +290,7 @@ fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
                 merged_into(runs, from, fill.edge, &mut fill.order);
                 fill.edge = from;
                 let order = &fill.order;
-                for (x, &(g, r)) in order.iter().enumerate().rev() {
-                    if let Some(ahead) = x.checked_sub(PREFETCH_AHEAD) {
-                        prefetch_value(out.payload, order[ahead].0 as usize);
-                    }
+                for &(g, r) in order.iter().rev() {
                     for t in out.tiles(r) {
                         fill.slots[t] -= 1;
                         let s = fill.slots[t];
@@ -328,12 +307,6 @@ fn merge_from_both_ends<K: Key, P: Copy + Send + Sync>(
 
 /// Keys per block of [`merge_from_both_ends`].
 const MERGE_BLOCK: usize = 128;
-
-/// How many keys ahead in its merged order each task of [`merge_runs`] asks
-/// for a key's payload: half of the payloads were written by the other
-/// core, and the gather reads them in depth order, which the hardware
-/// prefetcher does not follow. (4 and 8 measured alike; 16 less good.)
-const PREFETCH_AHEAD: usize = 8;
 
 /// How many slots ahead of each write [`merge_runs`] asks for the lines it
 /// will write: the other core may have read them in the pass before
@@ -457,17 +430,15 @@ fn tile_ranges(totals: impl IntoIterator<Item = u64>) -> Result<Vec<[u32; 2]>> {
     Ok(ranges)
 }
 
-/// The list and the payload copies of [`merge_runs`], written slot by slot.
-struct Entries<'a, P> {
+/// The list of [`merge_runs`], written slot by slot.
+struct Entries {
     list: Slots<u32>,
-    payload_out: Slots<P>,
-    payload: &'a [P],
     grid_x: u32,
-    /// The slots the vectors have room for.
+    /// The slots the list has room for.
     len: usize,
 }
 
-impl<P: Copy> Entries<'_, P> {
+impl Entries {
     /// The tiles (row-major indices) of the rectangle `r`.
     #[inline(always)]
     fn tiles(&self, r: [u32; 4]) -> impl Iterator<Item = usize> {
@@ -475,33 +446,28 @@ impl<P: Copy> Entries<'_, P> {
         (r[1]..r[3]).flat_map(move |y| (y * gx + r[0]) as usize..(y * gx + r[2]) as usize)
     }
 
-    /// Ask for slot `slot`'s lines for writing, if the vectors have room
-    /// for it (only a hint).
+    /// Ask for slot `slot`'s line for writing, if the list has room for it
+    /// (only a hint).
     #[inline(always)]
     fn prefetch_write(&self, slot: usize) {
         if slot < self.len {
             crate::kernels::prefetch_write_at(self.list.0.wrapping_add(slot) as *const u8);
-            crate::kernels::prefetch_write_at(self.payload_out.0.wrapping_add(slot) as *const u8);
         }
     }
 
-    /// Write Gaussian `g` and its payload at `slot`.
+    /// Write Gaussian `g` at `slot`.
     ///
     /// # Safety
-    /// `slot` is below the vectors' capacity and written by no other call.
+    /// `slot` is below the list's capacity and written by no other call.
     #[inline(always)]
     unsafe fn write(&self, slot: usize, g: u32) {
-        let value = self.payload[g as usize];
         // SAFETY: the caller's guarantee.
-        unsafe {
-            (*self.list.0.add(slot)).write(g);
-            (*self.payload_out.0.add(slot)).write(value);
-        }
+        unsafe { (*self.list.0.add(slot)).write(g) };
     }
 }
 
-/// A pointer to the storage of a list (or of its payload copies) that the
-/// fill tasks share; each writes only its own slots.
+/// A pointer to the storage of a list that the fill tasks share; each
+/// writes only its own slots.
 struct Slots<E>(*mut MaybeUninit<E>);
 // SAFETY: the pointer is only used to write disjoint slots from different
 // threads (see the fill in `bin_keyed` and the tasks of `merge_runs`).
@@ -867,7 +833,6 @@ mod tests {
             for grid in [[5u32, 11], [4, 4], [1, 9], [7, 1], [1, 1]] {
                 let proj = imbalanced::<T>(n, grid, 200 + seed as u64);
                 let want = reference(&proj, grid);
-                let index: Vec<u32> = (0..n as u32).collect();
                 // Halves at a batch boundary, uneven, and one empty.
                 for half in [n / 32 * 16, n / 3, 0, n] {
                     for threads in [1, 2, 3] {
@@ -875,17 +840,16 @@ mod tests {
                             .num_threads(threads)
                             .build()
                             .unwrap();
-                        let (got, payload) = pool.install(|| {
+                        let got = pool.install(|| {
                             let runs = [
                                 run::<T, K>(0, &proj[..half], grid),
                                 run::<T, K>(half, &proj[half..], grid),
                             ];
-                            merge_runs(runs, &index, grid).unwrap()
+                            merge_runs(runs, grid).unwrap()
                         });
                         let at = format!("n {n}, grid {grid:?}, half {half}, {threads} threads");
                         assert_eq!(got.ranges, want.ranges, "{at}");
                         assert!(got.list == want.list, "{at}");
-                        assert!(payload == got.list, "payload in list order, {at}");
                     }
                 }
             }
@@ -979,7 +943,7 @@ mod tests {
     /// Two runs merged against the serial definition on imbalanced inputs
     /// (ties in depth, culled and empty rectangles, a crowded tile), for
     /// several ways to cut the Gaussians in two, 1, 2 and 3 threads and
-    /// both key widths; the payload comes out in list order.
+    /// both key widths.
     #[test]
     fn merged_runs_match_the_serial_definition() {
         two_runs_match_reference::<f32, u64>();
