@@ -601,7 +601,10 @@ const FAILED: u8 = 2;
 
 /// How many slots ahead [`TileRowSplats::tile_row`] asks for a splat: the
 /// list's order is not the splats' order, which the hardware prefetcher
-/// does not follow, and half of them were written by the other core.
+/// does not follow, and half of them were written by the other core. (In
+/// quiet minutes 0, 8 and 16 measured alike; in slow periods 8 may help,
+/// benches/README.md, "Rasterizer: small frames' splats gathered by the
+/// blend".)
 const GATHER_AHEAD: usize = 8;
 
 // SAFETY: `out` is written only at a tile row's slots, by the one thread
