@@ -579,7 +579,8 @@ fn forward_stages<T: Real>(
     let (w, h) = (intr.width, intr.height);
 
     // 1. Per-Gaussian preprocessing, and 2. binning, with the splat data
-    //    of every entry in list order.
+    //    of every entry in list order (on a small frame's path gathered by
+    //    the blend, a tile row at a time).
     // A small frame on two or more threads: the two runs' path, and the rows'
     // write hints ([`rasterize::RowOut::prefetch_write`]).
     let small = tiles::two_runs_apply(n);
