@@ -194,11 +194,10 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
 /// consecutive, so every key before the point where the two meet is
 /// written upwards and every other downwards, and every tile's entries are
 /// those of [`bin`], on any thread count and wherever they meet. (Until
-/// they were handed out
-/// in blocks, the two took the halves of the order split at its middle;
-/// measured on the 64×64 bench frame on a 2-core shared machine, one binary
-/// alternating the two by pass, the blocks were 0.7–1 µs faster in the
-/// median pass in quiet minutes, benches/README.md.)
+/// they were handed out in blocks, the two took the halves of the order
+/// split at its middle; measured on the 64×64 bench frame on a 2-core
+/// shared machine, one binary alternating the two by pass, the blocks were
+/// 0.7–1 µs faster in the median pass in quiet minutes, benches/README.md.)
 ///
 /// Each block's keys are put in merged order before any of its entries is
 /// written ([`merged_into`]), as two merges at once with no branch in the
