@@ -58,7 +58,7 @@ use super::BLOCK;
 use crate::kernels::fastmath;
 use crate::math::Real;
 use std::mem::MaybeUninit;
-use std::sync::atomic::{AtomicBool, AtomicU8, Ordering};
+use std::sync::atomic::{AtomicU8, Ordering};
 
 /// Pixels per row group (one tile row).
 pub(crate) const LANES: usize = BLOCK;
@@ -589,15 +589,15 @@ pub(crate) struct TileRowSplats<'a, T> {
 struct TileRow {
     /// Its slots `[start, end)` in the list.
     slots: [usize; 2],
-    /// Whether some row has taken on its copies.
-    taken: AtomicBool,
-    /// [`PENDING`], [`WRITTEN`] or [`FAILED`].
+    /// [`PENDING`], [`TAKEN`] (some row is copying), [`WRITTEN`] or
+    /// [`FAILED`].
     state: AtomicU8,
 }
 
 const PENDING: u8 = 0;
-const WRITTEN: u8 = 1;
-const FAILED: u8 = 2;
+const TAKEN: u8 = 1;
+const WRITTEN: u8 = 2;
+const FAILED: u8 = 3;
 
 /// How many slots ahead [`TileRowSplats::tile_row`] asks for a splat: the
 /// list's order is not the splats' order, which the hardware prefetcher
@@ -638,7 +638,6 @@ impl<'a, T: Copy> TileRowSplats<'a, T> {
             next = end as usize;
             rows.push(TileRow {
                 slots: [first as usize, end as usize],
-                taken: AtomicBool::new(false),
                 state: AtomicU8::new(PENDING),
             });
             rebased.extend(r.iter().map(|&[s, e]| [s - first, e - first]));
@@ -662,7 +661,11 @@ impl<'a, T: Copy> TileRowSplats<'a, T> {
         let row = &self.rows[ty];
         let [s, e] = row.slots;
         if row.state.load(Ordering::Acquire) != WRITTEN {
-            if !row.taken.swap(true, Ordering::AcqRel) {
+            let took = row
+                .state
+                .compare_exchange(PENDING, TAKEN, Ordering::Acquire, Ordering::Relaxed)
+                .is_ok();
+            if took {
                 // Marks the tile row failed if the copy unwinds, so that a
                 // row waiting for it panics instead of waiting for ever.
                 struct Failed<'s>(&'s AtomicU8);
@@ -685,7 +688,8 @@ impl<'a, T: Copy> TileRowSplats<'a, T> {
                 std::mem::forget(failed);
                 row.state.store(WRITTEN, Ordering::Release);
             } else {
-                crate::threads::wait_until(|| row.state.load(Ordering::Acquire) != PENDING);
+                // (Taken, written or failed: never pending again.)
+                crate::threads::wait_until(|| row.state.load(Ordering::Acquire) != TAKEN);
                 assert!(
                     row.state.load(Ordering::Acquire) == WRITTEN,
                     "the copy of tile row {ty}'s splats panicked on another worker"
