@@ -527,28 +527,64 @@ fn forward<T: Real>(
     crate::threads::keep_awake(|| forward_stages(input, ndc_offset))
 }
 
+/// A small frame's two [`tiles::Run`]s, with keys of `f32`'s width or of
+/// `f64`'s.
+enum Runs {
+    Narrow([tiles::Run<u64>; 2]),
+    Wide([tiles::Run<u128>; 2]),
+}
+
+impl Runs {
+    /// [`tiles::merge_tile`] on these runs.
+    #[inline]
+    fn merge_tile<S: Copy>(
+        &self,
+        data: &[S],
+        t: usize,
+        list: &mut [MaybeUninit<u32>],
+        copies: &mut [MaybeUninit<S>],
+    ) {
+        match self {
+            Runs::Narrow(r) => tiles::merge_tile(r, data, t, list, copies),
+            Runs::Wide(r) => tiles::merge_tile(r, data, t, list, copies),
+        }
+    }
+}
+
 /// The per-Gaussian stage and the binning of a small frame on two or more
 /// threads ([`tiles::two_runs_apply`]): each of two workers projects a
 /// consecutive run of the Gaussians (`preprocess::preprocess_in_two_runs`)
-/// and collects, counts and sorts its keys into a [`tiles::Run`], so that
-/// the sort runs in parallel on data its thread has just written; then
-/// [`tiles::merge_runs`]. Stage `project` includes the runs, `bin` the
-/// merge (the splat copies are gathered by the blend,
-/// [`rasterize::TileRowSplats`]). The same list as [`tiles::bin`].
-fn project_and_bin_in_two_runs<T: Real, K: tiles::Key>(
+/// and sorts them into a [`tiles::Run`], so that the sort runs in parallel
+/// on data its thread has just written; then the tiles' ranges. The list
+/// and the splat copies are merged from the runs by the blend
+/// ([`tiles::merge_tile`], [`rasterize::TileRowSplats`]). Stage `project`
+/// includes the runs, `bin` the ranges.
+fn project_and_bin_in_two_runs<T: Real>(
     intr: &Intrinsics<T>,
     input: &RasterInput<T>,
     n: usize,
     ndc_offset: Option<&[T]>,
-) -> Result<(preprocess::Preprocessed<T>, tiles::Binning)> {
-    let (pre, runs) =
-        preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
-            tiles::run::<T, K>(first, proj, intr.grid)
-        });
-    stages::mark("project");
-    let binning = tiles::merge_runs(runs, intr.grid)?;
+) -> Result<(preprocess::Preprocessed<T>, Runs, Vec<[u32; 2]>)> {
+    let grid = intr.grid;
+    let (pre, runs, ranges) = if std::mem::size_of::<T>() <= 4 {
+        let (pre, runs) =
+            preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
+                tiles::run::<T, u64>(first, proj, grid)
+            });
+        stages::mark("project");
+        let ranges = tiles::ranges_of_runs(&runs)?;
+        (pre, Runs::Narrow(runs), ranges)
+    } else {
+        let (pre, runs) =
+            preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
+                tiles::run::<T, u128>(first, proj, grid)
+            });
+        stages::mark("project");
+        let ranges = tiles::ranges_of_runs(&runs)?;
+        (pre, Runs::Wide(runs), ranges)
+    };
     stages::mark("bin");
-    Ok((pre, binning))
+    Ok((pre, runs, ranges))
 }
 
 /// One image row's pieces of the forward's outputs: its three colour
@@ -579,20 +615,21 @@ fn forward_stages<T: Real>(
     let (w, h) = (intr.width, intr.height);
 
     // 1. Per-Gaussian preprocessing, and 2. binning, with the splat data
-    //    of every entry in list order (on a small frame's path gathered by
-    //    the blend, a tile row at a time).
+    //    of every entry in list order (on a small frame's path, the list
+    //    and the copies are merged from the two runs by the blend, a tile
+    //    row at a time).
     // A small frame on two or more threads: the two runs' path, and the rows'
     // write hints ([`rasterize::RowOut::prefetch_write`]).
     let small = tiles::two_runs_apply(n);
-    let (pre, binning, mut splats) = if small {
-        let (pre, binning) = if std::mem::size_of::<T>() <= 4 {
-            project_and_bin_in_two_runs::<T, u64>(&intr, input, n, ndc_offset)?
-        } else {
-            project_and_bin_in_two_runs::<T, u128>(&intr, input, n, ndc_offset)?
+    let (pre, mut binning, mut splats, runs) = if small {
+        let (pre, runs, ranges) = project_and_bin_in_two_runs(&intr, input, n, ndc_offset)?;
+        // Written by the blend, below.
+        let total = ranges.last().map_or(0, |r| r[1]) as usize;
+        let binning = tiles::Binning {
+            list: Vec::with_capacity(total),
+            ranges,
         };
-        // Gathered by the blend, below.
-        let splats = Vec::with_capacity(binning.list.len());
-        (pre, binning, splats)
+        (pre, binning, Vec::with_capacity(total), Some(runs))
     } else {
         let pre = preprocess::preprocess(&intr, input, n, ndc_offset);
         stages::mark("project");
@@ -607,7 +644,7 @@ fn forward_stages<T: Real>(
             .map(|&g| pre.splats[g as usize])
             .collect();
         stages::mark("gather");
-        (pre, binning, splats)
+        (pre, binning, splats, None)
     };
 
     // 3. Per-row blending.
@@ -626,15 +663,17 @@ fn forward_stages<T: Real>(
         n_contrib: Vec::with_capacity(hw),
         means2d: pre.means2d,
     };
-    // SAFETY: while `gather` lives, `splats` is reached only through it
-    // (the rows below read it directly only when there is no `gather`);
-    // `gather` is dropped after the blend, before `splats` is used again.
-    let gather = small.then(|| unsafe {
+    // SAFETY: `Runs::merge_tile` writes every slot it is given (or panics);
+    // while `gather` lives, the list and `splats` are reached only through
+    // it (the rows below read `splats` directly only when there is no
+    // `gather`); `gather` is dropped after the blend, before they are used
+    // again.
+    let gather = runs.as_ref().map(|runs| unsafe {
         rasterize::TileRowSplats::new(
-            &binning.list,
-            &pre.splats,
+            |t, list, copies| runs.merge_tile(&pre.splats, t, list, copies),
             &binning.ranges,
             grid_x,
+            &mut binning.list,
             &mut splats,
         )
     });
@@ -723,11 +762,15 @@ fn forward_stages<T: Real>(
         // and at least one, and every image row asked for its copies).
         let written = g.all_written();
         drop(g);
-        assert!(written, "a tile row's splats were not gathered");
-        // SAFETY: every one of the list's slots was written (above); a
-        // panic in a row propagates before these lines, leaving `splats`
-        // empty.
-        unsafe { splats.set_len(binning.list.len()) };
+        assert!(written, "a tile row's list and splats were not written");
+        let total = binning.ranges.last().map_or(0, |r| r[1]) as usize;
+        // SAFETY: every slot of the list and the copies was written
+        // (above; the ranges cover `0..total`); a panic in a row propagates
+        // before these lines, leaving them empty.
+        unsafe {
+            binning.list.set_len(total);
+            splats.set_len(total);
+        }
     }
     // SAFETY: the rows are the consecutive `w`-long (`grid_x`-long) pieces
     // of each buffer's first `hw` (`h·grid_x`) spare slots, and every row

@@ -566,17 +566,21 @@ pub(crate) struct Frame<'a, T> {
     pub bg: [T; 3],
 }
 
-/// A small frame's splat copies in list order (`gathered[slot] =
-/// splats[list[slot]]`), written a tile row at a time by the first blend
-/// row that asks for that tile row ([`TileRowSplats::tile_row`]); the other
-/// rows of the tile row wait until it is written. So the list's merge
-/// writes only the list, and the copies a worker blends are mostly ones it
-/// wrote (benches/README.md, "Rasterizer: small frames' splats gathered by
-/// the blend").
-pub(crate) struct TileRowSplats<'a, T> {
-    list: &'a [u32],
-    splats: &'a [Splat<T>],
-    /// The spare slots of the gathered vector: `list.len()` of them.
+/// A small frame's list and splat copies, written a tile row at a time by
+/// the first blend row that asks for that tile row
+/// ([`TileRowSplats::tile_row`]), with `fill(t, list, copies)` for each of
+/// its tiles `t`: the other rows of the tile row wait until it is written.
+/// On the small frames' path, `fill` merges the tile's entries of the two
+/// workers' runs (`tiles::merge_tile`), so the list is written where it is
+/// first needed, with no step of its own, and the copies a worker blends
+/// are mostly ones it wrote (benches/README.md, "Rasterizer: small frames'
+/// splats gathered by the blend", "Rasterizer: small frames' tiles merged
+/// by the blend").
+pub(crate) struct TileRowSplats<T, F> {
+    fill: F,
+    /// The spare slots of the list: as many as the ranges cover.
+    list: *mut MaybeUninit<u32>,
+    /// The spare slots of the splat copies: as many.
     out: *mut MaybeUninit<Splat<T>>,
     /// Per tile row.
     rows: Vec<TileRow>,
@@ -589,7 +593,7 @@ pub(crate) struct TileRowSplats<'a, T> {
 struct TileRow {
     /// Its slots `[start, end)` in the list.
     slots: [usize; 2],
-    /// [`PENDING`], [`TAKEN`] (some row is copying), [`WRITTEN`] or
+    /// [`PENDING`], [`TAKEN`] (some row is writing), [`WRITTEN`] or
     /// [`FAILED`].
     state: AtomicU8,
 }
@@ -599,53 +603,55 @@ const TAKEN: u8 = 1;
 const WRITTEN: u8 = 2;
 const FAILED: u8 = 3;
 
-/// How many slots ahead [`TileRowSplats::tile_row`] asks for a splat: the
-/// list's order is not the splats' order, which the hardware prefetcher
-/// does not follow, and half of them were written by the other core. (In
-/// quiet minutes 0, 8 and 16 measured alike; in slow periods 8 may help,
-/// benches/README.md, "Rasterizer: small frames' splats gathered by the
-/// blend".)
-const GATHER_AHEAD: usize = 8;
+// SAFETY: `list` and `out` are written only at a tile row's slots, by the
+// one thread that took that tile row, and read only after they are
+// written (`tile_row`); `fill` is shared.
+unsafe impl<T: Sync, F: Sync> Sync for TileRowSplats<T, F> {}
 
-// SAFETY: `out` is written only at a tile row's slots, by the one thread
-// that took that tile row, and read only after it is written
-// (`tile_row`).
-unsafe impl<T: Sync> Sync for TileRowSplats<'_, T> {}
-
-impl<'a, T: Copy> TileRowSplats<'a, T> {
-    /// Copies into `gathered`'s spare capacity (at least `list.len()`
-    /// slots) of `splats[g]` for each list entry `g`, tile rows of
-    /// `grid_x` tiles as `ranges` gives them (row-major, consecutive from
-    /// slot 0 to `list.len()`).
+impl<T: Copy, F> TileRowSplats<T, F>
+where
+    F: Fn(usize, &mut [MaybeUninit<u32>], &mut [MaybeUninit<Splat<T>>]),
+{
+    /// The list and copies written into `list`'s and `gathered`'s spare
+    /// capacity (at least as many slots as `ranges` covers each) by
+    /// `fill`, which writes every slot of the tile it is given, tile rows
+    /// of `grid_x` tiles as `ranges` gives them (row-major, consecutive
+    /// from slot 0).
     ///
     /// # Safety
-    /// `gathered` is not used (moved, resized, read or written) while the
-    /// value returned lives.
+    /// `fill` writes every slot of the slices it is given (or panics), and
+    /// `list` and `gathered` are not used (moved, resized, read or written)
+    /// while the value returned lives.
     pub(crate) unsafe fn new(
-        list: &'a [u32],
-        splats: &'a [Splat<T>],
+        fill: F,
         ranges: &[[u32; 2]],
         grid_x: usize,
+        list: &mut Vec<u32>,
         gathered: &mut Vec<Splat<T>>,
     ) -> Self {
-        assert!(gathered.capacity() >= list.len() && grid_x > 0);
+        assert!(grid_x > 0);
         let mut rows = Vec::with_capacity(ranges.len() / grid_x);
         let mut rebased = Vec::with_capacity(ranges.len());
         let mut next = 0;
         for r in ranges.chunks(grid_x) {
-            let [first, end] = [r[0][0], r[r.len() - 1][1]];
-            assert!(first as usize == next, "tile rows' slots are consecutive");
-            next = end as usize;
+            let first = next;
+            for &[s, e] in r {
+                assert!(s as usize == next && s <= e, "tiles' slots are consecutive");
+                next = e as usize;
+                rebased.push([s - first as u32, e - first as u32]);
+            }
             rows.push(TileRow {
-                slots: [first as usize, end as usize],
+                slots: [first, next],
                 state: AtomicU8::new(PENDING),
             });
-            rebased.extend(r.iter().map(|&[s, e]| [s - first, e - first]));
         }
-        assert!(next == list.len(), "tile rows' slots cover the list");
+        assert!(
+            list.capacity() >= next && gathered.capacity() >= next,
+            "room for every slot"
+        );
         TileRowSplats {
-            list,
-            splats,
+            fill,
+            list: list.spare_capacity_mut().as_mut_ptr(),
             out: gathered.spare_capacity_mut().as_mut_ptr(),
             rows,
             ranges: rebased,
@@ -655,18 +661,19 @@ impl<'a, T: Copy> TileRowSplats<'a, T> {
 
     /// Tile row `ty`'s copies and its tiles' ranges in them, written here
     /// if no row has taken them on yet, else once the row that has is done
-    /// with them. Panics if that row's copy panicked.
+    /// with them. Panics if that row's `fill` panicked.
     #[inline]
     pub(crate) fn tile_row(&self, ty: usize) -> (&[Splat<T>], &[[u32; 2]]) {
         let row = &self.rows[ty];
         let [s, e] = row.slots;
+        let ranges = &self.ranges[ty * self.grid_x..(ty + 1) * self.grid_x];
         if row.state.load(Ordering::Acquire) != WRITTEN {
             let took = row
                 .state
                 .compare_exchange(PENDING, TAKEN, Ordering::Acquire, Ordering::Relaxed)
                 .is_ok();
             if took {
-                // Marks the tile row failed if the copy unwinds, so that a
+                // Marks the tile row failed if `fill` unwinds, so that a
                 // row waiting for it panics instead of waiting for ever.
                 struct Failed<'s>(&'s AtomicU8);
                 impl Drop for Failed<'_> {
@@ -675,15 +682,17 @@ impl<'a, T: Copy> TileRowSplats<'a, T> {
                     }
                 }
                 let failed = Failed(&row.state);
-                for slot in s..e {
-                    if let Some(&ahead) = self.list.get(slot + GATHER_AHEAD) {
-                        crate::kernels::prefetch_value(self.splats, ahead as usize);
-                    }
-                    let splat = self.splats[self.list[slot] as usize];
-                    // SAFETY: `slot < list.len()`, within the spare
-                    // capacity, and this thread alone took this tile row's
-                    // slots.
-                    unsafe { (*self.out.add(slot)).write(splat) };
+                // SAFETY: the slots `s..e` are within the spare capacity
+                // (`new`), and this thread alone took them.
+                let (list, out) = unsafe {
+                    (
+                        std::slice::from_raw_parts_mut(self.list.add(s), e - s),
+                        std::slice::from_raw_parts_mut(self.out.add(s), e - s),
+                    )
+                };
+                for (tx, &[a, b]) in ranges.iter().enumerate() {
+                    let (a, b) = (a as usize, b as usize);
+                    (self.fill)(ty * self.grid_x + tx, &mut list[a..b], &mut out[a..b]);
                 }
                 std::mem::forget(failed);
                 row.state.store(WRITTEN, Ordering::Release);
@@ -697,17 +706,15 @@ impl<'a, T: Copy> TileRowSplats<'a, T> {
             }
         }
         // SAFETY: the slots `s..e` were written (above, or by the thread
-        // that took them, whose writes the `Acquire` load has made seen)
-        // and are not written again.
+        // that took them, whose writes the `Acquire` load has made seen:
+        // `fill` writes every slot of each tile, and the tiles' ranges
+        // cover the tile row's slots) and are not written again.
         let copies = unsafe { std::slice::from_raw_parts(self.out.add(s).cast(), e - s) };
-        (
-            copies,
-            &self.ranges[ty * self.grid_x..(ty + 1) * self.grid_x],
-        )
+        (copies, ranges)
     }
 
-    /// Whether every tile row's copies are written, so that all `list.len()`
-    /// slots are.
+    /// Whether every tile row's list and copies are written, so that all
+    /// the slots the ranges cover are.
     pub(crate) fn all_written(&self) -> bool {
         self.rows
             .iter()
@@ -898,7 +905,7 @@ mod tests {
         }
     }
 
-    /// The splat copies of [`TileRowSplats`]: Gaussian `g`'s, with its
+    /// The splat data of [`TileRowSplats`]' tests: Gaussian `g`'s, with its
     /// index as depth so that a copy shows which it is.
     fn indexed_splats(n: usize) -> Vec<Splat<f32>> {
         let mut rng = Rng::new(5);
@@ -908,6 +915,23 @@ mod tests {
                 ..random_splat::<f32>(&mut rng, 64)
             })
             .collect()
+    }
+
+    /// A fill of [`TileRowSplats`].
+    type Fill<'a> =
+        Box<dyn Fn(usize, &mut [MaybeUninit<u32>], &mut [MaybeUninit<Splat<f32>>]) + Sync + 'a>;
+
+    /// A [`TileRowSplats`] fill that copies each tile's entries of `list`
+    /// (its `ranges`) and their splats.
+    fn fill<'a>(list: &'a [u32], splats: &'a [Splat<f32>], ranges: &'a [[u32; 2]]) -> Fill<'a> {
+        Box::new(move |t, l, c| {
+            let [s, e] = ranges[t];
+            assert!(l.len() == (e - s) as usize && c.len() == l.len());
+            for (k, &g) in list[s as usize..e as usize].iter().enumerate() {
+                l[k].write(g);
+                c[k].write(splats[g as usize]);
+            }
+        })
     }
 
     #[test]
@@ -930,9 +954,20 @@ mod tests {
                 .unwrap();
             // Every image row of every tile row asks, in parallel, in an
             // order that starts at the bottom.
-            let mut gathered = Vec::with_capacity(list.len());
-            // SAFETY: `gathered` is untouched while `t` lives.
-            let t = unsafe { TileRowSplats::new(&list, &splats, &ranges, 3, &mut gathered) };
+            let (mut written, mut gathered) = (Vec::new(), Vec::new());
+            written.reserve(list.len());
+            gathered.reserve(list.len());
+            // SAFETY: `fill` writes every slot; `written` and `gathered`
+            // are untouched while `t` lives.
+            let t = unsafe {
+                TileRowSplats::new(
+                    fill(&list, &splats, &ranges),
+                    &ranges,
+                    3,
+                    &mut written,
+                    &mut gathered,
+                )
+            };
             let seen: Vec<(usize, Vec<u32>, Vec<[u32; 2]>)> = pool.install(|| {
                 (0..4 * BLOCK)
                     .into_par_iter()
@@ -950,7 +985,11 @@ mod tests {
             assert!(t.all_written());
             drop(t);
             // SAFETY: every slot was written (`all_written`).
-            unsafe { gathered.set_len(list.len()) };
+            unsafe {
+                written.set_len(list.len());
+                gathered.set_len(list.len());
+            }
+            assert_eq!(written, list, "{threads} threads: the list");
             let by_depth: Vec<u32> = gathered.iter().map(|s| s.depth as u32).collect();
             assert_eq!(
                 by_depth, list,
@@ -980,9 +1019,18 @@ mod tests {
             .num_threads(2)
             .build()
             .unwrap();
-        let mut gathered = Vec::with_capacity(list.len());
-        // SAFETY: `gathered` is untouched while `t` lives.
-        let t = unsafe { TileRowSplats::new(&list, &splats, &ranges, 1, &mut gathered) };
+        let (mut written, mut gathered) = (Vec::with_capacity(4), Vec::with_capacity(4));
+        // SAFETY: `fill` writes every slot or panics; `written` and
+        // `gathered` are untouched while `t` lives.
+        let t = unsafe {
+            TileRowSplats::new(
+                fill(&list, &splats, &ranges),
+                &ranges,
+                1,
+                &mut written,
+                &mut gathered,
+            )
+        };
         let asks = pool.install(|| {
             rayon::join(
                 || std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| t.tile_row(0).0.len())),
