@@ -296,21 +296,22 @@ pub fn raster(rounds: usize, thread_counts: &[usize]) -> crate::Result<()> {
         "(f32, SH degree 3, exact gradients; {rounds} rounds, each running every thread count in \
          turn: one untimed forward and backward, then passes for at least {RASTER_BLOCK_S} s, then \
          one with the stage clock on; with pinned workers, fewer threads than cores run on the \
-         first CPUs in even rounds and on the next ones in odd rounds; passes: the timed forward and backward passes of each \
-         thread count; ms: the fastest of them; x: the first thread count's fastest over this \
-         one's; pairs eval: (pixel, Gaussian) \
+         first CPUs in even rounds and on the next ones in odd rounds; passes: the timed \
+         forward and backward passes of each thread count; ms: the fastest of them; x: the \
+         first thread count's fastest over this one's; pairs eval: (pixel, Gaussian) \
          pairs the forward evaluated, up to each pixel's stop, and pair/s of both passes those \
          pairs over the pass's time; bwd replayed: the pairs the backward evaluates, each row's \
          pixels of a tile times the entries that blend in one of them; %: FLOP/s over the FMA \
          peak, {} FLOP per pair evaluated (forward) or {} per pair replayed (backward); \
          x-CPU ns: one cache line's round trip between workers 0 and 1, before the first round \
-         / after the last, which tells a shared machine's slow periods from its quiet minutes: on the \
-         2-core development VMs 40-70 ns quiet and 300-450 ns slow, when small frames on 2 \
+         / after the last, which tells a shared machine's slow periods from its quiet minutes: \
+         on the 2-core development VMs 40-70 ns quiet and 300-450 ns slow, when small frames on 2 \
          threads take up to half as long again (benches/README.md, \"The machine's slow \
          periods\"), and 27-30 ns at times when the two CPUs apparently shared one core and 2 \
          threads were only 1.1-1.5x 1 on the small frame (benches/README.md, \"Rasterizer: \
          `bench raster` in rounds\"))",
-        RASTER_FLOP_PER_PAIR[0], RASTER_FLOP_PER_PAIR[1]
+        RASTER_FLOP_PER_PAIR[0],
+        RASTER_FLOP_PER_PAIR[1]
     );
     outln!(
         "stages, ms wall (ms CPU of the process, all threads), of the fastest of the {rounds} \
