@@ -565,24 +565,28 @@ fn project_and_bin_in_two_runs<T: Real>(
     n: usize,
     ndc_offset: Option<&[T]>,
 ) -> Result<(preprocess::Preprocessed<T>, Runs, Vec<[u32; 2]>)> {
-    let grid = intr.grid;
-    let (pre, runs, ranges) = if std::mem::size_of::<T>() <= 4 {
-        let (pre, runs) =
-            preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
-                tiles::run::<T, u64>(first, proj, grid)
-            });
-        stages::mark("project");
-        let ranges = tiles::ranges_of_runs(&runs)?;
-        (pre, Runs::Narrow(runs), ranges)
+    fn sorted<T: Real, K: tiles::Key>(
+        intr: &Intrinsics<T>,
+        input: &RasterInput<T>,
+        n: usize,
+        ndc_offset: Option<&[T]>,
+    ) -> (preprocess::Preprocessed<T>, [tiles::Run<K>; 2]) {
+        preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
+            tiles::run::<T, K>(first, proj, intr.grid)
+        })
+    }
+    let (pre, runs) = if std::mem::size_of::<T>() <= 4 {
+        let (pre, runs) = sorted::<T, u64>(intr, input, n, ndc_offset);
+        (pre, Runs::Narrow(runs))
     } else {
-        let (pre, runs) =
-            preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
-                tiles::run::<T, u128>(first, proj, grid)
-            });
-        stages::mark("project");
-        let ranges = tiles::ranges_of_runs(&runs)?;
-        (pre, Runs::Wide(runs), ranges)
+        let (pre, runs) = sorted::<T, u128>(intr, input, n, ndc_offset);
+        (pre, Runs::Wide(runs))
     };
+    stages::mark("project");
+    let ranges = match &runs {
+        Runs::Narrow(r) => tiles::ranges_of_runs(r),
+        Runs::Wide(r) => tiles::ranges_of_runs(r),
+    }?;
     stages::mark("bin");
     Ok((pre, runs, ranges))
 }

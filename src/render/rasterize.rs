@@ -921,17 +921,32 @@ mod tests {
     type Fill<'a> =
         Box<dyn Fn(usize, &mut [MaybeUninit<u32>], &mut [MaybeUninit<Splat<f32>>]) + Sync + 'a>;
 
-    /// A [`TileRowSplats`] fill that copies each tile's entries of `list`
-    /// (its `ranges`) and their splats.
-    fn fill<'a>(list: &'a [u32], splats: &'a [Splat<f32>], ranges: &'a [[u32; 2]]) -> Fill<'a> {
-        Box::new(move |t, l, c| {
+    /// A [`TileRowSplats`] into `written` and `gathered` whose fill copies
+    /// each tile's entries of `list` (its `ranges`) and their splats.
+    ///
+    /// # Safety
+    /// As for [`TileRowSplats::new`], for `written` and `gathered`.
+    unsafe fn copying<'a>(
+        list: &'a [u32],
+        splats: &'a [Splat<f32>],
+        ranges: &'a [[u32; 2]],
+        grid_x: usize,
+        written: &mut Vec<u32>,
+        gathered: &mut Vec<Splat<f32>>,
+    ) -> TileRowSplats<f32, Fill<'a>> {
+        let fill: Fill<'a> = Box::new(move |t, l, c| {
             let [s, e] = ranges[t];
             assert!(l.len() == (e - s) as usize && c.len() == l.len());
             for (k, &g) in list[s as usize..e as usize].iter().enumerate() {
                 l[k].write(g);
                 c[k].write(splats[g as usize]);
             }
-        })
+        });
+        written.reserve(list.len());
+        gathered.reserve(list.len());
+        // SAFETY: `fill` writes every slot it is given or panics (on a
+        // Gaussian past `splats`); the caller's promise for the rest.
+        unsafe { TileRowSplats::new(fill, ranges, grid_x, written, gathered) }
     }
 
     #[test]
@@ -955,19 +970,8 @@ mod tests {
             // Every image row of every tile row asks, in parallel, in an
             // order that starts at the bottom.
             let (mut written, mut gathered) = (Vec::new(), Vec::new());
-            written.reserve(list.len());
-            gathered.reserve(list.len());
-            // SAFETY: `fill` writes every slot; `written` and `gathered`
-            // are untouched while `t` lives.
-            let t = unsafe {
-                TileRowSplats::new(
-                    fill(&list, &splats, &ranges),
-                    &ranges,
-                    3,
-                    &mut written,
-                    &mut gathered,
-                )
-            };
+            // SAFETY: `written` and `gathered` are untouched while `t` lives.
+            let t = unsafe { copying(&list, &splats, &ranges, 3, &mut written, &mut gathered) };
             let seen: Vec<(usize, Vec<u32>, Vec<[u32; 2]>)> = pool.install(|| {
                 (0..4 * BLOCK)
                     .into_par_iter()
@@ -1019,18 +1023,9 @@ mod tests {
             .num_threads(2)
             .build()
             .unwrap();
-        let (mut written, mut gathered) = (Vec::with_capacity(4), Vec::with_capacity(4));
-        // SAFETY: `fill` writes every slot or panics; `written` and
-        // `gathered` are untouched while `t` lives.
-        let t = unsafe {
-            TileRowSplats::new(
-                fill(&list, &splats, &ranges),
-                &ranges,
-                1,
-                &mut written,
-                &mut gathered,
-            )
-        };
+        let (mut written, mut gathered) = (Vec::new(), Vec::new());
+        // SAFETY: `written` and `gathered` are untouched while `t` lives.
+        let t = unsafe { copying(&list, &splats, &ranges, 1, &mut written, &mut gathered) };
         let asks = pool.install(|| {
             rayon::join(
                 || std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| t.tile_row(0).0.len())),
