@@ -132,7 +132,7 @@ pub(crate) fn two_runs_apply(n: usize) -> bool {
 /// after tile.
 pub(crate) struct Run<K> {
     /// Per tile (row-major), its first key in `keys`.
-    starts: Vec<u32>,
+    starts: Vec<usize>,
     /// Per tile, its number of entries.
     counts: Vec<u32>,
     /// The entries' keys, each tile's followed by [`Key::LAST`] (above
@@ -164,22 +164,31 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
         keys.last().is_none_or(|&k| k < K::LAST),
         "a Gaussian that touches a tile has a key below the bound"
     );
+    if counts.iter().map(|&c| u64::from(c)).sum::<u64>() > MAX_LIST_ENTRIES {
+        // The list would hold at least these entries: [`ranges_of_runs`]
+        // refuses it, and nothing more is built here.
+        return Run {
+            starts: Vec::new(),
+            counts,
+            keys: Vec::new(),
+        };
+    }
     // Each tile's first key, one slot on per earlier tile (for its bound).
     let mut starts = Vec::with_capacity(n_tiles);
-    let mut end = 0u32;
+    let mut end = 0usize;
     for &c in &counts {
         starts.push(end);
-        end += c + 1;
+        end += c as usize + 1;
     }
     // Every slot not written below is a bound.
-    let mut tile_keys = vec![K::LAST; end as usize];
+    let mut tile_keys = vec![K::LAST; end];
     let mut next = starts.clone();
     for &k in &keys {
         let r = rect_of(&piece[k.index() as usize - first]);
         for y in r[1]..r[3] {
             let row = (y * grid[0]) as usize;
             for s in &mut next[row + r[0] as usize..row + r[2] as usize] {
-                tile_keys[*s as usize] = k;
+                tile_keys[*s] = k;
                 *s += 1;
             }
         }
@@ -232,8 +241,8 @@ pub(crate) fn merge_tile<K: Key, S: Copy>(
         list.len()
     );
     // The tile's keys with their bounds.
-    let ka = &a.keys[a.starts[t] as usize..][..=ca];
-    let kb = &b.keys[b.starts[t] as usize..][..=cb];
+    let ka = &a.keys[a.starts[t]..][..=ca];
+    let kb = &b.keys[b.starts[t]..][..=cb];
     let (mut i, mut j) = (0, 0);
     for (l, c) in list.iter_mut().zip(copies.iter_mut()) {
         let (x, y) = (ka[i], kb[j]);
@@ -811,6 +820,25 @@ mod tests {
             merge_tile(&runs, &[7u32; 10], 0, &mut list, &mut copies)
         }));
         assert!(r.is_err());
+    }
+
+    #[test]
+    fn runs_past_the_list_limit_are_refused_before_they_are_built() {
+        // 4096×4096 tiles, 34 Gaussians over all of them: more entries than
+        // the list may hold in a run of all of them and in one of 17.
+        let grid = [4096u32, 4096];
+        let proj: Vec<Projected<f64>> = (0..34)
+            .map(|k| splat(1.0 + k as f64, [0, 0], grid))
+            .collect();
+        for half in [0, 17] {
+            let runs: [Run<u64>; 2] = [run(0, &proj[..half], grid), run(half, &proj[half..], grid)];
+            // (An empty run holds only its tiles' bounds.)
+            let built = runs.each_ref().map(|r| r.keys.len());
+            let want = if half == 0 { [4096 * 4096, 0] } else { [0, 0] };
+            assert_eq!(built, want, "half {half}");
+            let err = ranges_of_runs(&runs).unwrap_err().to_string();
+            assert!(err.contains("268435456"), "{err}");
+        }
     }
 
     /// Two runs merged against the serial definition on imbalanced inputs
