@@ -570,16 +570,18 @@ fn project_and_bin_in_two_runs<T: Real>(
         input: &RasterInput<T>,
         n: usize,
         ndc_offset: Option<&[T]>,
-    ) -> (preprocess::Preprocessed<T>, [tiles::Run<K>; 2]) {
-        preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
-            tiles::run::<T, K>(first, proj, intr.grid)
-        })
+    ) -> Result<(preprocess::Preprocessed<T>, [tiles::Run<K>; 2])> {
+        let (pre, [a, b]) =
+            preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
+                tiles::run::<T, K>(first, proj, intr.grid)
+            });
+        Ok((pre, [a?, b?]))
     }
     let (pre, runs) = if std::mem::size_of::<T>() <= 4 {
-        let (pre, runs) = sorted::<T, u64>(intr, input, n, ndc_offset);
+        let (pre, runs) = sorted::<T, u64>(intr, input, n, ndc_offset)?;
         (pre, Runs::Narrow(runs))
     } else {
-        let (pre, runs) = sorted::<T, u128>(intr, input, n, ndc_offset);
+        let (pre, runs) = sorted::<T, u128>(intr, input, n, ndc_offset)?;
         (pre, Runs::Wide(runs))
     };
     stages::mark("project");

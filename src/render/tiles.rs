@@ -131,14 +131,21 @@ pub(crate) fn two_runs_apply(n: usize) -> bool {
 /// each tile's entries of the piece, in `(depth bits, index)` order, tile
 /// after tile.
 pub(crate) struct Run<K> {
-    /// Per tile (row-major), its first key in `keys`.
-    starts: Vec<usize>,
-    /// Per tile, its number of entries.
-    counts: Vec<u32>,
+    /// Per tile (row-major), its entries' `[start, end)` counted without
+    /// the bounds: its keys start at `ranges[t][0] + t` in `keys`.
+    ranges: Vec<[u32; 2]>,
     /// The entries' keys, each tile's followed by [`Key::LAST`] (above
     /// every real key: no Gaussian has index `u32::MAX`), so that a merge
     /// never runs past a tile's end.
     keys: Vec<K>,
+}
+
+impl<K> Run<K> {
+    /// Tile `t`'s number of entries.
+    #[inline(always)]
+    fn count(&self, t: usize) -> u32 {
+        self.ranges[t][1] - self.ranges[t][0]
+    }
 }
 
 /// The [`Run`] of the Gaussians `first..first + piece.len()`, whose
@@ -148,7 +155,13 @@ pub(crate) struct Run<K> {
 /// index)` ([`radix_sort_by_depth`]); then a counting sort by tile writes
 /// each one's key into every tile it touches, in that order. All of it
 /// runs on the thread that has just projected the piece, on its own lines.
-pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [u32; 2]) -> Run<K> {
+/// Fails as [`bin`] does when the piece's entries alone are more than the
+/// list may hold, before they are allocated.
+pub(crate) fn run<T: Real, K: Key>(
+    first: usize,
+    piece: &[Projected<T>],
+    grid: [u32; 2],
+) -> Result<Run<K>> {
     let n_tiles = grid[0] as usize * grid[1] as usize;
     let mut keys: Vec<K> = Vec::with_capacity(piece.len());
     let mut counts = vec![0u32; n_tiles];
@@ -164,25 +177,15 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
         keys.last().is_none_or(|&k| k < K::LAST),
         "a Gaussian that touches a tile has a key below the bound"
     );
-    if counts.iter().map(|&c| u64::from(c)).sum::<u64>() > MAX_LIST_ENTRIES {
-        // The list would hold at least these entries: [`ranges_of_runs`]
-        // refuses it, and nothing more is built here.
-        return Run {
-            starts: Vec::new(),
-            counts,
-            keys: Vec::new(),
-        };
-    }
-    // Each tile's first key, one slot on per earlier tile (for its bound).
-    let mut starts = Vec::with_capacity(n_tiles);
-    let mut end = 0usize;
-    for &c in &counts {
-        starts.push(end);
-        end += c as usize + 1;
-    }
-    // Every slot not written below is a bound.
-    let mut tile_keys = vec![K::LAST; end];
-    let mut next = starts.clone();
+    let ranges = tile_ranges(counts.iter().map(|&c| u64::from(c)))?;
+    // Each tile's next key, one slot on per earlier tile (for its bound);
+    // every slot not written below is a bound.
+    let mut next: Vec<usize> = ranges
+        .iter()
+        .enumerate()
+        .map(|(t, r)| r[0] as usize + t)
+        .collect();
+    let mut tile_keys = vec![K::LAST; ranges.last().map_or(0, |r| r[1] as usize) + n_tiles];
     for &k in &keys {
         let r = rect_of(&piece[k.index() as usize - first]);
         for y in r[1]..r[3] {
@@ -193,24 +196,18 @@ pub(crate) fn run<T: Real, K: Key>(first: usize, piece: &[Projected<T>], grid: [
             }
         }
     }
-    Run {
-        starts,
-        counts,
+    Ok(Run {
+        ranges,
         keys: tile_keys,
-    }
+    })
 }
 
 /// Each tile's `[start, end)` in the list of two runs of one grid: the
 /// ranges of [`bin`] for the Gaussians of both. Fails as [`bin`] does.
 pub(crate) fn ranges_of_runs<K>(runs: &[Run<K>; 2]) -> Result<Vec<[u32; 2]>> {
     let [a, b] = runs;
-    assert_eq!(a.counts.len(), b.counts.len(), "runs of one grid");
-    tile_ranges(
-        a.counts
-            .iter()
-            .zip(&b.counts)
-            .map(|(&x, &y)| x as u64 + y as u64),
-    )
+    assert_eq!(a.ranges.len(), b.ranges.len(), "runs of one grid");
+    tile_ranges((0..a.ranges.len()).map(|t| u64::from(a.count(t)) + u64::from(b.count(t))))
 }
 
 /// Tile `t`'s entries of two runs of one grid (of two consecutive pieces
@@ -233,7 +230,7 @@ pub(crate) fn merge_tile<K: Key, S: Copy>(
     copies: &mut [MaybeUninit<S>],
 ) {
     let [a, b] = runs;
-    let [ca, cb] = [a.counts[t] as usize, b.counts[t] as usize];
+    let [ca, cb] = [a.count(t) as usize, b.count(t) as usize];
     assert!(
         list.len() == ca + cb && copies.len() == ca + cb,
         "tile {t} holds {} entries of the runs, not {}",
@@ -241,8 +238,8 @@ pub(crate) fn merge_tile<K: Key, S: Copy>(
         list.len()
     );
     // The tile's keys with their bounds.
-    let ka = &a.keys[a.starts[t]..][..=ca];
-    let kb = &b.keys[b.starts[t]..][..=cb];
+    let ka = &a.keys[a.ranges[t][0] as usize + t..][..=ca];
+    let kb = &b.keys[b.ranges[t][0] as usize + t..][..=cb];
     let (mut i, mut j) = (0, 0);
     for (l, c) in list.iter_mut().zip(copies.iter_mut()) {
         let (x, y) = (ka[i], kb[j]);
@@ -696,8 +693,8 @@ mod tests {
                 // Halves at a batch boundary, uneven, and one empty.
                 for half in [n / 32 * 16, n / 3, 0, n] {
                     let runs = [
-                        run::<T, K>(0, &proj[..half], grid),
-                        run::<T, K>(half, &proj[half..], grid),
+                        run::<T, K>(0, &proj[..half], grid).unwrap(),
+                        run::<T, K>(half, &proj[half..], grid).unwrap(),
                     ];
                     let ranges = ranges_of_runs(&runs).unwrap();
                     let (list, copies) = merged(&runs, &data, &ranges);
@@ -763,8 +760,7 @@ mod tests {
                         keys.extend(tile);
                         keys.push(K::LAST);
                         Run {
-                            starts: vec![0, 3],
-                            counts: vec![2, tile.len() as u32],
+                            ranges: vec![[0, 2], [2, 2 + tile.len() as u32]],
                             keys,
                         }
                     };
@@ -813,7 +809,7 @@ mod tests {
         let proj: Vec<Projected<f64>> = (0..5)
             .map(|k| splat(1.0 + k as f64, [0, 0], [1, 1]))
             .collect();
-        let runs: [Run<u64>; 2] = [run(0, &proj, [1, 1]), run(5, &proj, [1, 1])];
+        let runs: [Run<u64>; 2] = [0, 5].map(|first| run(first, &proj, [1, 1]).unwrap());
         let mut list = vec![MaybeUninit::uninit(); 9];
         let mut copies = vec![MaybeUninit::uninit(); 9];
         let r = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
@@ -831,13 +827,16 @@ mod tests {
             .map(|k| splat(1.0 + k as f64, [0, 0], grid))
             .collect();
         for half in [0, 17] {
-            let runs: [Run<u64>; 2] = [run(0, &proj[..half], grid), run(half, &proj[half..], grid)];
+            let runs: [Result<Run<u64>>; 2] =
+                [run(0, &proj[..half], grid), run(half, &proj[half..], grid)];
             // (An empty run holds only its tiles' bounds.)
-            let built = runs.each_ref().map(|r| r.keys.len());
-            let want = if half == 0 { [4096 * 4096, 0] } else { [0, 0] };
-            assert_eq!(built, want, "half {half}");
-            let err = ranges_of_runs(&runs).unwrap_err().to_string();
-            assert!(err.contains("268435456"), "{err}");
+            if half == 0 {
+                assert_eq!(runs[0].as_ref().unwrap().keys.len(), 4096 * 4096);
+            }
+            for r in &runs[usize::from(half == 0)..] {
+                let err = r.as_ref().err().expect("refused").to_string();
+                assert!(err.contains("268435456"), "half {half}: {err}");
+            }
         }
     }
 
