@@ -565,32 +565,29 @@ fn project_and_bin_in_two_runs<T: Real>(
     n: usize,
     ndc_offset: Option<&[T]>,
 ) -> Result<(preprocess::Preprocessed<T>, Runs, Vec<[u32; 2]>)> {
+    /// With keys `K`, made into [`Runs`] by `wrap`.
     fn sorted<T: Real, K: tiles::Key>(
         intr: &Intrinsics<T>,
         input: &RasterInput<T>,
         n: usize,
         ndc_offset: Option<&[T]>,
-    ) -> Result<(preprocess::Preprocessed<T>, [tiles::Run<K>; 2])> {
+        wrap: fn([tiles::Run<K>; 2]) -> Runs,
+    ) -> Result<(preprocess::Preprocessed<T>, Runs, Vec<[u32; 2]>)> {
         let (pre, [a, b]) =
             preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
                 tiles::run::<T, K>(first, proj, intr.grid)
             });
-        Ok((pre, [a?, b?]))
+        let runs = [a?, b?];
+        stages::mark("project");
+        let ranges = tiles::ranges_of_runs(&runs)?;
+        stages::mark("bin");
+        Ok((pre, wrap(runs), ranges))
     }
-    let (pre, runs) = if std::mem::size_of::<T>() <= 4 {
-        let (pre, runs) = sorted::<T, u64>(intr, input, n, ndc_offset)?;
-        (pre, Runs::Narrow(runs))
+    if std::mem::size_of::<T>() <= 4 {
+        sorted::<T, u64>(intr, input, n, ndc_offset, Runs::Narrow)
     } else {
-        let (pre, runs) = sorted::<T, u128>(intr, input, n, ndc_offset)?;
-        (pre, Runs::Wide(runs))
-    };
-    stages::mark("project");
-    let ranges = match &runs {
-        Runs::Narrow(r) => tiles::ranges_of_runs(r),
-        Runs::Wide(r) => tiles::ranges_of_runs(r),
-    }?;
-    stages::mark("bin");
-    Ok((pre, runs, ranges))
+        sorted::<T, u128>(intr, input, n, ndc_offset, Runs::Wide)
+    }
 }
 
 /// One image row's pieces of the forward's outputs: its three colour
@@ -766,13 +763,12 @@ fn forward_stages<T: Real>(
     if let Some(g) = gather {
         // Every tile row was gathered (each has at most `BLOCK` image rows
         // and at least one, and every image row asked for its copies).
-        let written = g.all_written();
+        let total = g.written_len();
         drop(g);
-        assert!(written, "a tile row's list and splats were not written");
-        let total = binning.ranges.last().map_or(0, |r| r[1]) as usize;
+        let total = total.expect("a tile row's list and splats were not written");
         // SAFETY: every slot of the list and the copies was written
-        // (above; the ranges cover `0..total`); a panic in a row propagates
-        // before these lines, leaving them empty.
+        // (`written_len`: the ranges cover `0..total`); a panic in a row
+        // propagates before these lines, leaving them empty.
         unsafe {
             binning.list.set_len(total);
             splats.set_len(total);

@@ -713,12 +713,14 @@ where
         (copies, ranges)
     }
 
-    /// Whether every tile row's list and copies are written, so that all
-    /// the slots the ranges cover are.
-    pub(crate) fn all_written(&self) -> bool {
+    /// The number of slots the ranges cover, if every tile row's list and
+    /// copies are written (so that all those slots are); `None` if some
+    /// tile row's are not.
+    pub(crate) fn written_len(&self) -> Option<usize> {
         self.rows
             .iter()
             .all(|r| r.state.load(Ordering::Acquire) == WRITTEN)
+            .then(|| self.rows.last().map_or(0, |r| r.slots[1]))
     }
 }
 
@@ -986,9 +988,9 @@ mod tests {
                     })
                     .collect()
             });
-            assert!(t.all_written());
+            assert_eq!(t.written_len(), Some(list.len()));
             drop(t);
-            // SAFETY: every slot was written (`all_written`).
+            // SAFETY: every slot was written (`written_len`).
             unsafe {
                 written.set_len(list.len());
                 gathered.set_len(list.len());
@@ -1038,7 +1040,7 @@ mod tests {
             1.0,
             "another tile row still gathers"
         );
-        assert!(!t.all_written());
+        assert_eq!(t.written_len(), None);
     }
 
     // At every row outside a splat's candidate rows, the power the lanes
