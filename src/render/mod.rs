@@ -565,29 +565,32 @@ fn project_and_bin_in_two_runs<T: Real>(
     n: usize,
     ndc_offset: Option<&[T]>,
 ) -> Result<(preprocess::Preprocessed<T>, Runs, Vec<[u32; 2]>)> {
-    /// With keys `K`, made into [`Runs`] by `wrap`.
     fn sorted<T: Real, K: tiles::Key>(
         intr: &Intrinsics<T>,
         input: &RasterInput<T>,
         n: usize,
         ndc_offset: Option<&[T]>,
-        wrap: fn([tiles::Run<K>; 2]) -> Runs,
-    ) -> Result<(preprocess::Preprocessed<T>, Runs, Vec<[u32; 2]>)> {
+    ) -> Result<(preprocess::Preprocessed<T>, [tiles::Run<K>; 2])> {
         let (pre, [a, b]) =
             preprocess::preprocess_in_two_runs(intr, input, n, ndc_offset, |first, proj| {
                 tiles::run::<T, K>(first, proj, intr.grid)
             });
-        let runs = [a?, b?];
-        stages::mark("project");
-        let ranges = tiles::ranges_of_runs(&runs)?;
-        stages::mark("bin");
-        Ok((pre, wrap(runs), ranges))
+        Ok((pre, [a?, b?]))
     }
-    if std::mem::size_of::<T>() <= 4 {
-        sorted::<T, u64>(intr, input, n, ndc_offset, Runs::Narrow)
+    let (pre, runs) = if std::mem::size_of::<T>() <= 4 {
+        let (pre, runs) = sorted::<T, u64>(intr, input, n, ndc_offset)?;
+        (pre, Runs::Narrow(runs))
     } else {
-        sorted::<T, u128>(intr, input, n, ndc_offset, Runs::Wide)
-    }
+        let (pre, runs) = sorted::<T, u128>(intr, input, n, ndc_offset)?;
+        (pre, Runs::Wide(runs))
+    };
+    stages::mark("project");
+    let ranges = match &runs {
+        Runs::Narrow(r) => tiles::ranges_of_runs(r),
+        Runs::Wide(r) => tiles::ranges_of_runs(r),
+    }?;
+    stages::mark("bin");
+    Ok((pre, runs, ranges))
 }
 
 /// One image row's pieces of the forward's outputs: its three colour
