@@ -22,6 +22,10 @@ pub enum Tensor {
     F64(ArrayD<f64>),
     /// 32-bit signed integers (safetensors `I32`).
     I32(ArrayD<i32>),
+    /// 64-bit signed integers (safetensors `I64`): no stage reads them;
+    /// they are compared (gsplat's `isect_ids`, `camera_ids` and
+    /// `gaussian_ids` are int64).
+    I64(ArrayD<i64>),
 }
 
 /// `a`'s elements in row-major order, mapped by `f`, as a standard-layout
@@ -85,12 +89,28 @@ impl Tensor {
         )
     }
 
-    /// The safetensors dtype name: `F32`, `F64` or `I32`.
+    /// The safetensors dtype name: `F32`, `F64`, `I32` or `I64`.
     pub fn dtype_name(&self) -> &'static str {
         match self {
             Tensor::F32(_) => "F32",
             Tensor::F64(_) => "F64",
             Tensor::I32(_) => "I32",
+            Tensor::I64(_) => "I64",
+        }
+    }
+
+    /// Whether the elements are integers (`I32`, `I64`).
+    pub fn is_integer(&self) -> bool {
+        matches!(self, Tensor::I32(_) | Tensor::I64(_))
+    }
+
+    /// The elements of an integer tensor widened to i64, in row-major
+    /// order; `None` for a real one.
+    pub fn to_i64(&self) -> Option<Vec<i64>> {
+        match self {
+            Tensor::I32(a) => Some(a.iter().map(|&x| i64::from(x)).collect()),
+            Tensor::I64(a) => Some(a.iter().copied().collect()),
+            Tensor::F32(_) | Tensor::F64(_) => None,
         }
     }
 
@@ -100,6 +120,7 @@ impl Tensor {
             Tensor::F32(a) => a.shape(),
             Tensor::F64(a) => a.shape(),
             Tensor::I32(a) => a.shape(),
+            Tensor::I64(a) => a.shape(),
         }
     }
 
@@ -109,6 +130,7 @@ impl Tensor {
             Tensor::F32(a) => a.len(),
             Tensor::F64(a) => a.len(),
             Tensor::I32(a) => a.len(),
+            Tensor::I64(a) => a.len(),
         }
     }
 
@@ -117,20 +139,22 @@ impl Tensor {
         self.len() == 0
     }
 
-    /// Every element widened to f64 (exact for all three types), as a
+    /// Every element as f64 (exact for F32, F64, I32, and for I64 within
+    /// ±2^53; larger I64 values are rounded to nearest), as a
     /// standard-layout array of the same shape.
     pub fn to_f64(&self) -> ArrayD<f64> {
         match self {
             Tensor::F32(a) => map_row_major(a, f64::from),
             Tensor::F64(a) => map_row_major(a, |x| x),
             Tensor::I32(a) => map_row_major(a, f64::from),
+            Tensor::I64(a) => map_row_major(a, |x| x as f64),
         }
     }
 
     /// Bytes per element in a file.
     fn element_size(&self) -> usize {
         match self {
-            Tensor::F64(_) => 8,
+            Tensor::F64(_) | Tensor::I64(_) => 8,
             Tensor::F32(_) | Tensor::I32(_) => 4,
         }
     }
@@ -290,13 +314,13 @@ impl TensorFile {
         self.path.display().to_string()
     }
 
-    /// Read a safetensors file. Accepts F32, F64 and I32 tensors.
+    /// Read a safetensors file. Accepts F32, F64, I32 and I64 tensors.
     pub fn load(path: &Path) -> Result<Self> {
         let bytes = super::read(path)?;
         Self::from_bytes(path, &bytes)
     }
 
-    /// Parse safetensors `bytes` (F32, F64 and I32 tensors); `path` names
+    /// Parse safetensors `bytes` (F32, F64, I32 and I64 tensors); `path` names
     /// the file in errors.
     pub fn from_bytes(path: &Path, bytes: &[u8]) -> Result<Self> {
         check_offsets(path, bytes)?;
@@ -351,11 +375,22 @@ impl TensorFile {
                     )
                     .map_err(bad_size)?,
                 ),
+                Dtype::I64 => Tensor::I64(
+                    ArrayD::from_shape_vec(
+                        shape.clone(),
+                        raw.chunks_exact(8)
+                            .map(|c| {
+                                i64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]])
+                            })
+                            .collect(),
+                    )
+                    .map_err(bad_size)?,
+                ),
                 other => {
                     return Err(Error::Tensor {
                         context: path.display().to_string(),
                         name,
-                        expected: "dtype F32, F64 or I32".into(),
+                        expected: "dtype F32, F64, I32 or I64".into(),
                         found: format!("{other:?}"),
                     })
                 }
@@ -367,7 +402,7 @@ impl TensorFile {
 
     /// Serialise to safetensors bytes. Deterministic: the header lists
     /// `__metadata__` first with its keys sorted, then the tensors in data
-    /// order (F64 before F32 and I32, then by name, as the `safetensors`
+    /// order (I64, F64, F32, I32, then by name, as the `safetensors`
     /// crate lays them out); the header is padded with spaces to a multiple
     /// of 8 bytes. (The `safetensors` crate's own writer emits metadata in
     /// hash-map order, which changes from run to run.)
@@ -382,9 +417,10 @@ impl TensorFile {
         }
         fn align(t: &Tensor) -> u8 {
             match t {
-                Tensor::F64(_) => 0,
-                Tensor::F32(_) => 1,
-                Tensor::I32(_) => 2,
+                Tensor::I64(_) => 0,
+                Tensor::F64(_) => 1,
+                Tensor::F32(_) => 2,
+                Tensor::I32(_) => 3,
             }
         }
         let mut order: Vec<(&String, &Tensor)> = self.tensors.iter().collect();
@@ -438,6 +474,9 @@ impl TensorFile {
                     .iter()
                     .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
                 Tensor::I32(a) => a
+                    .iter()
+                    .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+                Tensor::I64(a) => a
                     .iter()
                     .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
             }
@@ -525,7 +564,7 @@ impl TensorFile {
             let bad = match t {
                 Tensor::F32(a) => first_bad(a),
                 Tensor::F64(a) => first_bad(a),
-                Tensor::I32(_) => None,
+                Tensor::I32(_) | Tensor::I64(_) => None,
             };
             if let Some((i, x)) = bad {
                 return Err(Error::Tensor {
@@ -564,7 +603,7 @@ impl TensorFile {
             let p = match t {
                 Tensor::F32(_) => Precision::F32,
                 Tensor::F64(_) => Precision::F64,
-                Tensor::I32(_) => continue,
+                Tensor::I32(_) | Tensor::I64(_) => continue,
             };
             match found {
                 None => found = Some((p, name)),
@@ -720,6 +759,12 @@ mod tests {
         f.insert_real::<f32>("a", vec![2, 2], &[1.0, -0.0, f32::MIN_POSITIVE, 3.5]);
         f.insert_real::<f64>("b", vec![1], &[0.1]);
         f.insert_i32("c", vec![3], vec![1, -2, 3]);
+        f.insert(
+            "d",
+            Tensor::I64(
+                ArrayD::from_shape_vec(IxDyn(&[2]), vec![i64::MIN, (1 << 60) + 1]).unwrap(),
+            ),
+        );
         let bytes = f.to_bytes().unwrap();
         let g = TensorFile::from_bytes(Path::new("mem"), &bytes).unwrap();
         assert_eq!(g.metadata, f.metadata);
@@ -742,6 +787,11 @@ mod tests {
         f.insert_real::<f64>("v", vec![1, 3], &[0.5, -1.0, 3.0]);
         f.insert_i32("u", vec![], vec![7]);
         f.insert_real::<f32>("e", vec![0, 3], &[]);
+        let big = [i64::MAX, -3];
+        f.insert(
+            "t",
+            Tensor::I64(ArrayD::from_shape_vec(IxDyn(&[2]), big.to_vec()).unwrap()),
+        );
         let bytes = f.to_bytes().unwrap();
         // The reference writer lays out the same data section.
         let raw: Vec<(String, Dtype, Vec<usize>, Vec<u8>)> = vec![
@@ -762,6 +812,12 @@ mod tests {
             ),
             ("u".into(), Dtype::I32, vec![], 7i32.to_le_bytes().to_vec()),
             ("e".into(), Dtype::F32, vec![0, 3], vec![]),
+            (
+                "t".into(),
+                Dtype::I64,
+                vec![2],
+                big.iter().flat_map(|x| x.to_le_bytes()).collect(),
+            ),
         ];
         let views = raw.iter().map(|(n, d, s, b)| {
             (
@@ -772,7 +828,7 @@ mod tests {
         let theirs = safetensors::serialize(views, &None).unwrap();
         let their_n = u64::from_le_bytes(theirs[..8].try_into().unwrap()) as usize;
         let st = SafeTensors::deserialize(&bytes).unwrap();
-        assert_eq!(st.names().len(), 4);
+        assert_eq!(st.names().len(), 5);
         let (n, meta) = SafeTensors::read_metadata(&bytes).unwrap();
         assert_eq!(n % 8, 0);
         let m = meta.metadata().clone().unwrap();
@@ -783,7 +839,7 @@ mod tests {
         let header = std::str::from_utf8(&bytes[8..8 + n]).unwrap();
         assert!(
             header.starts_with(
-                r#"{"__metadata__":{"a":"x\"y","b":"2","stage":"rasterize","z":"é"},"v":"#
+                r#"{"__metadata__":{"a":"x\"y","b":"2","stage":"rasterize","z":"é"},"t":"#
             ),
             "{header}"
         );
@@ -793,6 +849,10 @@ mod tests {
         g.insert_i32("u", vec![], vec![7]);
         g.insert_real::<f64>("v", vec![1, 3], &[0.5, -1.0, 3.0]);
         g.insert_real::<f32>("w", vec![2], &[1.0, 2.0]);
+        g.insert(
+            "t",
+            Tensor::I64(ArrayD::from_shape_vec(IxDyn(&[2]), big.to_vec()).unwrap()),
+        );
         for (k, v) in [
             ("z", "é"),
             ("a", "x\"y"),

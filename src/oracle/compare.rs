@@ -22,7 +22,9 @@
 //!
 //! ## Tolerances
 //! Defaults by dtype: F32 `atol = 1e-5, rtol = 1.3e-6` (torch.testing's
-//! float32 defaults), F64 `atol = 1e-7, rtol = 1e-7`, I32 exact (`0, 0`).
+//! float32 defaults), F64 `atol = 1e-7, rtol = 1e-7`, I32 and I64 exact
+//! (`0, 0`; integers are matched on their exact difference, I64 beyond
+//! 2^53 included).
 //! They can be overridden by a JSON file:
 //!
 //! ```json
@@ -43,7 +45,8 @@
 //! pattern; a pattern may hold `*` (any run of characters), and among
 //! matching patterns the most specific one (most non-`*` characters; then the
 //! lexicographically first) wins. `atol` and `rtol` from `default` apply to
-//! floating-point tensors only: integer tensors (radii, n_contrib) stay exact
+//! floating-point tensors only: integer tensors (radii, n_contrib, gsplat's
+//! int64 ids) stay exact
 //! unless an entry in `tensors` matches them. The CLI flags `--atol`,
 //! `--rtol`, `--max-mismatch-fraction` and `--equal-nan` replace the
 //! corresponding fields of `default`. Entries of `tensors` that apply to no
@@ -55,14 +58,16 @@
 //! is deterministic): max absolute error, max relative error `|a−e|/|e|`
 //! (infinite where `e = 0 ≠ a`), relative L2 `‖a−e‖/‖e‖`, cosine similarity,
 //! signed bias `mean(a−e)`, the ULP distance (max and mean) in the tensor's own
-//! dtype (for I32 tensors the integer difference), NaN and Inf counts of each
+//! dtype (for integer tensors the integer difference), NaN and Inf counts of each
 //! side, the number and fraction of mismatches, and the worst element (largest
 //! excess of `|a−e|` over its allowance; a NaN mismatch counts as infinitely
 //! bad) as a multi-index with both values. Error and bias statistics skip
 //! pairs where either value is NaN; L2, cosine and bias also skip pairs with
 //! an infinity. Conventions for degenerate norms: relative L2 is 0 when both
 //! `‖a−e‖` and `‖e‖` are 0 and infinite when only `‖e‖` is; cosine similarity
-//! is 1 when both norms are 0 and 0 when exactly one is.
+//! is 1 when both norms are 0 and 0 when exactly one is. I64 values beyond
+//! ±2^53 enter the statistics and the worst element's values rounded to
+//! f64; whether they match is decided on their exact difference.
 //!
 //! In the JSON report non-finite numbers are written as the strings `"inf"`,
 //! `"-inf"` and `"nan"` (JSON has no literal for them).
@@ -93,8 +98,9 @@ pub struct Tolerance {
 }
 
 impl Tolerance {
-    /// The default for a dtype name (`"F32"`, `"F64"`, `"I32"`): torch.testing's
-    /// float32 values for F32, 1e-7/1e-7 for F64, exact for I32.
+    /// The default for a dtype name (`"F32"`, `"F64"`, `"I32"`, `"I64"`):
+    /// torch.testing's float32 values for F32, 1e-7/1e-7 for F64, exact for
+    /// the integers.
     pub fn for_dtype(dtype: &str) -> Tolerance {
         let (atol, rtol) = match dtype {
             "F32" => (1e-5, 1.3e-6),
@@ -280,10 +286,11 @@ impl Tolerances {
             .collect()
     }
 
-    /// The tolerance for tensor `name` of dtype `dtype` (`"F32"`, `"F64"`, `"I32"`).
+    /// The tolerance for tensor `name` of dtype `dtype` (`"F32"`, `"F64"`,
+    /// `"I32"`, `"I64"`).
     pub fn resolve(&self, name: &str, dtype: &str) -> Tolerance {
         let mut t = Tolerance::for_dtype(dtype);
-        let is_float = dtype != "I32";
+        let is_float = !matches!(dtype, "I32" | "I64");
         self.default.apply(&mut t, is_float);
         if let Some((_, spec)) = self.entry(name) {
             spec.apply(&mut t, true);
@@ -603,13 +610,21 @@ fn ulp_distances(e: &Tensor, a: &Tensor) -> Option<Vec<Option<u64>>> {
                     .then(|| (ulp_key_f64(y) - ulp_key_f64(x)).unsigned_abs() as u64)
             })
             .collect(),
-        (Tensor::I32(e), Tensor::I32(a)) => e
-            .iter()
-            .zip(a)
-            .map(|(&x, &y)| Some((y as i64 - x as i64).unsigned_abs()))
-            .collect(),
+        (Tensor::I32(_), Tensor::I32(_)) | (Tensor::I64(_), Tensor::I64(_)) => {
+            let (e, a) = (e.to_i64()?, a.to_i64()?);
+            e.iter()
+                .zip(&a)
+                .map(|(&x, &y)| Some(int_distance(x, y)))
+                .collect()
+        }
         _ => return None,
     })
+}
+
+/// `|y − x|` of two integers, exact (saturating at `u64::MAX`, which two
+/// i64 values can exceed by one).
+fn int_distance(x: i64, y: i64) -> u64 {
+    u64::try_from((i128::from(y) - i128::from(x)).unsigned_abs()).unwrap_or(u64::MAX)
 }
 
 fn unravel(mut flat: usize, shape: &[usize]) -> Vec<usize> {
@@ -628,6 +643,10 @@ fn element_stats(shape: &[usize], e: &Tensor, a: &Tensor, tol: &Tolerance) -> El
     let av = crate::io::tensor_file::into_row_major(a.to_f64());
     // (F32 values are exact in f64 and back.)
     let in_f32 = matches!((e, a), (Tensor::F32(_), Tensor::F32(_)));
+    // Integers are matched on their exact difference: I64 values beyond
+    // 2^53 are not exact in f64 (the statistics below use the rounded
+    // values).
+    let ints = e.to_i64().zip(a.to_i64());
     let n = ev.len();
     let allowed_mismatches = (tol.max_mismatch_fraction * n as f64).floor() as usize;
 
@@ -646,7 +665,10 @@ fn element_stats(shape: &[usize], e: &Tensor, a: &Tensor, tol: &Tolerance) -> El
         nan_a += y.is_nan() as usize;
         inf_e += x.is_infinite() as usize;
         inf_a += y.is_infinite() as usize;
-        let ok = if in_f32 {
+        let ok = if let Some((ei, ai)) = &ints {
+            let d = int_distance(ei[i], ai[i]);
+            d == 0 || (d as f64) <= tol.atol + tol.rtol * x.abs()
+        } else if in_f32 {
             tol.matches_f32(y as f32, x as f32)
         } else {
             tol.matches(y, x)

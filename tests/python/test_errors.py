@@ -55,7 +55,7 @@ def test_run_case_bad_inputs():
         ls.run_case({"image": t["image"]}, m)
     with pytest.raises(ValueError, match=r"unexpected tensor\(s\): extra"):
         ls.run_case({**t, "extra": t["gt"]}, m)
-    with pytest.raises(TypeError, match=r"tensors\['gt'\]: expected dtype float32, float64 or int32 .*found dtype float16"):
+    with pytest.raises(TypeError, match=r"tensors\['gt'\]: expected dtype float32, float64, int32 or int64 .*found dtype float16"):
         ls.run_case({**t, "gt": t["gt"].astype(np.float16)}, m)
     with pytest.raises(TypeError, match=r"tensor `image`: expected dtype F32 like `gt`, found F64"):
         ls.run_case({**t, "gt": t["gt"].astype(np.float32)}, m)

@@ -110,3 +110,25 @@ def test_float32_elements_on_the_boundary_go_as_numpy_isclose_says():
         got = json.loads(report.json)["tensors"][0]["stats"]["mismatches"]
         assert got == want, (atol, rtol, got, want)
         assert 0 < want < e.size
+
+
+def test_int64_outputs_are_compared_exactly(tmp_path):
+    """gsplat's int64 outputs (``isect_ids``, ``camera_ids``, ``gaussian_ids``) were refused
+    as a dtype; they are compared exactly, beyond 2**53 too, and round-trip through files."""
+    from liquid_splat import gsplat as gs
+
+    t, _ = ls.load(CASES / "gsplat_rasterization_f64_v16.input.safetensors")
+    _, _, meta = gs.rasterization(t["means"], t["quats"], t["scales"], t["opacities"], t["colors"],
+                                  t["viewmats"], t["Ks"], 24, 16, sh_degree=3)
+    ints = {k: v for k, v in meta.items() if isinstance(v, np.ndarray) and v.dtype == np.int64}
+    assert "isect_ids" in ints and ints["isect_ids"].size > 0
+    assert_close(ints, ints)
+    big = np.array([(1 << 60) + 1, 5], np.int64)
+    report = compare({"ids": big}, {"ids": big - np.array([1, 0], np.int64)})
+    assert not report.passed and report.failures() == ["ids"]
+    (row,) = report.tensors
+    assert row["dtype"] == "I64" and row["stats"]["mismatches"] == 1 and row["stats"]["ulp_max"] == 1
+    ls.save(tmp_path / "ids.safetensors", {"ids": big})
+    back, _ = ls.load(tmp_path / "ids.safetensors")
+    assert back["ids"].dtype == np.int64 and np.array_equal(back["ids"], big)
+    assert compare(tmp_path / "ids.safetensors", {"ids": big}).passed

@@ -202,7 +202,7 @@ def run_case(
 
 
 def load(path: PathLike) -> Tuple[Tensors, Dict[str, str]]:
-    """Read a safetensors file (F32, F64, I32 tensors): ``(tensors, metadata)``.
+    """Read a safetensors file (F32, F64, I32, I64 tensors): ``(tensors, metadata)``.
 
     A file the operating system cannot open raises the matching ``OSError``
     (``FileNotFoundError``, ``IsADirectoryError``, ``PermissionError``, ...); a file that
@@ -222,7 +222,7 @@ def save(
     tensors: Mapping[str, np.ndarray],
     metadata: Optional[Mapping[str, MetaValue]] = None,
 ) -> None:
-    """Write tensors (float32, float64, int32; C order) and metadata as a safetensors file.
+    """Write tensors (float32, float64, int32, int64; C order) and metadata as a safetensors file.
 
     Metadata values as in :func:`run_case`. Bad tensors or metadata raise ``TypeError`` or
     ``ValueError``; a file the operating system refuses (a missing folder, a directory, no

@@ -3,21 +3,22 @@
 :func:`compare` returns the report of ``liquid-splat case compare`` (computed by the same Rust
 code: the same pass/fail rule, statistics, worst element and table); :func:`assert_close`
 raises ``AssertionError`` with the report's table as its message. Tolerances: the dtype
-defaults (F32 ``atol 1e-5, rtol 1.3e-6``; F64 ``atol 1e-7, rtol 1e-7``; I32 exact), or a
-tolerance file as the CLI reads it (a path, or the same structure as a dict; format in
-docs/ORACLE.md), or :func:`recommended_tolerances`; ``atol``/``rtol``/
+defaults (F32 ``atol 1e-5, rtol 1.3e-6``; F64 ``atol 1e-7, rtol 1e-7``; int32 and int64
+exact), or a tolerance file as the CLI reads it (a path, or the same structure as a dict;
+format in docs/ORACLE.md), or :func:`recommended_tolerances`; ``atol``/``rtol``/
 ``max_mismatch_fraction``/``equal_nan`` replace the fields of its ``default``.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 from typing import Any, Dict, List, Mapping, Optional, Tuple, Union
 
 import numpy as np
 
-from . import _native, _path
+from . import _native, _not_masked, _path
 
 __all__ = ["CompareReport", "compare", "assert_close", "recommended_tolerances"]
 

@@ -10,7 +10,7 @@
 //! At the boundary: numpy arrays and the library's tensors
 //! ([`liquid_splat::io::Tensor`], ndarray arrays) convert into each other
 //! directly, shape and dtype kept. Arrays must be numpy arrays of float32,
-//! float64 or int32 in C order (a `TypeError` or `ValueError` names the
+//! float64, int32 or int64 in C order (a `TypeError` or `ValueError` names the
 //! tensor, what was expected and what was found); case inputs must be
 //! finite; library errors
 //! become `ValueError` (`TypeError` for a wrong dtype); a panic becomes a
@@ -110,7 +110,7 @@ fn tensor_from_array(what: &str, obj: &Bound<'_, PyAny>, finite: bool) -> PyResu
     let py = obj.py();
     let arr = obj.downcast::<PyUntypedArray>().map_err(|_| {
         PyTypeError::new_err(format!(
-            "{what}: expected a numpy.ndarray (float32, float64 or int32), found {}",
+            "{what}: expected a numpy.ndarray (float32, float64, int32 or int64), found {}",
             type_name(obj)
         ))
     })?;
@@ -122,13 +122,15 @@ fn tensor_from_array(what: &str, obj: &Bound<'_, PyAny>, finite: bool) -> PyResu
         "float64"
     } else if dtype.is_equiv_to(&numpy::dtype::<i32>(py)) {
         "int32"
+    } else if dtype.is_equiv_to(&numpy::dtype::<i64>(py)) {
+        "int64"
     } else {
         let found = dtype
             .str()
             .map(|s| s.to_string())
             .unwrap_or_else(|_| "?".into());
         return Err(PyTypeError::new_err(format!(
-            "{what}: expected dtype float32, float64 or int32 (native byte order), found dtype {found}"
+            "{what}: expected dtype float32, float64, int32 or int64 (native byte order), found dtype {found}"
         )));
     };
     if !arr.is_c_contiguous() {
@@ -154,13 +156,14 @@ fn tensor_from_array(what: &str, obj: &Bound<'_, PyAny>, finite: bool) -> PyResu
     let tensor = match kind {
         "float32" => Tensor::F32(array::<f32>(obj)?),
         "float64" => Tensor::F64(array::<f64>(obj)?),
-        _ => Tensor::I32(array::<i32>(obj)?),
+        "int32" => Tensor::I32(array::<i32>(obj)?),
+        _ => Tensor::I64(array::<i64>(obj)?),
     };
     if finite {
         let bad = match &tensor {
             Tensor::F32(a) => first_bad(a),
             Tensor::F64(a) => first_bad(a),
-            Tensor::I32(_) => None,
+            Tensor::I32(_) | Tensor::I64(_) => None,
         };
         if let Some((i, x)) = bad {
             return Err(PyValueError::new_err(format!(
@@ -258,6 +261,7 @@ fn to_dicts<'py>(
             Tensor::F32(a) => PyArray::from_owned_array(py, a).into_any(),
             Tensor::F64(a) => PyArray::from_owned_array(py, a).into_any(),
             Tensor::I32(a) => PyArray::from_owned_array(py, a).into_any(),
+            Tensor::I64(a) => PyArray::from_owned_array(py, a).into_any(),
         };
         tensors.set_item(name, arr)?;
     }
@@ -283,7 +287,7 @@ fn run_case<'py>(
     to_dicts(py, out)
 }
 
-/// Read a safetensors file (F32, F64, I32): `(tensors, metadata)`.
+/// Read a safetensors file (F32, F64, I32, I64): `(tensors, metadata)`.
 #[pyfunction]
 fn load<'py>(py: Python<'py>, path: PathBuf) -> PyResult<(Bound<'py, PyDict>, Bound<'py, PyDict>)> {
     let file = compute(py, None, move || TensorFile::load(&path))?;

@@ -386,3 +386,47 @@ fn f32_tensors_are_compared_in_f32_as_torch_isclose_does() {
     // |a − e| overflowing f32 is no match, as in torch.
     assert!(!tol.matches_f32(f32::MAX, -f32::MAX));
 }
+
+fn i64t(v: &[i64]) -> Tensor {
+    Tensor::I64(ndarray::ArrayD::from_shape_vec(ndarray::IxDyn(&[v.len()]), v.to_vec()).unwrap())
+}
+
+/// I64 tensors (gsplat's ids) are matched on their exact difference: two
+/// values beyond 2^53 that round to the same f64 still differ, and the
+/// integer distance is reported in full, even past `i64`'s range.
+#[test]
+fn i64_tensors_are_compared_exactly() {
+    let big = (1i64 << 60) + 1;
+    assert_eq!(big as f64, (big - 1) as f64);
+    let e = file("e", &[("isect_ids", i64t(&[0, big, -5]))]);
+    let same = compare(&e, &e, &Tolerances::default()).unwrap();
+    assert!(same.passed, "{same}");
+    let a = file("a", &[("isect_ids", i64t(&[0, big - 1, -5]))]);
+    let r = compare(&e, &a, &Tolerances::default()).unwrap();
+    assert!(!r.passed, "{r}");
+    let t = only(&r);
+    assert_eq!(t.dtype, "I64");
+    let s = t.stats.as_ref().unwrap();
+    assert_eq!(s.mismatches, 1);
+    assert_eq!(s.ulp_max, Some(1));
+    assert_eq!(s.worst.as_ref().unwrap().index, vec![1]);
+    // Default `atol` does not reach integers, as for I32; a tensor's own entry does.
+    let loose = Tolerances::from_json(
+        Path::new("t.json"),
+        r#"{"default": {"atol": 2}, "tensors": {"ids": {"atol": 2}}}"#,
+    )
+    .unwrap();
+    assert!(!compare(&e, &a, &loose).unwrap().passed);
+    let e2 = file("e", &[("ids", i64t(&[big]))]);
+    let a2 = file("a", &[("ids", i64t(&[big - 2]))]);
+    assert!(compare(&e2, &a2, &loose).unwrap().passed);
+    let far = file("a", &[("ids", i64t(&[i64::MIN]))]);
+    let r = compare(&file("e", &[("ids", i64t(&[i64::MAX]))]), &far, &loose).unwrap();
+    assert_eq!(only(&r).stats.as_ref().unwrap().ulp_max, Some(u64::MAX));
+    // An I32 tensor against an I64 one: a dtype problem, values still compared.
+    let a3 = file("a", &[("ids", Tensor::i32(vec![1], vec![7]))]);
+    let r = compare(&file("e", &[("ids", i64t(&[7]))]), &a3, &loose).unwrap();
+    let t = only(&r);
+    assert_eq!(t.problems, vec!["dtype I32, expected I64".to_string()]);
+    assert_eq!(t.stats.as_ref().unwrap().mismatches, 0);
+}
