@@ -276,6 +276,41 @@ def test_inplace_change_of_a_saved_input_fails_the_backward():
         rc.sum().backward()
 
 
+def test_inference_mode_tensors_are_taken():
+    """Tensors made under ``torch.inference_mode`` (deform, then render, as an evaluation
+    loop does) give the outputs of the same call under ``no_grad``."""
+    T, m, _ = tensors("rasterize_f64_exact")
+    net = lt.DeformNetwork(D=4, W=16, is_blender=True, dtype=torch.float64)
+    x = torch.rand(5, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+    t2, _ = ls.load(CASES / "gsplat_rasterization_f64_v16.input.safetensors")
+    t3, _ = ls.load(CASES / "gsplat_rasterize_to_pixels_f64_v16_gsplat.input.safetensors")
+
+    def run():
+        t = torch.full((5, 1), 0.25, dtype=torch.float64)
+        d_xyz, _, _ = net(x, t)
+        d2, _, _ = net(x + d_xyz, t)              # a field's input made in the same mode
+        g = {k: v.clone() for k, v in _gaussians(T).items()}
+        g["means3D"] = g["means3D"] + 0.0         # made in the mode
+        color, _, _ = lt.GaussianRasterizer(settings(T, m))(g["means3D"], None, g["opacities"], shs=g["shs"],
+                                                            scales=g["scales"], rotations=g["rotations"])
+        a = {k: torch.from_numpy(t2[k]) + 0 for k in ("means", "quats", "scales", "opacities", "colors",
+                                                      "viewmats", "Ks")}
+        rc, _, _ = lt.rasterization(a["means"], a["quats"], a["scales"], a["opacities"], a["colors"],
+                                    a["viewmats"], a["Ks"], 24, 16, sh_degree=3)
+        b = {k: torch.from_numpy(t3[k]) + 0 for k in ("means2d", "conics", "colors", "opacities")}
+        rp, _ = lt.rasterize_to_pixels(*b.values(), 24, 16, 16, torch.from_numpy(t3["isect_offsets"]),
+                                       torch.from_numpy(t3["flatten_ids"]), packed=True)
+        return [d2, color, rc, rp]
+
+    with torch.inference_mode():
+        got = run()
+    assert all(v.is_inference() for v in got)
+    with torch.no_grad():
+        want = run()
+    for a, b in zip(got, want):
+        assert torch.equal(a, b)
+
+
 def test_raster_settings_numbers_are_checked_not_coerced():
     T, m, e = tensors("rasterize_f64_exact")
     g = _gaussians(T)

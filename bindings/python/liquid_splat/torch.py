@@ -168,8 +168,10 @@ def _save(ctx: Any, func: str, named: Sequence[Tuple[str, Optional[torch.Tensor]
     that :func:`_saved` can name the ones changed in place."""
     ctx.save_for_backward(*(t for _, t in named))
     ctx.saved_func = func
-    ctx.saved_names = [(n, None if t is None else weakref.ref(t), None if t is None else t._version)
-                       for n, t in named]
+    # (Tensors made under ``torch.inference_mode`` have no version counter, and cannot be
+    # changed in place outside it.)
+    ctx.saved_names = [(n, weakref.ref(t), t._version) for n, t in named
+                       if t is not None and not t.is_inference()]
 
 
 def _saved(ctx: Any) -> Tuple[Any, ...]:
@@ -178,8 +180,7 @@ def _saved(ctx: Any) -> Tuple[Any, ...]:
     try:
         return ctx.saved_tensors
     except RuntimeError as e:
-        changed = [n for n, ref, v in ctx.saved_names
-                   if ref is not None and ref() is not None and ref()._version != v]
+        changed = [n for n, ref, v in ctx.saved_names if ref() is not None and ref()._version != v]
         # Only torch's version-counter error is about them (a second backward through a
         # freed graph, say, is not, even when an optimizer step has changed them since).
         if not changed or "modified by an inplace operation" not in str(e):
