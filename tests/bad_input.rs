@@ -813,6 +813,27 @@ fn non_finite_oracle_inputs_are_refused_naming_tensor_and_index() {
         );
         refused(&["case", "run", s(&p), s(&o)], &[s(&p), key]);
     }
+    // The gsplat stages' numeric settings (they were read without the check:
+    // a NaN `eps2d` gave NaN conics, exit 0).
+    for stage in ["gsplat_fully_fused_projection", "gsplat_rasterization"] {
+        for (key, value) in [
+            ("eps2d", "nan"),
+            ("near_plane", "-inf"),
+            ("far_plane", "inf"),
+            ("radius_clip", "NaN"),
+        ] {
+            let p = case(
+                d.as_path(),
+                &format!("{stage}_{key}.safetensors"),
+                &[stage, "--count", "4"],
+                |f| f.set_meta(key, value),
+            );
+            refused(
+                &["case", "run", s(&p), s(&o)],
+                &[s(&p), &format!("`__metadata__.{key}`"), "not finite"],
+            );
+        }
+    }
     // Step and deform stages too.
     let p = case(d.as_path(), "step_nan.safetensors", &["step"], |f| {
         set_real(f, "xyz", 1, f64::NAN)

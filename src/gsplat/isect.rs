@@ -292,7 +292,7 @@ pub fn isect_tiles<T: Real>(
                 format!("{bad} is not below {n_images}"),
             ));
         }
-    } else if input.n == 0 || m != input.n * n_images {
+    } else if m != input.n * n_images {
         return Err(Error::invalid(
             "isect_tiles",
             format!(

@@ -138,6 +138,10 @@ impl ProjectionSettings {
     }
 }
 
+/// The most (camera, Gaussian) pairs a dense projection holds (2^26: its
+/// `[C, N]` outputs take about 2.3 GiB in f32, more while they are built).
+pub const MAX_PROJECTED: usize = 1 << 26;
+
 /// The tensors `fully_fused_projection` reads.
 #[derive(Clone, Copy, Debug)]
 pub struct ProjectionInput<'a, T> {
@@ -190,10 +194,24 @@ impl<T: Real> ProjectionInput<'_, T> {
                 format!("{}x{} (each side 1 to 65536)", s.width, s.height),
             ));
         }
-        if c * n >= i32::MAX as usize {
+        for (name, v) in [
+            ("eps2d", s.eps2d),
+            ("near_plane", s.near_plane),
+            ("far_plane", s.far_plane),
+            ("radius_clip", s.radius_clip),
+        ] {
+            if !v.is_finite() {
+                return Err(Error::invalid(name, format!("{v} is not finite")));
+            }
+        }
+        // (Checked before the `[C, N]` outputs are allocated.)
+        if c.checked_mul(n).is_none_or(|cn| cn > MAX_PROJECTED) {
             return Err(Error::invalid(
-                "problem size",
-                format!("{c} cameras x {n} Gaussians"),
+                "viewmats, means",
+                format!(
+                    "{c} cameras x {n} Gaussians: the dense projection holds one entry per \
+                     pair, at most {MAX_PROJECTED}; project fewer cameras or Gaussians per call"
+                ),
             ));
         }
         Ok((c, n))
@@ -741,4 +759,38 @@ pub fn unpack<T: Real>(entries: &[usize], packed: &[T], width: usize, dense_len:
         out[e * width..(e + 1) * width].copy_from_slice(&packed[i * width..(i + 1) * width]);
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// More (camera, Gaussian) pairs than [`MAX_PROJECTED`] are refused by
+    /// the check itself, before the outputs' allocation; the limit passes.
+    #[test]
+    fn pairs_past_the_limit_are_refused() {
+        let n = 1 << 14;
+        let (means, quats, scales) = (vec![0.0f32; 3 * n], vec![1.0; 4 * n], vec![1.0; 3 * n]);
+        let s = ProjectionSettings::new(8, 8, Version::V1_6);
+        for (c, ok) in [(MAX_PROJECTED / n, true), (MAX_PROJECTED / n + 1, false)] {
+            let (vm, ks) = (vec![0.0f32; 16 * c], vec![0.0f32; 9 * c]);
+            let input = ProjectionInput {
+                means: &means,
+                covars: Covars::QuatScale {
+                    quats: &quats,
+                    scales: &scales,
+                },
+                opacities: None,
+                viewmats: &vm,
+                ks: &ks,
+            };
+            let r = input.validate(&s);
+            if ok {
+                assert_eq!(r.unwrap(), (c, n));
+            } else {
+                let e = r.unwrap_err().to_string();
+                assert!(e.contains("4097 cameras x 16384 Gaussians"), "{e}");
+            }
+        }
+    }
 }

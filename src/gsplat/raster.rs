@@ -138,11 +138,19 @@ impl<T: Real> RasterInput<'_, T> {
         }
         let n = self.flatten_ids.len();
         let mut prev = 0i32;
-        for &o in self.isect_offsets {
+        for (i, &o) in self.isect_offsets.iter().enumerate() {
             if o < prev || o as usize > n {
+                let was = if i == 0 {
+                    String::new()
+                } else {
+                    format!(" after {prev}")
+                };
                 return Err(Error::invalid(
                     "isect_offsets",
-                    format!("not ascending within [0, {n}]"),
+                    format!(
+                        "expected ascending values within [0, {n}] (the length of flatten_ids), \
+                         found {o} at flat index {i}{was}"
+                    ),
                 ));
             }
             prev = o;

@@ -234,10 +234,10 @@ fn projection_settings(case: &TensorFile, version: Version) -> Result<Projection
         version,
     );
     Ok(ProjectionSettings {
-        eps2d: case.meta_or("eps2d", d.eps2d)?,
-        near_plane: case.meta_or("near_plane", d.near_plane)?,
-        far_plane: case.meta_or("far_plane", d.far_plane)?,
-        radius_clip: case.meta_or("radius_clip", d.radius_clip)?,
+        eps2d: case.meta_finite_or("eps2d", d.eps2d)?,
+        near_plane: case.meta_finite_or("near_plane", d.near_plane)?,
+        far_plane: case.meta_finite_or("far_plane", d.far_plane)?,
+        radius_clip: case.meta_finite_or("radius_clip", d.radius_clip)?,
         calc_compensations: case.meta_or("calc_compensations", false)?,
         ..d
     })
@@ -560,10 +560,10 @@ fn run_rasterization<T: Real>(
     let h: usize = case.meta_parse("height")?;
     let d0 = RasterizationSettings::new(w, h, version);
     let s = RasterizationSettings {
-        near_plane: case.meta_or("near_plane", d0.near_plane)?,
-        far_plane: case.meta_or("far_plane", d0.far_plane)?,
-        radius_clip: case.meta_or("radius_clip", d0.radius_clip)?,
-        eps2d: case.meta_or("eps2d", d0.eps2d)?,
+        near_plane: case.meta_finite_or("near_plane", d0.near_plane)?,
+        far_plane: case.meta_finite_or("far_plane", d0.far_plane)?,
+        radius_clip: case.meta_finite_or("radius_clip", d0.radius_clip)?,
+        eps2d: case.meta_finite_or("eps2d", d0.eps2d)?,
         packed: case.meta_or("packed", d0.packed)?,
         tile_size: case.meta_or("tile_size", d0.tile_size)?,
         rasterize_mode: RasterizeMode::from_name(

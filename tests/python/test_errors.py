@@ -289,6 +289,26 @@ def test_dicts_choices_and_dtypes_are_named():
     assert compare(t, t, tolerances={"default": {"atol": np.float32(1e-3), "equal_nan": np.True_}}).passed
 
 
+def test_masked_arrays_and_non_finite_tolerances_are_named():
+    """A fully masked numpy.ma array reached numpy's IndexError in the finite check (a
+    partly masked one lost its mask without a word), and a NaN in a tolerances dict was
+    written as JSON that named a column of text the user never wrote."""
+    from liquid_splat.testing import compare
+
+    t, m = ls.load(CASES / "loss_f64.input.safetensors")
+    masked = np.ma.masked_all(t["image"].shape)
+    with pytest.raises(TypeError, match=r"loss\(\): argument `image`: expected a numpy.ndarray, found a masked "
+                                        r"array \(numpy.ma\)"):
+        ls.loss(masked, t["gt"], 0.2)
+    with pytest.raises(TypeError, match=r"compare\(\): actual\['image'\]: expected a numpy.ndarray, found a masked"):
+        compare(t, {**t, "image": np.ma.masked_array(t["image"], mask=True)})
+    with pytest.raises(ValueError, match=r"compare\(\): argument `tolerances`: `default.atol`: expected a finite "
+                                         r"number, found nan"):
+        compare(t, t, tolerances={"default": {"atol": float("nan")}})
+    with pytest.raises(ValueError, match=r"`tensors.image.rtol`: expected a finite number, found inf"):
+        compare(t, t, tolerances={"tensors": {"image": {"rtol": np.float32("inf")}}})
+
+
 def test_sizes_are_bounded_naming_the_argument(raster):
     """Image and tile sizes past the library's limits were refused by the library naming
     the wrong key (`image_width` for a too-tall image, `backgrounds` for a tile grid that

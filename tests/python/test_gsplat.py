@@ -246,6 +246,11 @@ def test_bad_arguments_of_the_stage_functions():
         gs.rasterize_to_pixels(**{**args, "flatten_ids": t["flatten_ids"].astype(np.float64)})
     with pytest.raises(ValueError, match=r"`means2d`: expected shape \[C,N,2\], found shape \[20,2\]"):
         gs.rasterize_to_pixels(**{**args, "packed": False})
+    with pytest.raises(ValueError, match=r"`isect_offsets`: expected ascending values within \[0, 31\] \(the "
+                                         r"length of flatten_ids\), found 9 at flat index 2 after 10"):
+        gs.rasterize_to_pixels(**{**args, "isect_offsets": np.array([0, 10, 9, 26], np.int32).reshape(2, 1, 2)})
+    with pytest.raises(ValueError, match=r"found 32 at flat index 3 after 16"):
+        gs.rasterize_to_pixels(**{**args, "isect_offsets": np.array([0, 10, 16, 32], np.int32).reshape(2, 1, 2)})
     with pytest.raises(ValueError, match=r"`masks`: only None is supported"):
         gs.rasterize_to_pixels(**args, masks=np.ones((2, 1, 2), bool))
     with pytest.raises(ValueError, match=r"`conics`: expected finite values, found inf at flat index 3"):
@@ -260,6 +265,32 @@ def test_bad_arguments_of_the_stage_functions():
     with pytest.raises(ValueError, match=r"`sparse_grad`: only False is supported"):
         gs.fully_fused_projection(np.zeros((1, 3)), None, np.ones((1, 4)), np.ones((1, 3)),
                                   np.eye(4)[None], np.eye(3)[None], 8, 8, sparse_grad=True)
+    # 4,097 cameras x 16,384 Gaussians: more pairs than the dense projection holds (2^26),
+    # refused before its outputs are allocated (from inputs of a few MB).
+    n, c = 1 << 14, (1 << 12) + 1
+    for f in (lambda: gs.fully_fused_projection(np.zeros((n, 3)), None, np.ones((n, 4)), np.ones((n, 3)),
+                                                np.broadcast_to(np.eye(4), (c, 4, 4)).copy(),
+                                                np.broadcast_to(np.eye(3), (c, 3, 3)).copy(), 8, 8),
+              lambda: gs.rasterization(np.zeros((n, 3)), np.ones((n, 4)), np.ones((n, 3)), np.ones(n),
+                                       np.zeros((n, 3)), np.broadcast_to(np.eye(4), (c, 4, 4)).copy(),
+                                       np.broadcast_to(np.eye(3), (c, 3, 3)).copy(), 1, 1)):
+        with pytest.raises(ValueError, match=r"`viewmats, means`: 4097 cameras x 16384 Gaussians: the dense "
+                                             r"projection holds one entry per pair, at most 67108864"):
+            f()
+    # Dense colours of no channels are named (not a reshape's error); numpy's bools are
+    # bools; a dense intersection of no Gaussians is empty, as the packed one is.
+    z = lambda *s: np.zeros(s)  # noqa: E731
+    with pytest.raises(ValueError, match=r"colors"):
+        gs.rasterize_to_pixels(z(2, 10, 2), z(2, 10, 3), z(2, 10, 0), z(2, 10), 24, 16, 16,
+                               np.zeros((2, 1, 2), np.int32), np.zeros(0, np.int32))
+    proj = gs.fully_fused_projection(np.zeros((1, 3)), None, np.ones((1, 4)), np.ones((1, 3)),
+                                     np.eye(4)[None], np.eye(3)[None], 8, 8, sparse_grad=np.bool_(False))
+    assert proj[0].shape == (1, 1, 2)
+    tiles, ids, flat = gs.isect_tiles(z(2, 0, 2), np.zeros((2, 0, 2), np.int32), z(2, 0), 16, 2, 1,
+                                      sort=np.bool_(True))
+    assert tiles.shape == (2, 0) and ids.shape == (0,) and flat.shape == (0,)
+    with pytest.raises(ValueError, match=r"`sort`: only True is supported by the oracle, found np.False_"):
+        gs.isect_tiles(z(2, 0, 2), np.zeros((2, 0, 2), np.int32), z(2, 0), 16, 2, 1, sort=np.bool_(False))
     with pytest.raises(ValueError, match=r"expected `n_images` and `image_ids` with packed=True"):
         gs.isect_tiles(t["means2d"], np.ones((20, 2), np.int32), t["opacities"], 16, 2, 1, packed=True)
     ids = np.array([3 << 32, 1 << 32], np.int64)

@@ -255,6 +255,15 @@ def cli(*args: Union[str, bytes, "os.PathLike[str]"]) -> int:
     return _native.cli(argv)
 
 
+def _not_masked(where: str, x: Any) -> None:
+    """Refuse a ``numpy.ma`` array: its mask would be dropped without a word."""
+    if isinstance(x, np.ma.MaskedArray):
+        raise TypeError(
+            f"{where}: expected a numpy.ndarray, found a masked array (numpy.ma), whose mask "
+            "the oracle cannot take: pass .filled(value) or .data"
+        )
+
+
 def _shape(shape: Tuple[int, ...]) -> str:
     return "[" + ",".join(str(d) for d in shape) + "]"
 
@@ -302,6 +311,7 @@ class _Args:
             raise TypeError(
                 f"{where}: expected a numpy.ndarray of float32 or float64, found {type(x).__name__}"
             )
+        _not_masked(where, x)
         if x.dtype not in _FLOATS:
             raise TypeError(f"{where}: expected dtype float32 or float64, found dtype {x.dtype}")
         if self.dtype is None:

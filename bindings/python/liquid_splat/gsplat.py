@@ -31,7 +31,8 @@ from typing import Any, Dict, NamedTuple, Optional, Tuple, Union
 
 import numpy as np
 
-from . import _MAX_PIXELS, _MAX_SIDE, _MAX_TILE_SIZE, MetaValue, Tensors, _Args, _run_case, _shape
+from . import (_MAX_PIXELS, _MAX_SIDE, _MAX_TILE_SIZE, MetaValue, Tensors, _Args, _not_masked, _run_case,
+               _shape)
 
 __all__ = [
     "VERSIONS",
@@ -74,6 +75,7 @@ def _ints(a: _Args, name: str, x: Any, shape: Tuple[Union[int, str], ...]) -> np
     where = f"{a.func}(): argument `{name}`"
     if not isinstance(x, np.ndarray):
         raise TypeError(f"{where}: expected a numpy.ndarray of integers, found {type(x).__name__}")
+    _not_masked(where, x)
     if not np.issubdtype(x.dtype, np.integer):
         raise TypeError(f"{where}: expected an integer dtype (int32), found dtype {x.dtype}")
     a.check_shape(where, name, x, shape)
@@ -83,7 +85,13 @@ def _ints(a: _Args, name: str, x: Any, shape: Tuple[Union[int, str], ...]) -> np
 
 
 def _only(a: _Args, name: str, x: Any, default: Any) -> None:
-    if (x is not None) if default is None else (not isinstance(x, type(default)) or x != default):
+    if default is None:
+        other = x is not None
+    elif isinstance(default, bool):  # (numpy's bools too)
+        other = not isinstance(x, (bool, np.bool_)) or bool(x) != default
+    else:
+        other = not isinstance(x, type(default)) or x != default
+    if other:
         found = type(x).__name__ if isinstance(x, np.ndarray) else repr(x)
         raise ValueError(
             f"{a.func}(): argument `{name}`: only {default!r} is supported by the oracle, found {found}"
@@ -444,7 +452,7 @@ def _isect(means2d, radii, depths, tile_size, tile_width, tile_height, sort, seg
                 f"{func}(): argument `n_images`: expected C={means2d.shape[0]} from `means2d`, "
                 f"found {n_images}"
             )
-        t = {k: v.reshape((-1,) + v.shape[2:]) for k, v in t.items()}
+        t = {k: v.reshape((v.shape[0] * v.shape[1],) + v.shape[2:]) for k, v in t.items()}
     meta["tile_size"] = a.integer("tile_size", tile_size, 1, _MAX_TILE_SIZE)
     meta["tile_width"] = a.integer("tile_width", tile_width, 1)
     meta["tile_height"] = a.integer("tile_height", tile_height, 1)
@@ -561,7 +569,7 @@ def _r2p_case(func, means2d, conics, colors, opacities, image_width, image_heigh
         )
     if not packed:
         for k in ("means2d", "conics", "colors", "opacities"):
-            t[k] = t[k].reshape((-1,) + t[k].shape[2:])
+            t[k] = t[k].reshape((t[k].shape[0] * t[k].shape[1],) + t[k].shape[2:])
     shape = (isect_offsets.shape[0], meta["image_height"], meta["image_width"])
     return a, t, meta, shape
 

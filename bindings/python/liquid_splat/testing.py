@@ -61,11 +61,13 @@ class CompareReport:
 
 
 def _array(name: str, v: Any) -> np.ndarray:
+    _not_masked(f"compare(): {name}", v)
     try:
         if hasattr(v, "detach") and hasattr(v, "cpu"):  # a torch tensor
             v = v.detach().cpu().numpy()
         return np.ascontiguousarray(np.asarray(v))
-    except (TypeError, ValueError) as e:  # a ragged list, a bfloat16 tensor, ...
+    # (A ragged list, a bfloat16 tensor, a tensor on the meta device, ...)
+    except (TypeError, ValueError, NotImplementedError, RuntimeError) as e:
         raise TypeError(f"compare(): {name}: expected an array, found {type(v).__name__} ({e})") from None
 
 
@@ -123,6 +125,20 @@ def _json_number(x: Any) -> Any:
     raise TypeError(f"expected JSON values (numbers, bools, strings, dicts), found {type(x).__name__}")
 
 
+def _check_finite(path: str, x: Any) -> None:
+    """A NaN or infinity anywhere in a tolerances dict, named by its path (``json`` would
+    write it as ``NaN``, which no JSON reader takes)."""
+    x = _zero_d(x)
+    if isinstance(x, Mapping):
+        for k, v in x.items():
+            _check_finite(f"{path}.{k}" if path else str(k), v)
+    elif isinstance(x, (list, tuple)):
+        for i, v in enumerate(x):
+            _check_finite(f"{path}[{i}]", v)
+    elif isinstance(x, (float, np.floating)) and not math.isfinite(float(x)):
+        raise ValueError(f"compare(): argument `tolerances`: `{path}`: expected a finite number, found {x}")
+
+
 def recommended_tolerances(dtype: Any = "float32") -> Dict[str, Any]:
     """The recommended tolerance file for a backend in ``dtype`` (float32 or float64;
     ``fixtures/cases/tolerances_f32.json`` / ``tolerances_f64.json``), as a dict."""
@@ -163,6 +179,7 @@ def compare(
     if isinstance(tolerances, (str, bytes, os.PathLike)):
         tol_path = _path("compare", "tolerances", tolerances)
     elif isinstance(tolerances, Mapping):
+        _check_finite("", tolerances)
         try:
             tol_json = json.dumps(tolerances, default=_json_number)
         except (TypeError, ValueError) as e:
