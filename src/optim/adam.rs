@@ -117,18 +117,31 @@ impl<T: Real> AdamState<T> {
                 format!("{} learning rates do not tile {n} elements", lrs.len()),
             ));
         }
-        self.step = self.step.checked_add(1).ok_or_else(|| {
+        let step = self.step.checked_add(1).ok_or_else(|| {
             Error::invalid(
                 "Adam step",
                 format!("the step counter {} cannot advance", self.step),
             )
         })?;
         let c = self.config;
-        let t = self.step as f64;
+        let t = step as f64;
         let bc1 = 1.0 - libm::pow(c.beta1, t);
         let bc2 = 1.0 - libm::pow(c.beta2, t);
         let bc2_sqrt = T::from_f64(libm::sqrt(bc2));
         let neg_step: Vec<T> = lrs.iter().map(|&lr| T::from_f64(-(lr / bc1))).collect();
+        // (Checked before anything changes: a rate whose step overflows `T`
+        // would turn every parameter it moves into ±∞.)
+        if let Some((&lr, _)) = lrs.iter().zip(&neg_step).find(|(_, s)| !s.is_finite()) {
+            return Err(Error::invalid(
+                "learning rate",
+                format!(
+                    "{lr:e}: step {step}'s size lr/(1 − β1^{step}) = {:e} is not finite in {}",
+                    lr / bc1,
+                    T::PRECISION
+                ),
+            ));
+        }
+        self.step = step;
         let b1 = T::from_f64(c.beta1);
         let b2 = T::from_f64(c.beta2);
         let a1 = T::from_f64(1.0 - c.beta1);

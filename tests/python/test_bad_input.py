@@ -47,3 +47,15 @@ def test_loss_weight_outside_its_range_is_refused():
     t, m = case("loss_f64")
     with pytest.raises(ValueError, match=r"`__metadata__\.lambda_dssim`: 1\.5 \(must be in \[0, 1\]\)"):
         ls.run_case(t, {**m, "lambda_dssim": "1.5"})
+
+
+def test_a_learning_rate_whose_step_overflows_the_dtype_is_refused():
+    """lr.xyz = 1e300 is finite (the f64 check) but its step is not in f32: new.xyz came
+    back inf without a word."""
+    t, m = case("step_f32")
+    with pytest.raises(ValueError, match=r"learning rate`?: 1e300: step 8's size lr/\(1 − β1\^8\) = 1\.7.*e300 "
+                                         r"is not finite in f32"):
+        ls.run_case(t, {**m, "lr.xyz": "1e300"})
+    t, m = case("step_f64")
+    out, _ = ls.run_case(t, {**m, "lr.xyz": "1e300"})
+    assert np.isfinite(out["new.xyz"]).all()
