@@ -203,6 +203,18 @@ fn counters_and_sizes_that_overflowed_or_aborted_are_refused() {
         ],
         &["--count"],
     );
+    // A step case of no Gaussians was written, then refused by `case run`.
+    refused(
+        &[
+            "case",
+            "new",
+            "step",
+            s(&d.join("step0.safetensors")),
+            "--count",
+            "0",
+        ],
+        &["count", "at least 1 Gaussian"],
+    );
     refused(
         &[
             "case",
@@ -301,6 +313,11 @@ fn sizes_checked_before_the_allocation() {
             ],
             "image_width",
         ),
+        (
+            "rasterize",
+            [("image_width", "8"), ("image_height", "0")],
+            "__metadata__.image_height",
+        ),
     ] {
         let name = format!("{stage}_{}.safetensors", meta[1].1);
         // Forward-only: the cotangents' zeros were what was allocated.
@@ -370,8 +387,22 @@ fn sizes_checked_before_the_allocation() {
     )
     .unwrap();
     refused_within(&["eval", s(&run)], quick, &["has no render"]);
-    // A folder in per_view.json's place: neither metrics file is written.
+    // A render without its ground truth (the error named only the missing
+    // file, as the system put it).
     ok(&["render", s(&run), "--sweep-frames", "0"]);
+    let gt = run
+        .join("test/gt")
+        .read_dir()
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let gt_png = std::fs::read(&gt).unwrap();
+    std::fs::remove_file(&gt).unwrap();
+    refused_within(&["eval", s(&run)], quick, &["has no ground truth", s(&gt)]);
+    std::fs::write(&gt, gt_png).unwrap();
+    // A folder in per_view.json's place: neither metrics file is written.
     let results = std::fs::read(run.join("results.json")).unwrap();
     std::fs::remove_file(run.join("per_view.json")).unwrap();
     std::fs::create_dir(run.join("per_view.json")).unwrap();
@@ -409,7 +440,12 @@ fn sizes_checked_before_the_allocation() {
         quick,
         &["iterations", "1000000000"],
     );
-    for (flag, value) in [("--sweep-times", "1"), ("--sweep-gaussians", "0")] {
+    // (Two times passed this check, and failed after the first run had trained.)
+    for (flag, value) in [
+        ("--sweep-times", "2"),
+        ("--sweep-times", "1"),
+        ("--sweep-gaussians", "0"),
+    ] {
         refused_within(
             &[
                 "experiment",
@@ -421,7 +457,7 @@ fn sizes_checked_before_the_allocation() {
                 value,
             ],
             quick,
-            &[flag],
+            &[flag, &format!("{value} (")],
         );
     }
 }
@@ -700,6 +736,21 @@ fn checkpoint_metadata_and_files_are_verified() {
         f.set_meta(key, value);
         f.save(&state).unwrap();
     };
+    // A run.json that names no dataset, or two, is refused naming the file
+    // and the field (the message had named neither, and options these
+    // commands do not have).
+    let spec_path = out.join("run.json");
+    let spec = std::fs::read_to_string(&spec_path).unwrap();
+    let mut v: serde_json::Value = serde_json::from_str(&spec).unwrap();
+    let data = std::mem::take(&mut v["data"]);
+    assert!(data.is_string() && v["scene"].is_null(), "{spec}");
+    std::fs::write(&spec_path, v.to_string()).unwrap();
+    refused(&render, &[s(&spec_path), "`data`", "neither is set"]);
+    v["data"] = data;
+    v["scene"] = "swing".into();
+    std::fs::write(&spec_path, v.to_string()).unwrap();
+    refused(&render, &[s(&spec_path), "`data, scene`", "both are set"]);
+    std::fs::write(&spec_path, &spec).unwrap();
     edit_meta("background", "[NaN, 0.0, 0.0]");
     refused(&render, &[s(&state), "background", "finite"]);
     std::fs::write(&state, &original).unwrap();
@@ -1263,4 +1314,109 @@ fn extreme_numbers_are_refused_in_short_messages() {
         &["export", s(&run), "--times", "1e300"],
         &["--times", "1e300"],
     );
+}
+
+/// A file where an output folder (or one above it) should be, or where a
+/// dataset folder is given, is named as such: the system's own messages
+/// were "File exists", "Not a directory" and "dataset folder not found".
+#[test]
+fn files_in_place_of_folders_are_named() {
+    let d = tmp("file_for_folder");
+    let file = d.join("afile");
+    std::fs::write(&file, b"x").unwrap();
+    let below = file.join("run");
+    for out in [&file, &below] {
+        for args in [
+            vec![
+                "train",
+                "--scene",
+                "swing",
+                "--iterations",
+                "2",
+                "--out",
+                s(out),
+            ],
+            vec!["synth", "swing", s(out), "--resolution", "8"],
+        ] {
+            refused_within(
+                &args,
+                Duration::from_secs(30),
+                &[s(out), &format!("{} is a file, not a folder", s(&file))],
+            );
+        }
+    }
+    refused(&["inspect", s(&file)], &[s(&file), "not a folder"]);
+}
+
+/// A named pipe given as an input waited for a writer for ever.
+#[cfg(target_os = "linux")]
+#[test]
+fn a_named_pipe_is_refused_not_waited_on() {
+    let d = tmp("fifo");
+    let fifo = d.join("case.safetensors");
+    let c = std::ffi::CString::new(s(&fifo)).unwrap();
+    // SAFETY: a valid NUL-terminated path.
+    assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+    refused_within(
+        &["case", "run", s(&fifo), s(&d.join("o.safetensors"))],
+        Duration::from_secs(20),
+        &[s(&fifo), "named pipe"],
+    );
+}
+
+/// `--resume` into a folder without checkpoints starts the run, and says so
+/// even with `--quiet` (a mistyped `--out` passed unseen).
+#[test]
+fn resume_without_a_checkpoint_says_it_starts() {
+    let d = tmp("resume_fresh");
+    let out = d.join("out");
+    let mut args = vec![
+        "train",
+        SWING,
+        "--iterations",
+        "2",
+        "--init-points",
+        "50",
+        "--quiet",
+        "--resume",
+        "--out",
+        s(&out),
+    ];
+    args.extend(SMALL_FIELD);
+    let o = cli(&args);
+    let t = text(&o);
+    assert!(o.status.success(), "{t}");
+    assert!(
+        t.contains("note: no checkpoint in") && t.contains("starts the run from its beginning"),
+        "{t}"
+    );
+    // Resumed from the checkpoint it wrote: no note.
+    let o = cli(&args);
+    let t = text(&o);
+    assert!(o.status.success() && !t.contains("note:"), "{t}");
+}
+
+/// A nerfies-layout scene written where upstream's split rule picks no test
+/// views: `synth` says so (and how to place it), where `train` would refuse
+/// it later.
+#[test]
+fn a_nerfies_scene_that_cannot_be_evaluated_is_noted() {
+    let d = tmp("nerfies_note");
+    for (parent, noted) in [("plain", true), ("NeRF-DS", false)] {
+        let out = d.join(parent).join("swing");
+        let o = cli(&[
+            "synth",
+            "swing",
+            s(&out),
+            "--layout",
+            "nerfies",
+            "--resolution",
+            "8",
+            "--frames",
+            "4",
+        ]);
+        let t = text(&o);
+        assert!(o.status.success(), "{t}");
+        assert_eq!(t.contains("note:") && t.contains("NeRF-DS/swing"), noted, "{t}");
+    }
 }

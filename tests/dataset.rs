@@ -283,6 +283,13 @@ fn bad_input_is_a_named_error() {
         e.contains("transforms_train.json") && e.contains("camera_angle_x") && e.contains("1e-300"),
         "{e}"
     );
+    // A folder where the point cloud goes was passed over (random points).
+    let e = broken("ply-folder", |d| {
+        let p = d.join("points3d.ply");
+        let _ = std::fs::remove_file(&p);
+        std::fs::create_dir(p).unwrap();
+    });
+    assert!(e.contains("points3d.ply"), "{e}");
     let e = broken("far-cameras", |d| {
         edit_json(d, "transforms_train.json", |v| {
             v["frames"][0]["transform_matrix"][0][3] = serde_json::json!(1e308);
@@ -290,7 +297,10 @@ fn bad_input_is_a_named_error() {
         })
     });
     assert!(
-        e.contains("transforms_train.json") && e.contains("too far apart"),
+        e.contains("transforms_train.json")
+            && e.contains("too far apart")
+            && e.contains("training camera ")
+            && e.contains("e308"),
         "{e}"
     );
     let e = broken("matrix-shape", |d| {

@@ -235,7 +235,7 @@ fn run_new(a: NewArgs) -> crate::Result<Outcome> {
 }
 
 fn regen_golden(dir: &Path) -> crate::Result<Outcome> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    crate::io::create_dir_all(dir)?;
     for (name, bytes) in golden_files()? {
         let path = dir.join(&name);
         crate::io::write_atomic(&path, &bytes)?;

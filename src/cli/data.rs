@@ -107,7 +107,7 @@ pub fn synth(a: SynthArgs) -> crate::Result<Outcome> {
         LayoutArg::Nerfies if a.eval_frames.is_some() => {
             return Err(crate::Error::invalid(
                 "--eval-frames",
-                "the nerfies layout is one sequence of --frames frames (even ids train, odd ids validate); the option applies to --layout dnerf",
+                "the nerfies layout is one sequence of --frames frames (dataset.json lists the even ids as train_ids, the odd ones as val_ids); the option applies to --layout dnerf",
             ))
         }
         _ => {}
@@ -131,5 +131,18 @@ pub fn synth(a: SynthArgs) -> crate::Result<Outcome> {
         LayoutArg::Nerfies => synth::Layout::Nerfies,
     };
     synth::write(&a.name, &a.out_dir, &opts, layout)?;
+    if let (synth::Layout::Nerfies, (crate::dataset::NerfiesSplit::EveryFourth, _)) =
+        (layout, crate::dataset::nerfies::upstream_rule(&a.out_dir))
+    {
+        // (Upstream's loader picks the split from the parent folder's name.)
+        eprintln!(
+            "note: {} is loaded with upstream's rule for a parent folder not named vrig*, NeRF* \
+             or interp*: every fourth id trains and none is a test view, so `train` cannot \
+             evaluate it; written under a parent named NeRF* (e.g. NeRF-DS/{}), its train_ids \
+             and val_ids are used",
+            a.out_dir.display(),
+            a.name
+        );
+    }
     Ok(Outcome::Success)
 }

@@ -52,7 +52,7 @@ pub struct ExperimentArgs {
     /// Evaluate the test views this many times during each run (PSNR curve).
     #[arg(long, default_value_t = 10)]
     pub evals: u64,
-    /// Smoothness sweep: number of uniform times in [0, 1].
+    /// Smoothness sweep: number of uniform times in [0, 1] (3 to 100000).
     #[arg(long, default_value_t = 101)]
     pub sweep_times: usize,
     /// Smoothness sweep: number of Gaussians (the first ones of the canonical set).

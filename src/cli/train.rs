@@ -186,7 +186,8 @@ pub struct TrainArgs {
     /// Output folder (checkpoints, renders, metrics).
     #[arg(long, short)]
     pub out: PathBuf,
-    /// Continue from the newest checkpoint in OUT/checkpoints.
+    /// Continue from the newest checkpoint in OUT/checkpoints (with none there, start the run,
+    /// and say so).
     #[arg(long)]
     pub resume: bool,
     /// Write a checkpoint every K iterations (0: only at the end).
@@ -211,7 +212,17 @@ pub fn train(a: TrainArgs) -> Result<Outcome> {
     for w in &data.warnings {
         eprintln!("warning: {w}");
     }
+    let ckpt_dir = a.out.join("checkpoints");
+    // (An unreadable folder is `prepare_run`'s to report.)
+    let fresh = a.resume && matches!(train::checkpoint::latest(&ckpt_dir), Ok(None));
     let config = experiment::prepare_run(&spec, &data, &a.out, a.resume)?;
+    if fresh {
+        // (Even with --quiet: a mistyped OUT would otherwise pass unseen.)
+        eprintln!(
+            "note: no checkpoint in {}: --resume starts the run from its beginning",
+            ckpt_dir.display()
+        );
+    }
     if !a.quiet {
         eprintln!(
             "training {} field ({} parameters) on {}: {} train / {} test views, {} initial Gaussians, {} iterations, {} threads",

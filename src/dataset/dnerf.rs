@@ -208,7 +208,9 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
             .collect::<Vec<_>>(),
     )?;
     let points = dir.join("points3d.ply");
-    let init = if points.is_file() {
+    // (Anything of that name is read: a folder or a pipe there is an error,
+    // not random points without a word.)
+    let init = if points.exists() {
         let pc = crate::gaussians::ply::read_points(&points)?;
         crate::gaussians::init::check_count(pc.len())
             .map_err(|w| Error::field(&points, "vertex", w))?;

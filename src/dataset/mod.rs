@@ -200,9 +200,14 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     } else if dir.join("dataset.json").is_file() {
         nerfies::load(dir, opts)
     } else if !dir.is_dir() {
+        let why = if dir.exists() {
+            "not a folder: a dataset is a folder (D-NeRF or nerfies layout)"
+        } else {
+            "dataset folder not found"
+        };
         Err(Error::io(
             dir,
-            std::io::Error::new(std::io::ErrorKind::NotFound, "dataset folder not found"),
+            std::io::Error::new(std::io::ErrorKind::NotFound, why),
         ))
     } else {
         Err(Error::format(
@@ -218,10 +223,24 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
 pub fn finite_scene_extent(centres: &[[f64; 3]], file: &Path, field: &str) -> Result<f64> {
     let e = scene_extent(centres);
     if !e.is_finite() {
+        // The centre farthest from the origin, which the sums overflowed on.
+        let (i, c) = centres
+            .iter()
+            .enumerate()
+            .max_by(|a, b| {
+                DVec3::from(*a.1)
+                    .length()
+                    .total_cmp(&DVec3::from(*b.1).length())
+            })
+            .expect("an infinite extent has centres");
         return Err(Error::field(
             file,
             field,
-            format!("the camera centres are too far apart: scene extent {e}"),
+            format!(
+                "the camera centres are too far apart: scene extent {e} (training camera {i}'s \
+                 centre is [{:e}, {:e}, {:e}])",
+                c[0], c[1], c[2]
+            ),
         ));
     }
     Ok(e)

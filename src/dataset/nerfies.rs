@@ -325,7 +325,8 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     };
 
     let npy = dir.join("points.npy");
-    let init = if npy.is_file() {
+    // (As the D-NeRF loader's points3d.ply: anything of that name is read.)
+    let init = if npy.exists() {
         let mut xyz = super::npy::read_points(&npy)?;
         crate::gaussians::init::check_count(xyz.len() / 3)
             .map_err(|w| Error::field(&npy, "points", w))?;

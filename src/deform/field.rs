@@ -132,10 +132,18 @@ impl<T: Real> Field<T> {
             FieldConfig::Cfc(c) => Net::Cfc(cfc::CfcNet::build(c, &mut lb)),
         };
         if lb.len > MAX_FIELD_PARAMS {
+            // (The CfC's backbone counts too.)
+            let backbone = match &config {
+                FieldConfig::Cfc(c) => format!(
+                    " with a backbone of {} layers of {} units",
+                    c.backbone_layers, c.backbone_units
+                ),
+                FieldConfig::Mlp(_) => String::new(),
+            };
             return Err(Error::invalid(
                 "field size",
                 format!(
-                    "{} D{} W{} has {} parameters, more than the limit {MAX_FIELD_PARAMS}",
+                    "{} D{} W{}{backbone} has {} parameters, more than the limit {MAX_FIELD_PARAMS}",
                     config.kind(),
                     config.depth(),
                     config.width(),

@@ -145,10 +145,11 @@ impl Experiment {
             ));
         }
         // Settings used after the first run trains, refused before it.
-        if !(2..=MAX_SWEEP).contains(&self.sweep_times) {
+        // (The smoothness figure's second differences need 3 times.)
+        if !(3..=MAX_SWEEP).contains(&self.sweep_times) {
             return Err(Error::invalid(
                 "--sweep-times",
-                format!("{} (2 to {MAX_SWEEP} uniform times)", self.sweep_times),
+                format!("{} (3 to {MAX_SWEEP} uniform times)", self.sweep_times),
             ));
         }
         if !(1..=MAX_SWEEP).contains(&self.sweep_gaussians) {
@@ -361,7 +362,7 @@ impl Experiment {
             .join("training")
             .join(format!("{}__{label}__seed{}", run.scene, s.seed));
         // (So that render and export open the training folder as a run.)
-        std::fs::create_dir_all(&work).map_err(|e| Error::io(&work, e))?;
+        crate::io::create_dir_all(&work)?;
         s.write(&work)?;
         let opts = RunOptions {
             out: work.clone(),
@@ -487,7 +488,7 @@ impl Experiment {
             s(
                 "smoothness sweep",
                 format!(
-                    "d_xyz of the first {} canonical Gaussians of each trained model, {} uniform times in [0, 1]",
+                    "d_xyz of the first {} canonical Gaussians of each trained model (all of them where a model holds fewer), {} uniform times in [0, 1]",
                     self.sweep_gaussians, self.sweep_times
                 ),
             ),

@@ -258,7 +258,25 @@ impl RunSpec {
     pub fn read(out: &Path) -> Result<RunSpec> {
         let path = out.join(RUN_FILE);
         let bytes = crate::io::read(&path)?;
-        serde_json::from_slice(&bytes).map_err(|e| Error::format(&path, e.to_string()))
+        let spec: RunSpec =
+            serde_json::from_slice(&bytes).map_err(|e| Error::format(&path, e.to_string()))?;
+        // (`train` records exactly one of the two.)
+        match (&spec.data, &spec.scene) {
+            (Some(_), None) | (None, Some(_)) => Ok(spec),
+            (d, _) => Err(Error::field(
+                &path,
+                if d.is_some() { "data, scene" } else { "data" },
+                format!(
+                    "{}: a run names its dataset folder (`data`) or its built-in scene \
+                     (`scene`), exactly one",
+                    if d.is_some() {
+                        "both are set"
+                    } else {
+                        "neither is set"
+                    }
+                ),
+            )),
+        }
     }
 
     /// Save this description in run folder `out` ([`RUN_FILE`]).
@@ -310,7 +328,7 @@ pub fn prepare_run(
     // (Refused before anything is written into `out`.)
     config.validate()?;
     spec.check_eval_split(data)?;
-    std::fs::create_dir_all(out).map_err(|e| Error::io(out, e))?;
+    crate::io::create_dir_all(out)?;
     let spec_path = out.join(RUN_FILE);
     let ckpt_dir = out.join("checkpoints");
     if let (false, Some(dir)) = (resume, checkpoint::latest(&ckpt_dir)?) {
@@ -445,13 +463,25 @@ pub fn evaluate_renders(
     }
     // A view with ground truth but no render would leave the mean over
     // fewer views than the test split without a word.
-    if let Some(n) = pngs(&gt_dir)?.iter().find(|n| !names.contains(n)) {
+    let gts = pngs(&gt_dir)?;
+    if let Some(n) = gts.iter().find(|n| !names.contains(n)) {
         return Err(Error::invalid(
             "eval",
             format!(
                 "{} has no render {}",
                 gt_dir.join(n).display(),
                 renders.join(n).display()
+            ),
+        ));
+    }
+    // And a render with no ground truth is not scored against nothing.
+    if let Some(n) = names.iter().find(|n| !gts.contains(n)) {
+        return Err(Error::invalid(
+            "eval",
+            format!(
+                "{} has no ground truth {}",
+                renders.join(n).display(),
+                gt_dir.join(n).display()
             ),
         ));
     }

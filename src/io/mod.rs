@@ -62,22 +62,58 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     })
 }
 
-/// Refuses a device given as an input (`/dev/zero` has no end to read to).
+/// Refuses a device, a named pipe or a socket given as an input (`/dev/zero`
+/// has no end to read to; opening a pipe waits for a writer that may never
+/// come).
 fn refuse_device(path: &Path) -> Result<()> {
     #[cfg(unix)]
     {
         use std::os::unix::fs::FileTypeExt;
         if let Ok(m) = std::fs::metadata(path) {
             let t = m.file_type();
-            if t.is_char_device() || t.is_block_device() {
+            let what = if t.is_char_device() || t.is_block_device() {
+                Some("a device")
+            } else if t.is_fifo() {
+                Some("a named pipe (FIFO)")
+            } else if t.is_socket() {
+                Some("a socket")
+            } else {
+                None
+            };
+            if let Some(what) = what {
                 return Err(Error::invalid(
                     "input file",
-                    format!("{} is a device, not a file", path.display()),
+                    format!("{} is {what}, not a file", path.display()),
                 ));
             }
         }
     }
     Ok(())
+}
+
+/// `std::fs::create_dir_all`, with the path in the error; where a file
+/// stands in the way (the folder itself or one above it), the error says
+/// which (the system's own message is only "File exists" or "Not a
+/// directory").
+pub fn create_dir_all(dir: &Path) -> Result<()> {
+    std::fs::create_dir_all(dir).map_err(|e| {
+        let mut parts: Vec<&Path> = dir.ancestors().collect();
+        parts.reverse();
+        match parts
+            .into_iter()
+            .find(|p| !p.as_os_str().is_empty() && p.exists() && !p.is_dir())
+        {
+            Some(file) => Error::invalid(
+                "output folder",
+                format!(
+                    "cannot create {}: {} is a file, not a folder",
+                    dir.display(),
+                    file.display()
+                ),
+            ),
+            None => Error::io(dir, e),
+        }
+    })
 }
 
 /// Read a whole file, with the path in the error (a device is refused).
@@ -123,6 +159,22 @@ mod tests {
         // A device is not read (/dev/zero has no end).
         let err = read(Path::new("/dev/zero")).unwrap_err().to_string();
         assert!(err.contains("/dev/zero") && err.contains("device"), "{err}");
+        // Nor a named pipe, whose opening waited for a writer for ever; a
+        // link to one neither.
+        let fifo = dir.join("fifo");
+        let _ = std::fs::remove_file(&fifo);
+        let c = std::ffi::CString::new(fifo.as_os_str().as_encoded_bytes()).unwrap();
+        // SAFETY: a valid NUL-terminated path.
+        assert_eq!(unsafe { libc::mkfifo(c.as_ptr(), 0o600) }, 0);
+        let to_fifo = dir.join("to_fifo");
+        let _ = std::fs::remove_file(&to_fifo);
+        std::os::unix::fs::symlink(&fifo, &to_fifo).unwrap();
+        for p in [&fifo, &to_fifo] {
+            let err = open(p).unwrap_err().to_string();
+            assert!(err.contains("named pipe (FIFO)"), "{err}");
+            let err = read(p).unwrap_err().to_string();
+            assert!(err.contains(&*p.to_string_lossy()), "{err}");
+        }
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -25,19 +25,22 @@ pub fn run(case: &TensorFile) -> Result<TensorFile> {
 }
 
 fn run_t<T: Real>(case: &TensorFile) -> Result<TensorFile> {
-    let image = case.real_array::<T>("image")?;
-    let (h, w) = match *image.shape() {
-        [3, h, w] if h > 0 && w > 0 => (h, w),
+    use crate::render::MAX_PIXELS;
+    // (The shape first: nothing of the image's size is made before it.)
+    let (h, w) = match *case.shape("image")? {
+        // (The rasterizer's limit: the SSIM's buffers take several times
+        // the image.)
+        [3, h, w] if h > 0 && w > 0 && h.saturating_mul(w) <= MAX_PIXELS => (h, w),
         ref shape => {
             return Err(Error::Tensor {
                 context: case.path.display().to_string(),
                 name: "image".into(),
-                expected: "shape [3,H,W] with H, W > 0".into(),
+                expected: format!("shape [3,H,W] with H, W > 0 and H·W ≤ {MAX_PIXELS}"),
                 found: format!("shape {shape:?}"),
             })
         }
     };
-    let image = into_row_major(image);
+    let image = into_row_major(case.real_array::<T>("image")?);
     let gt = case.get_real::<T>("gt", &[3, h, w])?;
     let lambda = case.meta_finite_or("lambda_dssim", LAMBDA_DSSIM)?;
     if !(0.0..=1.0).contains(&lambda) {
@@ -109,5 +112,21 @@ mod tests {
         let mut c = case(4, 4);
         c.set_meta("lambda_dssim", "abc");
         assert!(run(&c).is_err());
+    }
+
+    /// More pixels than the rasterizer's limit are refused from the shape,
+    /// before anything of the image's size is made (the zeros below are
+    /// never touched).
+    #[test]
+    fn images_past_the_pixel_limit_are_refused() {
+        use crate::io::Tensor;
+        use crate::render::MAX_PIXELS;
+        let mut c = TensorFile::new("case.safetensors");
+        for name in ["image", "gt"] {
+            let z = ndarray::ArrayD::<f32>::zeros(ndarray::IxDyn(&[3, 1, MAX_PIXELS + 1]));
+            c.insert(name, Tensor::F32(z));
+        }
+        let e = run(&c).unwrap_err().to_string();
+        assert!(e.contains("`image`") && e.contains("H·W ≤ 67108864"), "{e}");
     }
 }

@@ -300,6 +300,13 @@ pub const STEP_ACTIVE_SH_DEGREE: usize = 2;
 pub const STEP_ADAM_STEP: u64 = 7;
 
 fn new_step<T: Real>(spec: &CaseSpec) -> Result<TensorFile> {
+    // (The stage refuses a model of no Gaussians, as training does.)
+    if spec.count == 0 {
+        return Err(Error::invalid(
+            "count",
+            "0 (the step stage needs at least 1 Gaussian)",
+        ));
+    }
     // The field: small, by default the `real` variant (time feature γ₁₀(t),
     // no timenet) so the files stay small; the deform cases cover the timenet.
     let mut config = small_field(spec)?;

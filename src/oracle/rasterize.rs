@@ -55,9 +55,15 @@ pub fn read_camera<T: Real>(case: &TensorFile) -> Result<RasterCamera<T>> {
     let width: usize = case.meta_parse("image_width")?;
     let height: usize = case.meta_parse("image_height")?;
     if width == 0 || height == 0 || width.saturating_mul(height) > crate::render::MAX_PIXELS {
+        // (The side that is 0, or both for too many pixels.)
+        let field = match (width, height) {
+            (0, _) => "__metadata__.image_width",
+            (_, 0) => "__metadata__.image_height",
+            _ => "__metadata__.image_width, image_height",
+        };
         return Err(Error::field(
             &case.path,
-            "__metadata__.image_width",
+            field,
             format!(
                 "{width}x{height} pixels: each side at least 1, at most {} pixels",
                 crate::render::MAX_PIXELS

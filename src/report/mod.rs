@@ -346,7 +346,7 @@ pub struct ReportMeta {
 }
 
 fn create_dir(d: &Path) -> Result<()> {
-    std::fs::create_dir_all(d).map_err(|e| Error::io(d, e))
+    crate::io::create_dir_all(d)
 }
 
 fn distinct<T: Ord + ToString>(v: impl Iterator<Item = T>) -> String {

@@ -135,7 +135,7 @@ pub fn save<T: Real>(
     let name = checkpoint_name(trainer.iteration());
     let final_dir = dir.join(&name);
     let partial = dir.join(format!("{name}.partial"));
-    let mkdir = |p: &Path| std::fs::create_dir_all(p).map_err(|e| Error::io(p, e));
+    let mkdir = crate::io::create_dir_all;
     if partial.exists() {
         std::fs::remove_dir_all(&partial).map_err(|e| Error::io(&partial, e))?;
     }

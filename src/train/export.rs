@@ -147,7 +147,7 @@ pub fn export_times<T: Real>(
     times: &[f64],
     dir: &Path,
 ) -> Result<Vec<ExportReport>> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    crate::io::create_dir_all(dir)?;
     times
         .iter()
         .map(|&t| {

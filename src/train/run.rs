@@ -202,7 +202,7 @@ pub fn run<T: Real>(
         opts.out.join("test").join("renders_exr"),
         opts.out.join("test").join("gt"),
     ] {
-        std::fs::create_dir_all(&sub).map_err(|e| Error::io(&sub, e))?;
+        crate::io::create_dir_all(&sub)?;
     }
     let binding = checkpoint::DataBinding::of(data, &opts.data_name);
 
@@ -330,7 +330,7 @@ pub fn render_views<T: Real>(
     lpips: Option<&crate::lpips::Metric>,
 ) -> Result<Vec<ViewMetrics>> {
     for sub in ["renders", "renders_exr", "gt"] {
-        std::fs::create_dir_all(dir.join(sub)).map_err(|e| Error::io(dir.join(sub), e))?;
+        crate::io::create_dir_all(&dir.join(sub))?;
     }
     let mut per_view = Vec::with_capacity(views.len());
     for v in views {
@@ -371,7 +371,7 @@ pub fn render_times<T: Real>(
     dir: &Path,
     name: impl Fn(usize, f64) -> String,
 ) -> Result<Vec<PathBuf>> {
-    std::fs::create_dir_all(dir).map_err(|e| Error::io(dir, e))?;
+    crate::io::create_dir_all(dir)?;
     let mut out = Vec::with_capacity(times.len());
     for (k, &t) in times.iter().enumerate() {
         if !t.is_finite() {

@@ -295,7 +295,7 @@ fn write_json(path: &Path, v: &Value) -> Result<()> {
 }
 
 fn mkdir(p: &Path) -> Result<()> {
-    std::fs::create_dir_all(p).map_err(|e| Error::io(p, e))
+    crate::io::create_dir_all(p)
 }
 
 /// Generate scene `name` into `out` in the given layout.
