@@ -44,6 +44,9 @@ def _through_functions(t: dict, m: dict) -> dict:
         names = ("camera_ids", "gaussian_ids") if packed else ()
         names += ("radii", "means2d", "depths", "conics", "compensations")
         out = dict(zip(names, r))
+        for k in names[:2 if packed else 0]:  # int64 as in gsplat; I32 in case files
+            assert out[k].dtype == np.int64
+            out[k] = out[k].astype(np.int32)
         cot = {k: t[k] for k in ("v_means2d", "v_depths", "v_conics", "v_compensations")}
         out.update(gs.fully_fused_projection_vjp(*args, **kw, **cot))
         return out
@@ -72,6 +75,9 @@ def _through_functions(t: dict, m: dict) -> dict:
         assert meta["n_cameras"] == 2 and (meta["tile_width"], meta["tile_height"]) == (2, 1)
         out = {"render_colors": rc, "render_alphas": ra}
         for k, v in meta.items():
+            if k in ("camera_ids", "gaussian_ids"):  # int64 as in gsplat
+                assert v.dtype == np.int64
+                v = v.astype(np.int32)
             if isinstance(v, np.ndarray):
                 out[f"meta.{k}"] = _words(v) if k == "isect_ids" else v
         out.update(gs.rasterization_vjp(*args, **kw, v_render_colors=t["v_render_colors"],
@@ -168,6 +174,9 @@ def test_forward_functions_run_their_stage_once_without_cotangents(monkeypatch):
         names = ("camera_ids", "gaussian_ids") if packed else ()
         names += ("radii", "means2d", "depths", "conics", "compensations")
         for name, got in zip(names, r):
+            if name in ("camera_ids", "gaussian_ids"):  # int64 as in gsplat
+                assert got.dtype == np.int64
+                got = got.astype(want[name].dtype)
             assert got.tobytes() == want[name].tobytes(), name
         for name in ("v_means", "v_quats", "v_scales"):
             assert not want[name].any()

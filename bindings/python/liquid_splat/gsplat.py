@@ -18,7 +18,8 @@ twin taking the same arguments plus gsplat's cotangents (``v_<output>``) and ret
 - :func:`rasterization` / :func:`rasterization_vjp`
 
 One batch: gsplat's leading ``...`` dimensions are absent (``C`` cameras, ``N`` Gaussians).
-Integer outputs are int32 as in gsplat, except ``isect_ids``, which is int64 as in gsplat.
+Integer outputs have gsplat's dtypes: int64 for ``isect_ids`` and the packed ``camera_ids`` and
+``gaussian_ids``, int32 for the others.
 float32 or float64 inputs select the precision. Arguments gsplat has and the oracle does not
 model (``sparse_grad``, ``camera_model``, ``render_mode``, ``distributed``, ``segmented``,
 ``masks``) accept only their default values; ``absgrad`` and ``channel_chunk`` do not change
@@ -107,6 +108,11 @@ def _flag(a: _Args, name: str, x: Any) -> bool:
 def _run(a: _Args, t: Tensors, meta: Dict[str, MetaValue], threads: Optional[int]) -> Tensors:
     out, _ = _run_case(a.func, t, meta, threads)
     return out
+
+
+def _long(ids: np.ndarray) -> np.ndarray:
+    """int32 ids (as the stages write them) as gsplat's int64."""
+    return ids.astype(np.int64)
 
 
 def _join_ids(words: np.ndarray) -> np.ndarray:
@@ -323,7 +329,7 @@ def fully_fused_projection(
     # No cotangents: the stage reads them as zeros (one run, packed or dense).
     out = _run(p.a, p.t, p.meta, threads)
     if p.meta["packed"]:
-        return (out["camera_ids"], out["gaussian_ids"], out["radii"], out["means2d"],
+        return (_long(out["camera_ids"]), _long(out["gaussian_ids"]), out["radii"], out["means2d"],
                 out["depths"], out["conics"], out.get("compensations"))
     return out["radii"], out["means2d"], out["depths"], out["conics"], out.get("compensations")
 
@@ -767,6 +773,9 @@ def rasterization(
     out = _run(a, t, meta, threads)
     m: Dict[str, Any] = {k[len("meta."):]: v for k, v in out.items() if k.startswith("meta.")}
     m["isect_ids"] = _join_ids(m["isect_ids"])
+    for k in ("camera_ids", "gaussian_ids"):
+        if k in m:
+            m[k] = _long(m[k])
     ts = int(meta["tile_size"])
     m.update(width=int(meta["width"]), height=int(meta["height"]), tile_size=ts,
              tile_width=-(-int(meta["width"]) // ts), tile_height=-(-int(meta["height"]) // ts),
