@@ -1,7 +1,7 @@
 //! The oracle: what backend authors run in their CI against this reference.
 //!
 //! A *case file* is a safetensors file whose string metadata names the stage
-//! (`stage=rasterize|deform|loss|step`) and its settings, and whose tensors are the
+//! (`stage=rasterize|deform|loss|step|gsplat_*`) and its settings, and whose tensors are the
 //! stage's inputs under the names of the upstream Python APIs. [`run_case`]
 //! computes the stage's outputs and gradients into another tensor file; the
 //! tensors' dtype (F32 or F64) selects the precision.
