@@ -1417,6 +1417,10 @@ fn a_nerfies_scene_that_cannot_be_evaluated_is_noted() {
         ]);
         let t = text(&o);
         assert!(o.status.success(), "{t}");
-        assert_eq!(t.contains("note:") && t.contains("NeRF-DS/swing"), noted, "{t}");
+        assert_eq!(
+            t.contains("note:") && t.contains("NeRF-DS/swing"),
+            noted,
+            "{t}"
+        );
     }
 }
