@@ -28,13 +28,13 @@ fn floor_of(a: &[f64]) -> f64 {
 fn quat_scale_to_covar_preci_matches_central_differences() {
     let s = scene(&SceneSpec::new(5, 1, 16, 16), 3);
     for triu in [false, true] {
-        let out = quat_scale_to_covar_preci(&s.quats, &s.scales, true, true, triu);
+        let out = quat_scale_to_covar_preci(&s.quats, &s.scales, true, true, triu).unwrap();
         let vc = cotangent(1, out.covars.len());
         let vp = cotangent(2, out.precis.len());
         let (gq, gs) =
-            quat_scale_to_covar_preci_vjp(&s.quats, &s.scales, Some(&vc), Some(&vp), triu);
+            quat_scale_to_covar_preci_vjp(&s.quats, &s.scales, Some(&vc), Some(&vp), triu).unwrap();
         let loss = |q: &[f64], sc: &[f64]| {
-            let o = quat_scale_to_covar_preci(q, sc, true, true, triu);
+            let o = quat_scale_to_covar_preci(q, sc, true, true, triu).unwrap();
             dot(&vc, &o.covars) + dot(&vp, &o.precis)
         };
         let mut q = s.quats.clone();
@@ -61,14 +61,20 @@ fn spherical_harmonics_matches_central_differences() {
             let k = 25;
             let coeffs = cotangent(10 + d as u64, 6 * k * d);
             let v = cotangent(20 + degree as u64, 6 * d);
-            let (vd, vk) = spherical_harmonics_vjp(degree, &dirs, &coeffs, k, d, None, &v);
+            let (vd, vk) = spherical_harmonics_vjp(degree, &dirs, &coeffs, k, d, None, &v).unwrap();
             let mut x = dirs.clone();
             let nd = numeric_gradient(&mut x, STEP, |x| {
-                dot(&v, &spherical_harmonics(degree, x, &coeffs, k, d, None))
+                dot(
+                    &v,
+                    &spherical_harmonics(degree, x, &coeffs, k, d, None).unwrap(),
+                )
             });
             let mut c = coeffs.clone();
             let nk = numeric_gradient(&mut c, STEP, |c| {
-                dot(&v, &spherical_harmonics(degree, &dirs, c, k, d, None))
+                dot(
+                    &v,
+                    &spherical_harmonics(degree, &dirs, c, k, d, None).unwrap(),
+                )
             });
             for r in [
                 compare("dirs", &vd, &nd, floor_of(&vd).max(1e-9)),

@@ -230,7 +230,7 @@ fn versions_agree_below_the_alpha_clamp_and_accutile_is_tighter() {
     assert!(ac.isect_ids.len() < bx.isect_ids.len());
     assert!(ac.flatten_ids.iter().all(|&f| f == 0));
     // Offsets: per tile, the number of intersections in earlier tiles.
-    let off = isect_offset_encode(&ac.isect_ids, 1, 16, 16, Version::V1_6);
+    let off = isect_offset_encode(&ac.isect_ids, 1, 16, 16, Version::V1_6).unwrap();
     assert_eq!(off.len(), 256);
     for (t, &o) in off.iter().enumerate() {
         let before = ac

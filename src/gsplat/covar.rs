@@ -9,7 +9,8 @@
 //! through the normalisation, `(v_n − (v_n·n) n)/|q|`. Both are exact, so the
 //! two gradient modes coincide for this stage.
 
-use super::{add3, matmul3, transpose3, Mat3};
+use super::{add3, check_len, matmul3, transpose3, Mat3};
+use crate::error::{Error, Result};
 use crate::math::Real;
 
 /// Rotation matrix (row-major) of the normalised quaternion `q = (w, x, y, z)`,
@@ -140,17 +141,31 @@ fn unpack<T: Real>(v: &[T], triu: bool) -> Mat3<T> {
     }
 }
 
+/// `N` of `quats [N,4]` after checking that `quats` is a whole number of
+/// rows and `scales` holds `[N,3]`.
+fn rows<T>(quats: &[T], scales: &[T]) -> Result<usize> {
+    if !quats.len().is_multiple_of(4) {
+        return Err(Error::invalid(
+            "quats",
+            format!("length {} is not a multiple of 4", quats.len()),
+        ));
+    }
+    let n = quats.len() / 4;
+    check_len("scales", scales.len(), 3 * n)?;
+    Ok(n)
+}
+
 /// `gsplat.quat_scale_to_covar_preci(quats [N,4], scales [N,3],
-/// compute_covar, compute_preci, triu)`. Lengths must be consistent
-/// (checked by the caller of the oracle stage; here `N = quats.len()/4`).
+/// compute_covar, compute_preci, triu)`, with every length checked: an
+/// error names `quats` (not a multiple of 4) or `scales` (not `[N,3]`).
 pub fn quat_scale_to_covar_preci<T: Real>(
     quats: &[T],
     scales: &[T],
     compute_covar: bool,
     compute_preci: bool,
     triu: bool,
-) -> CovarPreci<T> {
-    let n = quats.len() / 4;
+) -> Result<CovarPreci<T>> {
+    let n = rows(quats, scales)?;
     let mut out = CovarPreci {
         covars: Vec::new(),
         precis: Vec::new(),
@@ -165,20 +180,27 @@ pub fn quat_scale_to_covar_preci<T: Real>(
             pack(&preci(q, s), triu, &mut out.precis);
         }
     }
-    out
+    Ok(out)
 }
 
-/// Backward of [`quat_scale_to_covar_preci`]: `(v_quats [N,4], v_scales [N,3])`
-/// from `v_covars` and/or `v_precis` (same layout as the forward's outputs).
+/// Backward of [`quat_scale_to_covar_preci`]: `(v_quats [N,4], v_scales
+/// [N,3])` from `v_covars` and/or `v_precis` (same layout as the forward's
+/// outputs: `[N,6]` with `triu`, else `[N,3,3]`), every length checked.
 pub fn quat_scale_to_covar_preci_vjp<T: Real>(
     quats: &[T],
     scales: &[T],
     v_covars: Option<&[T]>,
     v_precis: Option<&[T]>,
     triu: bool,
-) -> (Vec<T>, Vec<T>) {
-    let n = quats.len() / 4;
+) -> Result<(Vec<T>, Vec<T>)> {
+    let n = rows(quats, scales)?;
     let w = if triu { 6 } else { 9 };
+    if let Some(v) = v_covars {
+        check_len("v_covars", v.len(), w * n)?;
+    }
+    if let Some(v) = v_precis {
+        check_len("v_precis", v.len(), w * n)?;
+    }
     let mut vq = vec![T::ZERO; 4 * n];
     let mut vs = vec![T::ZERO; 3 * n];
     for i in 0..n {
@@ -203,5 +225,74 @@ pub fn quat_scale_to_covar_preci_vjp<T: Real>(
         vq[4 * i..4 * i + 4].copy_from_slice(&gq);
         vs[3 * i..3 * i + 3].copy_from_slice(&gs);
     }
-    (vq, vs)
+    Ok((vq, vs))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn err<V: std::fmt::Debug>(r: Result<V>) -> String {
+        r.unwrap_err().to_string()
+    }
+
+    #[test]
+    fn inconsistent_lengths_are_refused() {
+        let q = [1.0f64, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0];
+        let s = [1.0f64; 6];
+        // Short scales (used to index out of bounds).
+        let e = err(quat_scale_to_covar_preci(&q, &s[..3], true, true, false));
+        assert!(
+            e.contains("scales") && e.contains("3 values, expected 6"),
+            "{e}"
+        );
+        // Quats not a whole number of rows (used to be dropped silently).
+        let e = err(quat_scale_to_covar_preci(
+            &q[..7],
+            &s[..3],
+            true,
+            false,
+            true,
+        ));
+        assert!(e.contains("quats") && e.contains("7"), "{e}");
+        let e = err(quat_scale_to_covar_preci_vjp(
+            &q[..5],
+            &s[..3],
+            None,
+            None,
+            true,
+        ));
+        assert!(e.contains("quats") && e.contains("5"), "{e}");
+        let e = err(quat_scale_to_covar_preci_vjp(&q, &s[..5], None, None, true));
+        assert!(e.contains("scales"), "{e}");
+        // Short cotangents.
+        let v = [0.5f64; 18];
+        let e = err(quat_scale_to_covar_preci_vjp(
+            &q,
+            &s,
+            Some(&v[..17]),
+            None,
+            false,
+        ));
+        assert!(
+            e.contains("v_covars") && e.contains("17 values, expected 18"),
+            "{e}"
+        );
+        let e = err(quat_scale_to_covar_preci_vjp(
+            &q,
+            &s,
+            Some(&v[..12]),
+            Some(&v[..11]),
+            true,
+        ));
+        assert!(
+            e.contains("v_precis") && e.contains("11 values, expected 12"),
+            "{e}"
+        );
+        // Consistent lengths pass.
+        let out = quat_scale_to_covar_preci(&q, &s, true, true, true).unwrap();
+        assert_eq!(out.covars.len(), 12);
+        let (vq, vs) = quat_scale_to_covar_preci_vjp(&q, &s, Some(&v), Some(&v), false).unwrap();
+        assert_eq!((vq.len(), vs.len()), (8, 6));
+    }
 }

@@ -292,7 +292,7 @@ pub fn isect_tiles<T: Real>(
                 format!("{bad} is not below {n_images}"),
             ));
         }
-    } else if m != input.n * n_images {
+    } else if input.n.checked_mul(n_images) != Some(m) {
         return Err(Error::invalid(
             "isect_tiles",
             format!(
@@ -397,15 +397,65 @@ pub fn isect_tiles<T: Real>(
 /// tile_height)`: `[n_images, tile_height, tile_width]` int32, the first
 /// intersection of each (image, tile) (for an empty tile, that of the next
 /// non-empty one; `n_isects` past the last).
+///
+/// Checked before the offsets are allocated: `n_images`, `tile_width` and
+/// `tile_height` positive, at most [`MAX_TILES`] tiles over all images and
+/// 31 bits of image and tile key (the grids [`isect_tiles`] accepts), and
+/// every key of `isect_ids` non-negative, naming an image below `n_images`
+/// and a tile below `tile_width·tile_height`, in ascending (image, tile)
+/// order (as [`isect_tiles`] lists them).
 pub fn isect_offset_encode(
     isect_ids: &[i64],
     n_images: usize,
     tile_width: usize,
     tile_height: usize,
     version: Version,
-) -> Vec<i32> {
+) -> Result<Vec<i32>> {
+    let n_tiles = tile_width.checked_mul(tile_height);
+    let total = n_tiles.and_then(|t| t.checked_mul(n_images));
+    if n_images == 0
+        || tile_width == 0
+        || tile_height == 0
+        || total.is_none_or(|t| t > MAX_TILES)
+        || key_bits(version, n_tiles.unwrap_or(usize::MAX)) + key_bits(version, n_images) > 31
+    {
+        return Err(Error::invalid(
+            "n_images, tile_width, tile_height",
+            format!(
+                "{n_images} images of {tile_width}x{tile_height} tiles (each positive, at most \
+                 {MAX_TILES} tiles over all images and 31 bits of image and tile key)"
+            ),
+        ));
+    }
     let n_tiles = tile_width * tile_height;
     let tile_bits = key_bits(version, n_tiles);
+    // Each key's (image, tile) slot, checked as the Python binding does.
+    let mut prev = 0usize;
+    for (i, &k) in isect_ids.iter().enumerate() {
+        let id = k >> 32;
+        let (image, tile) = (id >> tile_bits, id & ((1 << tile_bits) - 1));
+        let why = if id < 0 {
+            "a non-negative key".to_string()
+        } else if image as u64 >= n_images as u64 {
+            format!("an image index below n_images = {n_images}")
+        } else if tile as u64 >= n_tiles as u64 {
+            format!("a tile index below tile_width·tile_height = {n_tiles}")
+        } else {
+            let slot = image as usize * n_tiles + tile as usize;
+            if slot < prev {
+                "keys sorted by (image, tile)".to_string()
+            } else {
+                prev = slot;
+                continue;
+            }
+        };
+        return Err(Error::invalid(
+            "isect_ids",
+            format!(
+                "expected {why}, found isect_ids[{i}] = {k} (key {id}: image {image}, tile {tile})"
+            ),
+        ));
+    }
     let mut offsets = vec![0i32; n_images * n_tiles];
     let mut pos = 0usize;
     for (slot, off) in offsets.iter_mut().enumerate() {
@@ -420,7 +470,7 @@ pub fn isect_offset_encode(
         }
         *off = pos as i32;
     }
-    offsets
+    Ok(offsets)
 }
 
 #[cfg(test)]
@@ -513,5 +563,90 @@ mod tests {
         tiles.sort();
         tiles.dedup();
         assert_eq!(tiles.len(), is.flatten_ids.len());
+    }
+
+    #[test]
+    fn dense_entry_counts_that_overflow_are_refused() {
+        let err = isect_tiles(
+            &IsectInput {
+                means2d: &[16.0f64, 16.0],
+                radii: &[4, 4],
+                depths: &[1.0],
+                conics: None,
+                opacities: None,
+                image_ids: None,
+                n: usize::MAX,
+            },
+            16,
+            4,
+            4,
+            2,
+            Version::V1_6,
+            TileRule::RadiusBox,
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(
+            err.contains("isect_tiles") && err.contains("1 dense entries"),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn offsets_of_bad_grids_or_keys_are_refused_before_allocation() {
+        let v = Version::V1_6;
+        for (ni, tw, th) in [
+            (usize::MAX / 2, 2, 2),
+            (1, usize::MAX, 2),
+            (1, usize::MAX, 1),
+            (1 << 34, 1, 1),
+            (1, 1 << 16, 1 << 11),
+            (0, 1, 1),
+            (1, 0, 1),
+        ] {
+            let e = isect_offset_encode(&[], ni, tw, th, v)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("n_images, tile_width, tile_height"), "{e}");
+        }
+        for (ids, ni, tw, version, want) in [
+            (
+                vec![-1i64 << 32, 0],
+                2,
+                2,
+                v,
+                "non-negative key, found isect_ids[0]",
+            ),
+            (vec![-1], 2, 2, v, "non-negative key"),
+            (vec![i64::MAX], 2, 2, v, "image index below n_images = 2"),
+            (
+                vec![1 << 32, 4 << 32],
+                2,
+                2,
+                v,
+                "found isect_ids[1] = 17179869184 (key 4: image 2, tile 0)",
+            ),
+            (
+                vec![3 << 32],
+                1,
+                3,
+                Version::V1_5_3,
+                "tile index below tile_width·tile_height = 3",
+            ),
+            (
+                vec![3 << 32, 1 << 32],
+                2,
+                2,
+                v,
+                "sorted by (image, tile), found isect_ids[1]",
+            ),
+        ] {
+            let e = isect_offset_encode(&ids, ni, tw, 1, version)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("isect_ids") && e.contains(want), "{e}");
+        }
+        let ok = isect_offset_encode(&[1 << 32, 2 << 32], 2, 2, 1, v).unwrap();
+        assert_eq!(ok, [0, 0, 1, 2]);
     }
 }

@@ -59,6 +59,12 @@ pub struct Camera<T> {
 
 impl<T: Real> Camera<T> {
     /// Camera `c` of `viewmats [C,4,4]` (row-major) and `Ks [C,3,3]`.
+    ///
+    /// # Panics
+    ///
+    /// If `viewmats` holds fewer than `16·(c+1)` values or `ks` fewer than
+    /// `9·(c+1)` (a low-level helper: [`ProjectionInput::validate`] checks
+    /// the tensors of a call).
     pub fn from_tensors(viewmats: &[T], ks: &[T], c: usize) -> Self {
         let v = &viewmats[16 * c..16 * c + 16];
         let k = &ks[9 * c..9 * c + 9];
@@ -285,11 +291,44 @@ pub struct Packed<T> {
 
 impl<T: Real> Projection<T> {
     /// Whether entry `e = c·N + g` is visible (both radii positive).
+    ///
+    /// # Panics
+    ///
+    /// If `radii` holds fewer than `2·(e+1)` values (`e` at least `C·N` in
+    /// a projection of [`fully_fused_projection`]).
     pub fn visible(&self, e: usize) -> bool {
         self.radii[2 * e] > 0 && self.radii[2 * e + 1] > 0
     }
 
+    /// Checks that every output holds the `C·N` entries of `c` and `n` (a
+    /// forward state may have been altered through its public fields); the
+    /// error names the field (`projection.radii`, ...).
+    pub(crate) fn check_state(&self) -> Result<()> {
+        let Some(ce) = self.c.checked_mul(self.n).filter(|&ce| ce <= MAX_PROJECTED) else {
+            return Err(Error::invalid(
+                "projection state",
+                format!(
+                    "{} cameras x {} Gaussians, more than {MAX_PROJECTED} pairs",
+                    self.c, self.n
+                ),
+            ));
+        };
+        check_len("projection.radii", self.radii.len(), 2 * ce)?;
+        check_len("projection.means2d", self.means2d.len(), 2 * ce)?;
+        check_len("projection.depths", self.depths.len(), ce)?;
+        check_len("projection.conics", self.conics.len(), 3 * ce)?;
+        if let Some(cv) = &self.compensations {
+            check_len("projection.compensations", cv.len(), ce)?;
+        }
+        check_len("projection.flags", self.flags.len(), ce)
+    }
+
     /// The packed layout of the same numbers.
+    ///
+    /// # Panics
+    ///
+    /// If an output holds fewer values than `c·n` entries take (see
+    /// [`Projection::visible`]).
     pub fn pack(&self) -> Packed<T> {
         let mut p = Packed {
             camera_ids: Vec::new(),
@@ -318,6 +357,10 @@ impl<T: Real> Projection<T> {
     }
 
     /// Dense entry index of each packed entry.
+    ///
+    /// # Panics
+    ///
+    /// If `radii` holds fewer than `2·c·n` values.
     pub fn packed_entries(&self) -> Vec<usize> {
         (0..self.c * self.n).filter(|&e| self.visible(e)).collect()
     }
@@ -654,6 +697,7 @@ pub fn fully_fused_projection_vjp<T: Real>(
             format!("computed for {}x{}, called with {c}x{n}", fwd.c, fwd.n),
         ));
     }
+    fwd.check_state()?;
     check_len("v_means2d", v.v_means2d.len(), 2 * c * n)?;
     check_len("v_depths", v.v_depths.len(), c * n)?;
     check_len("v_conics", v.v_conics.len(), 3 * c * n)?;
@@ -753,6 +797,11 @@ pub fn fully_fused_projection_vjp<T: Real>(
 }
 
 /// Scatter packed per-entry values (`width` per entry) to the dense `[C·N, width]` layout.
+///
+/// # Panics
+///
+/// If an entry is at least `dense_len`, `packed` holds fewer than
+/// `entries.len()·width` values, or `dense_len·width` overflows.
 pub fn unpack<T: Real>(entries: &[usize], packed: &[T], width: usize, dense_len: usize) -> Vec<T> {
     let mut out = vec![T::ZERO; dense_len * width];
     for (i, &e) in entries.iter().enumerate() {
@@ -791,6 +840,82 @@ mod tests {
                 let e = r.unwrap_err().to_string();
                 assert!(e.contains("4097 cameras x 16384 Gaussians"), "{e}");
             }
+        }
+    }
+
+    /// `means`, `quats`, `scales`, `viewmats`, `Ks`.
+    type Scene = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>);
+
+    fn one_gaussian() -> Scene {
+        let view = vec![
+            1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0,
+        ];
+        let ks = vec![20.0, 0.0, 8.0, 0.0, 20.0, 8.0, 0.0, 0.0, 1.0];
+        (
+            vec![0.0; 3],
+            vec![1.0, 0.1, 0.2, 0.3],
+            vec![0.5; 3],
+            view,
+            ks,
+        )
+    }
+
+    /// A forward state whose vectors disagree with its `c` and `n` is
+    /// refused by the backward, naming the field.
+    #[test]
+    fn an_inconsistent_forward_state_is_refused() {
+        let (means, quats, scales, vm, ks) = one_gaussian();
+        let input = ProjectionInput {
+            means: &means,
+            covars: Covars::QuatScale {
+                quats: &quats,
+                scales: &scales,
+            },
+            opacities: None,
+            viewmats: &vm,
+            ks: &ks,
+        };
+        let mut s = ProjectionSettings::new(16, 16, Version::V1_6);
+        s.calc_compensations = true;
+        let fwd = fully_fused_projection(&input, &s).unwrap();
+        assert!(fwd.visible(0));
+        let (v2, v1, v3) = ([1.0; 2], [1.0], [1.0; 3]);
+        let v = ProjectionCotangents {
+            v_means2d: &v2,
+            v_depths: &v1,
+            v_conics: &v3,
+            v_compensations: Some(&v1),
+        };
+        let mode = GradientMode::Exact;
+        assert!(fully_fused_projection_vjp(&input, &s, &fwd, &v, mode).is_ok());
+        type Edit = fn(&mut Projection<f64>);
+        let edits: [(Edit, &str); 6] = [
+            (
+                |p| p.radii.clear(),
+                "projection.radii: 0 values, expected 2",
+            ),
+            (
+                |p| p.means2d.push(0.0),
+                "projection.means2d: 3 values, expected 2",
+            ),
+            (|p| p.depths.clear(), "projection.depths"),
+            (
+                |p| p.conics.truncate(2),
+                "projection.conics: 2 values, expected 3",
+            ),
+            (
+                |p| p.compensations = Some(Vec::new()),
+                "projection.compensations: 0 values",
+            ),
+            (|p| p.flags.clear(), "projection.flags"),
+        ];
+        for (edit, want) in edits {
+            let mut bad = fwd.clone();
+            edit(&mut bad);
+            let e = fully_fused_projection_vjp(&input, &s, &bad, &v, mode)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{e}");
         }
     }
 }

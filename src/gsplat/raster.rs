@@ -119,10 +119,28 @@ impl<T: Real> RasterInput<'_, T> {
         let m = self.opacities.len();
         check_len("means2d", self.means2d.len(), 2 * m)?;
         check_len("conics", self.conics.len(), 3 * m)?;
-        check_len("colors", self.colors.len(), d * m)?;
+        match d.checked_mul(m) {
+            Some(want) => check_len("colors", self.colors.len(), want)?,
+            None => {
+                return Err(Error::invalid(
+                    "channels",
+                    format!("{d} channels of {m} entries: more values than a slice holds"),
+                ))
+            }
+        }
         let tw = self.width.div_ceil(self.tile_size);
         let th = self.height.div_ceil(self.tile_size);
-        if self.isect_offsets.is_empty() || !self.isect_offsets.len().is_multiple_of(tw * th) {
+        let Some(per_image) = tw.checked_mul(th) else {
+            // `check_frame`'s refusal, before the grid's size is used.
+            return Err(Error::invalid(
+                "image size",
+                format!(
+                    "{}x{} pixels (each side 1 to 65536)",
+                    self.width, self.height
+                ),
+            ));
+        };
+        if self.isect_offsets.is_empty() || !self.isect_offsets.len().is_multiple_of(per_image) {
             return Err(Error::invalid(
                 "isect_offsets",
                 format!(
@@ -131,7 +149,7 @@ impl<T: Real> RasterInput<'_, T> {
                 ),
             ));
         }
-        let images = self.isect_offsets.len() / (tw * th);
+        let images = self.isect_offsets.len() / per_image;
         super::check_frame(images, self.width, self.height, d)?;
         if let Some(bg) = self.backgrounds {
             check_len("backgrounds", bg.len(), images * d)?;
@@ -427,6 +445,9 @@ pub fn rasterize_to_pixels_vjp<T: Real>(
     check_len("v_render_colors", v_render_colors.len(), g.images * hw * d)?;
     check_len("v_render_alphas", v_render_alphas.len(), g.images * hw)?;
     check_len("render_alphas", fwd.render_alphas.len(), g.images * hw)?;
+    if inp.backgrounds.is_some() && mode == GradientMode::Exact {
+        check_len("final_t", fwd.final_t.len(), g.images * hw)?;
+    }
     let half = T::from_f64(0.5);
     let stride = d + 8;
     let n_tiles = g.images * g.tw * g.th;
@@ -698,5 +719,73 @@ mod tests {
     #[test]
     fn early_skip_keeps_every_decision_f64() {
         early_skip_keeps_every_decision::<f64>();
+    }
+
+    fn one_entry<'a>(
+        channels: usize,
+        colors: &'a [f64],
+        size: usize,
+        tile_size: usize,
+        isect_offsets: &'a [i32],
+    ) -> RasterInput<'a, f64> {
+        RasterInput {
+            means2d: &[1.0, 1.0, 2.0, 2.0],
+            conics: &[1.0, 0.0, 1.0, 1.0, 0.0, 1.0],
+            colors,
+            opacities: &[0.5, 0.5],
+            backgrounds: None,
+            channels,
+            width: size,
+            height: size,
+            tile_size,
+            isect_offsets,
+            flatten_ids: &[0, 1],
+        }
+    }
+
+    /// Sizes whose products overflow are refused, in the forward and the
+    /// backward, before anything of their size is allocated.
+    #[test]
+    fn overflowing_sizes_are_refused() {
+        let v = Version::V1_6;
+        let fwd = rasterize_to_pixels(&one_entry(1, &[1.0, 1.0], 4, 4, &[0]), v).unwrap();
+        for (inp, want) in [
+            (
+                one_entry(usize::MAX, &[1.0, 1.0], 4, 4, &[0]),
+                "invalid channels",
+            ),
+            (
+                one_entry(1, &[1.0, 1.0], 1 << 40, 1, &[0]),
+                "invalid image size",
+            ),
+            (
+                one_entry(1, &[1.0, 1.0], usize::MAX, 1, &[0]),
+                "invalid image size",
+            ),
+        ] {
+            let e = rasterize_to_pixels(&inp, v).unwrap_err().to_string();
+            assert!(e.contains(want), "{e}");
+            let e = rasterize_to_pixels_vjp(&inp, v, &fwd, &[], &[], GradientMode::Exact)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{e}");
+        }
+    }
+
+    /// A forward without its final transmittances is refused by the exact
+    /// background gradient, which reads them.
+    #[test]
+    fn a_short_forward_state_is_refused() {
+        let v = Version::V1_6;
+        let mut inp = one_entry(1, &[1.0, 1.0], 4, 4, &[0]);
+        inp.backgrounds = Some(&[0.5]);
+        let mut fwd = rasterize_to_pixels(&inp, v).unwrap();
+        let (vc, va) = (vec![1.0; 16], vec![1.0; 16]);
+        assert!(rasterize_to_pixels_vjp(&inp, v, &fwd, &vc, &va, GradientMode::Exact).is_ok());
+        fwd.final_t.clear();
+        let e = rasterize_to_pixels_vjp(&inp, v, &fwd, &vc, &va, GradientMode::Exact)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("final_t: 0 values, expected 16"), "{e}");
     }
 }

@@ -229,7 +229,18 @@ impl<T: Real> RasterizationInput<'_, T> {
                 if channels == 0 {
                     return Err(Error::invalid("colors", "0 channels"));
                 }
-                check_len("colors", colors.len(), n * channels)?
+                match n.checked_mul(channels) {
+                    Some(want) => check_len("colors", colors.len(), want)?,
+                    None => {
+                        return Err(Error::invalid(
+                            "colors",
+                            format!(
+                                "{} values, expected [{n}, {channels}] (more than a slice holds)",
+                                colors.len()
+                            ),
+                        ))
+                    }
+                }
             }
             Colors::Sh { coeffs, k, degree } => {
                 if degree > MAX_DEGREE || (degree + 1) * (degree + 1) > k {
@@ -238,7 +249,18 @@ impl<T: Real> RasterizationInput<'_, T> {
                         format!("{degree} with {k} coefficients (at most degree {MAX_DEGREE}, (degree+1)² ≤ K)"),
                     ));
                 }
-                check_len("colors", coeffs.len(), n * k * 3)?
+                match n.checked_mul(k).and_then(|v| v.checked_mul(3)) {
+                    Some(want) => check_len("colors", coeffs.len(), want)?,
+                    None => {
+                        return Err(Error::invalid(
+                            "colors",
+                            format!(
+                                "{} values, expected [{n}, {k}, 3] (more than a slice holds)",
+                                coeffs.len()
+                            ),
+                        ))
+                    }
+                }
             }
         }
         super::check_frame(c, s.width, s.height, self.colors.channels())?;
@@ -340,7 +362,7 @@ pub fn rasterization<T: Real>(
         rule,
     )?;
     let isect_offsets =
-        isect_offset_encode(&isects.isect_ids, c, tile_width, tile_height, s.version);
+        isect_offset_encode(&isects.isect_ids, c, tile_width, tile_height, s.version)?;
     let raster = rasterize_to_pixels(
         &RasterInput {
             means2d: &row_means2d,
@@ -391,6 +413,34 @@ fn gather_rows<T: Real>(p: &Projection<T>, rows: &[usize]) -> Rows<T> {
     (m2, r, dp, cn, img)
 }
 
+/// Checks the per-row vectors of a forward state (altered through its
+/// public fields, it could index past the projection or the rows): `rows`
+/// strictly ascending below `C·N`, one opacity per row, `D` colours and
+/// clamp flags per row, `tile_width·tile_height` tiles per image.
+fn check_state<T>(fwd: &Rasterization<T>, ce: usize, d: usize) -> Result<()> {
+    let mut next = 0usize;
+    for (i, &e) in fwd.rows.iter().enumerate() {
+        if e < next || e >= ce {
+            return Err(Error::invalid(
+                "rasterization state",
+                format!(
+                    "rows[{i}] = {e}: expected strictly ascending dense entries below C·N = {ce}"
+                ),
+            ));
+        }
+        next = e + 1;
+    }
+    // `rows.len() ≤ C·N ≤ MAX_PROJECTED` and `d` passed `check_frame`.
+    let r = fwd.rows.len();
+    check_len("rasterization.opacities", fwd.opacities.len(), r)?;
+    check_len("rasterization.colors", fwd.colors.len(), r * d)?;
+    check_len(
+        "rasterization.color_clamped",
+        fwd.color_clamped.len(),
+        r * d,
+    )
+}
+
 /// Rasterizer inputs of a forward (for the backward and for diagnostics).
 pub fn raster_input<'a, T: Real>(
     input: &'a RasterizationInput<T>,
@@ -414,6 +464,11 @@ pub fn raster_input<'a, T: Real>(
 }
 
 /// The rows of a forward, gathered (see [`raster_input`]).
+///
+/// # Panics
+///
+/// If a row is not an entry of the projection (a forward state altered
+/// through its public fields; [`rasterization_vjp`] checks it first).
 pub fn rows_of<T: Real>(fwd: &Rasterization<T>) -> Rows<T> {
     gather_rows(&fwd.projection, &fwd.rows)
 }
@@ -439,6 +494,8 @@ pub fn rasterization_vjp<T: Real>(
             ),
         ));
     }
+    fwd.projection.check_state()?;
+    check_state(fwd, c * n, input.colors.channels())?;
     let d = input.colors.channels();
     let rows = rows_of(fwd);
     let rin = raster_input(input, s, fwd, &rows);
@@ -548,4 +605,141 @@ pub fn rasterization_vjp<T: Real>(
         v_means2d: rg.v_means2d,
         v_means2d_abs: rg.v_means2d_abs,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `means`, `quats`, `scales`, `opacities`, `viewmats`, `Ks`.
+    type Scene = (Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>, Vec<f64>);
+
+    fn scene() -> Scene {
+        let view = vec![
+            1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 4.0, 0.0, 0.0, 0.0, 1.0,
+        ];
+        let ks = vec![20.0, 0.0, 8.0, 0.0, 20.0, 8.0, 0.0, 0.0, 1.0];
+        let means = vec![0.0, 0.0, 0.0, 0.3, 0.2, 0.5];
+        let quats = vec![1.0, 0.1, 0.2, 0.3, 1.0, 0.0, 0.0, 0.0];
+        (means, quats, vec![0.3; 6], vec![0.8, 0.6], view, ks)
+    }
+
+    fn input<'a>(t: &'a Scene, colors: Colors<'a, f64>) -> RasterizationInput<'a, f64> {
+        RasterizationInput {
+            means: &t.0,
+            covars: Covars::QuatScale {
+                quats: &t.1,
+                scales: &t.2,
+            },
+            opacities: &t.3,
+            colors,
+            viewmats: &t.4,
+            ks: &t.5,
+            backgrounds: None,
+        }
+    }
+
+    /// Colour counts whose sizes overflow are refused by the forward and
+    /// the backward.
+    #[test]
+    fn overflowing_colour_sizes_are_refused() {
+        let t = scene();
+        let s = RasterizationSettings::new(16, 16, Version::V1_6);
+        let sh = [0.1; 2 * 4 * 3];
+        let good = input(
+            &t,
+            Colors::Sh {
+                coeffs: &sh,
+                k: 4,
+                degree: 1,
+            },
+        );
+        let fwd = rasterization(&good, &s).unwrap();
+        let (vc, va) = (vec![1.0; 16 * 16 * 3], vec![0.5; 16 * 16]);
+        for colors in [
+            Colors::Post {
+                colors: &[1.0, 2.0],
+                channels: usize::MAX,
+            },
+            Colors::Sh {
+                coeffs: &sh,
+                k: usize::MAX / 2,
+                degree: 1,
+            },
+        ] {
+            let bad = input(&t, colors);
+            let e = rasterization(&bad, &s).unwrap_err().to_string();
+            assert!(
+                e.contains("invalid colors") && e.contains("more than a slice"),
+                "{e}"
+            );
+            let e = rasterization_vjp(&bad, &s, &fwd, &vc, &va, GradientMode::Exact)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("invalid colors"), "{e}");
+        }
+    }
+
+    /// A forward state altered through its public fields is refused by the
+    /// backward, naming what disagrees.
+    #[test]
+    fn an_altered_forward_state_is_refused() {
+        let t = scene();
+        let s = RasterizationSettings::new(16, 16, Version::V1_6);
+        let sh = [0.1; 2 * 4 * 3];
+        let inp = input(
+            &t,
+            Colors::Sh {
+                coeffs: &sh,
+                k: 4,
+                degree: 1,
+            },
+        );
+        let fwd = rasterization(&inp, &s).unwrap();
+        assert_eq!(fwd.rows, [0, 1]);
+        let (vc, va) = (vec![1.0; 16 * 16 * 3], vec![0.5; 16 * 16]);
+        let mode = GradientMode::Gsplat;
+        assert!(rasterization_vjp(&inp, &s, &fwd, &vc, &va, mode).is_ok());
+        type Edit = fn(&mut Rasterization<f64>);
+        let edits: [(Edit, &str); 7] = [
+            (
+                |f| f.rows[1] = 2,
+                "rows[1] = 2: expected strictly ascending",
+            ),
+            (
+                |f| f.rows[0] = 1,
+                "rows[1] = 1: expected strictly ascending",
+            ),
+            (
+                |f| f.projection.radii.clear(),
+                "projection.radii: 0 values, expected 4",
+            ),
+            (
+                |f| f.projection.compensations = Some(Vec::new()),
+                "projection.compensations",
+            ),
+            (
+                |f| {
+                    f.opacities.pop();
+                },
+                "rasterization.opacities",
+            ),
+            (
+                |f| f.color_clamped.clear(),
+                "rasterization.color_clamped: 0 values, expected 6",
+            ),
+            (
+                |f| f.colors.push(0.0),
+                "rasterization.colors: 7 values, expected 6",
+            ),
+        ];
+        for (edit, want) in edits {
+            let mut bad = fwd.clone();
+            edit(&mut bad);
+            let e = rasterization_vjp(&inp, &s, &bad, &vc, &va, mode)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(want), "{e}");
+        }
+    }
 }

@@ -15,6 +15,8 @@
 
 #![allow(clippy::needless_range_loop)]
 
+use super::check_len;
+use crate::error::{Error, Result};
 use crate::math::Real;
 use std::ops::{Add, Mul, Sub};
 
@@ -145,6 +147,12 @@ fn unit<T: Real>(dir: [T; 3]) -> ([T; 3], T) {
 
 /// Colour of one Gaussian: `D` channels from `coeffs [K, D]` at `dir`.
 /// Degree 0 does not read the direction.
+///
+/// # Panics
+///
+/// If `degree > MAX_DEGREE`, `coeffs` holds fewer than `(degree+1)²·d`
+/// values or `out` fewer than `d` (a low-level helper:
+/// [`spherical_harmonics`] checks its arguments).
 pub fn sh_color<T: Real>(degree: usize, dir: [T; 3], coeffs: &[T], d: usize, out: &mut [T]) {
     let mut y = [T::ZERO; 25];
     if degree == 0 {
@@ -170,6 +178,11 @@ pub fn sh_color<T: Real>(degree: usize, dir: [T; 3], coeffs: &[T], d: usize, out
 
 /// Backward of [`sh_color`]: writes `v_coeffs [K, D]` (zero above the
 /// degree) and returns `v_dir`.
+///
+/// # Panics
+///
+/// If `degree > MAX_DEGREE`, or `coeffs` or `v_coeffs` holds fewer than
+/// `(degree+1)²·d` values or `v_color` fewer than `d`.
 pub fn sh_color_vjp<T: Real>(
     degree: usize,
     dir: [T; 3],
@@ -208,8 +221,52 @@ pub fn sh_color_vjp<T: Real>(
     std::array::from_fn(|a| (vn[a] - dot * n[a]) * inorm)
 }
 
+/// `M` after checking the arguments of [`spherical_harmonics`]: the
+/// degree, `dirs [M,3]`, `coeffs [M,K,D]` and `masks [M]`.
+fn check<T>(
+    degree: usize,
+    dirs: &[T],
+    coeffs: &[T],
+    k: usize,
+    d: usize,
+    masks: Option<&[bool]>,
+) -> Result<usize> {
+    if degree > MAX_DEGREE || (degree + 1) * (degree + 1) > k {
+        return Err(Error::invalid(
+            "degrees_to_use",
+            format!("{degree} with K = {k} coefficients (at most {MAX_DEGREE}, (degree+1)² ≤ K)"),
+        ));
+    }
+    if !dirs.len().is_multiple_of(3) {
+        return Err(Error::invalid(
+            "dirs",
+            format!("length {} is not a multiple of 3", dirs.len()),
+        ));
+    }
+    let m = dirs.len() / 3;
+    match m.checked_mul(k).and_then(|v| v.checked_mul(d)) {
+        Some(want) => check_len("coeffs", coeffs.len(), want)?,
+        None => {
+            return Err(Error::invalid(
+                "coeffs",
+                format!(
+                    "{} values, expected [{m}, {k}, {d}] (more than a slice holds)",
+                    coeffs.len()
+                ),
+            ))
+        }
+    }
+    if let Some(mk) = masks {
+        check_len("masks", mk.len(), m)?;
+    }
+    Ok(m)
+}
+
 /// `gsplat.spherical_harmonics(degrees_to_use, dirs [M,3], coeffs [M,K,D],
-/// masks [M])`: colours `[M, D]`; masked-out rows are 0.
+/// masks [M])`: colours `[M, D]`; masked-out rows are 0. An error names the
+/// argument that is out of range or of the wrong length
+/// (`degrees_to_use` above [`MAX_DEGREE`] or with `(degree+1)² > K`,
+/// `dirs`, `coeffs`, `masks`).
 pub fn spherical_harmonics<T: Real>(
     degree: usize,
     dirs: &[T],
@@ -217,8 +274,8 @@ pub fn spherical_harmonics<T: Real>(
     k: usize,
     d: usize,
     masks: Option<&[bool]>,
-) -> Vec<T> {
-    let m = dirs.len() / 3;
+) -> Result<Vec<T>> {
+    let m = check(degree, dirs, coeffs, k, d, masks)?;
     let mut out = vec![T::ZERO; m * d];
     for i in 0..m {
         if masks.is_some_and(|mk| !mk[i]) {
@@ -233,10 +290,12 @@ pub fn spherical_harmonics<T: Real>(
             &mut out[i * d..(i + 1) * d],
         );
     }
-    out
+    Ok(out)
 }
 
-/// Backward of [`spherical_harmonics`]: `(v_dirs [M,3], v_coeffs [M,K,D])`.
+/// Backward of [`spherical_harmonics`]: `(v_dirs [M,3], v_coeffs
+/// [M,K,D])` from `v_colors [M,D]`, with the forward's checks and that of
+/// `v_colors`'s length.
 pub fn spherical_harmonics_vjp<T: Real>(
     degree: usize,
     dirs: &[T],
@@ -245,8 +304,10 @@ pub fn spherical_harmonics_vjp<T: Real>(
     d: usize,
     masks: Option<&[bool]>,
     v_colors: &[T],
-) -> (Vec<T>, Vec<T>) {
-    let m = dirs.len() / 3;
+) -> Result<(Vec<T>, Vec<T>)> {
+    let m = check(degree, dirs, coeffs, k, d, masks)?;
+    // `m·d ≤ m·k·d` (k ≥ 1), which did not overflow.
+    check_len("v_colors", v_colors.len(), m * d)?;
     let mut v_dirs = vec![T::ZERO; 3 * m];
     let mut v_coeffs = vec![T::ZERO; m * k * d];
     for i in 0..m {
@@ -264,5 +325,72 @@ pub fn spherical_harmonics_vjp<T: Real>(
         );
         v_dirs[3 * i..3 * i + 3].copy_from_slice(&vd);
     }
-    (v_dirs, v_coeffs)
+    Ok((v_dirs, v_coeffs))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn err<V: std::fmt::Debug>(r: Result<V>) -> String {
+        r.unwrap_err().to_string()
+    }
+
+    #[test]
+    fn bad_arguments_are_refused() {
+        let dirs = [0.0f64, 0.0, 1.0, 1.0, 0.0, 0.0];
+        let (k, d) = (4, 3);
+        let coeffs = vec![0.25f64; 2 * k * d];
+        let sh = |deg, dirs: &[f64], c: &[f64], k, m: Option<&[bool]>| {
+            spherical_harmonics(deg, dirs, c, k, d, m)
+        };
+        // Degree above MAX_DEGREE, and (degree+1)² > K.
+        let e = err(sh(5, &dirs, &vec![0.0; 2 * 36 * d], 36, None));
+        assert!(
+            e.contains("degrees_to_use") && e.contains("5 with K = 36"),
+            "{e}"
+        );
+        let e = err(sh(2, &dirs, &coeffs, k, None));
+        assert!(
+            e.contains("degrees_to_use") && e.contains("2 with K = 4"),
+            "{e}"
+        );
+        // Short coefficients, masks, dirs; K·D past usize.
+        let e = err(sh(1, &dirs, &coeffs[..2 * k * d - 1], k, None));
+        assert!(
+            e.contains("coeffs") && e.contains("23 values, expected 24"),
+            "{e}"
+        );
+        let e = err(sh(1, &dirs, &coeffs, k, Some(&[true])));
+        assert!(
+            e.contains("masks") && e.contains("1 values, expected 2"),
+            "{e}"
+        );
+        let e = err(sh(1, &dirs[..5], &coeffs, k, None));
+        assert!(e.contains("dirs") && e.contains("5"), "{e}");
+        let e = err(sh(1, &dirs, &coeffs, usize::MAX / 2, None));
+        assert!(e.contains("coeffs"), "{e}");
+        // Short v_colors in the backward.
+        let v = [1.0f64; 6];
+        let e = err(spherical_harmonics_vjp(
+            1,
+            &dirs,
+            &coeffs,
+            k,
+            d,
+            None,
+            &v[..5],
+        ));
+        assert!(
+            e.contains("v_colors") && e.contains("5 values, expected 6"),
+            "{e}"
+        );
+        let e = err(spherical_harmonics_vjp(7, &dirs, &coeffs, k, d, None, &v));
+        assert!(e.contains("degrees_to_use"), "{e}");
+        // Valid arguments pass (a masked-out Gaussian's colour is 0).
+        let masks = [true, false];
+        let c = sh(1, &dirs, &coeffs, k, Some(&masks)).unwrap();
+        assert_eq!(c[3..], [0.0; 3]);
+        spherical_harmonics_vjp(1, &dirs, &coeffs, k, d, None, &v).unwrap();
+    }
 }

@@ -181,14 +181,16 @@ fn run_covar<T: Real>(case: &TensorFile, res: &mut TensorFile) -> Result<()> {
         None
     };
     case.reject_unknown(known)?;
-    let out = quat_scale_to_covar_preci(&quats, &scales, cc, cp, triu);
+    let out = quat_scale_to_covar_preci(&quats, &scales, cc, cp, triu)
+        .map_err(|e| e.in_file(&case.path))?;
     let (vq, vs) = quat_scale_to_covar_preci_vjp(
         &quats,
         &scales,
         v_covars.as_deref(),
         v_precis.as_deref(),
         triu,
-    );
+    )
+    .map_err(|e| e.in_file(&case.path))?;
     if cc {
         res.insert_real("covars", shape.clone(), &out.covars);
     }
@@ -218,8 +220,10 @@ fn run_sh<T: Real>(case: &TensorFile, res: &mut TensorFile) -> Result<()> {
     }
     let v = cotangent::<T>(case, "v_colors", &[m, d])?;
     case.reject_unknown(["dirs", "coeffs", "v_colors"])?;
-    let colors = spherical_harmonics(degree, &dirs, &coeffs, k, d, None);
-    let (vd, vk) = spherical_harmonics_vjp(degree, &dirs, &coeffs, k, d, None, &v);
+    let colors = spherical_harmonics(degree, &dirs, &coeffs, k, d, None)
+        .map_err(|e| e.in_file(&case.path))?;
+    let (vd, vk) = spherical_harmonics_vjp(degree, &dirs, &coeffs, k, d, None, &v)
+        .map_err(|e| e.in_file(&case.path))?;
     res.insert_real("colors", vec![m, d], &colors);
     res.insert_real("v_dirs", vec![m, 3], &vd);
     res.insert_real("v_coeffs", vec![m, k, d], &vk);
@@ -430,7 +434,8 @@ fn run_isect<T: Real>(case: &TensorFile, res: &mut TensorFile, version: Version)
         rule,
     )
     .map_err(|e| Error::field(&case.path, "isect_tiles", e.to_string()))?;
-    let off = isect_offset_encode(&is.isect_ids, n_images, tw, th, version);
+    let off = isect_offset_encode(&is.isect_ids, n_images, tw, th, version)
+        .map_err(|e| Error::field(&case.path, "isect_offset_encode", e.to_string()))?;
     let ni = is.flatten_ids.len();
     res.insert_i32("tiles_per_gauss", vec![m], is.tiles_per_gauss);
     res.insert_i32("isect_ids", vec![ni, 2], split_ids(&is.isect_ids));
@@ -977,7 +982,7 @@ pub fn new_case<T: Real>(
                     o.version,
                     rule,
                 )?;
-                let off = isect_offset_encode(&is.isect_ids, c, tw, th, o.version);
+                let off = isect_offset_encode(&is.isect_ids, c, tw, th, o.version)?;
                 let d = 4;
                 let colors = cot(seed, 4, m * d)
                     .iter()
