@@ -92,6 +92,9 @@ pub(super) enum Net {
 /// What [`Field::backward`] needs from [`Field::forward`].
 pub struct FieldSaved<T> {
     n: usize,
+    /// The architecture of the field that made it: [`Field::backward`]
+    /// refuses a cache from another one (its buffers have other sizes).
+    config: FieldConfig,
     t: Vec<T>,
     inner: SavedInner<T>,
 }
@@ -264,6 +267,7 @@ impl<T: Real> Field<T> {
             d,
             FieldSaved {
                 n,
+                config: self.config,
                 t: t.to_vec(),
                 inner,
             },
@@ -271,12 +275,23 @@ impl<T: Real> Field<T> {
     }
 
     /// Backward: every gradient of the field given the gradient `grad` of
-    /// its outputs ([`FieldGradients`]).
+    /// its outputs ([`FieldGradients`]). `cache` must come from the
+    /// [`forward`](Self::forward) of a field of the same architecture
+    /// ([`config`](Self::config)); another is an error.
     pub fn backward(
         &self,
         cache: &FieldSaved<T>,
         grad: &Deformation<T>,
     ) -> Result<FieldGradients<T>> {
+        if cache.config != self.config {
+            return Err(Error::invalid(
+                "field cache",
+                format!(
+                    "the cache comes from a field of {:?}, not this one's {:?}",
+                    cache.config, self.config
+                ),
+            ));
+        }
         let n = cache.n;
         if grad.d_xyz.len() != 3 * n
             || grad.d_rotation.len() != 4 * n
@@ -317,6 +332,49 @@ impl<T: Real> Field<T> {
         match (&self.net, &cache.inner) {
             (Net::Mlp(m), SavedInner::Mlp(c)) => m.se3_transforms(c),
             _ => None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::deform::config::{CfcConfig, MlpConfig};
+
+    /// A cache from a field of the same kind but another architecture is an
+    /// error, not a panic in the layers.
+    #[test]
+    fn backward_refuses_a_cache_of_another_architecture() {
+        let mlp = |depth, width, is_6dof| {
+            FieldConfig::Mlp(MlpConfig {
+                depth,
+                width,
+                is_6dof,
+                ..MlpConfig::paper()
+            })
+        };
+        let cfc = |depth, width| {
+            FieldConfig::Cfc(CfcConfig {
+                depth,
+                width,
+                backbone_units: 8,
+                ..CfcConfig::paper()
+            })
+        };
+        let pairs = [
+            (mlp(4, 8, false), mlp(6, 16, false)),
+            (mlp(4, 8, false), mlp(4, 8, true)),
+            (cfc(1, 4), cfc(2, 8)),
+            (cfc(1, 4), mlp(4, 8, false)),
+        ];
+        let (xyz, t) = ([0.1f64, 0.2, 0.3, -0.1, 0.0, 0.5], [0.25f64, 0.75]);
+        for (from, to) in pairs {
+            let a = Field::<f64>::new(from, 1).unwrap();
+            let b = Field::<f64>::new(to, 2).unwrap();
+            let (d, cache) = a.forward(&xyz, &t).unwrap();
+            assert!(a.backward(&cache, &d).is_ok());
+            let e = b.backward(&cache, &d).unwrap_err();
+            assert!(e.to_string().contains("field cache"), "{e}");
         }
     }
 }

@@ -28,6 +28,12 @@ pub mod ply;
 use crate::error::{Error, Result};
 use crate::math::Real;
 
+/// The highest SH degree a set of Gaussians may store (the most the PLY
+/// reader accepts; rendering and training use at most
+/// [`crate::math::sh::MAX_SH_DEGREE`]). [`Gaussians::validate`] refuses
+/// more, before any size is computed from it.
+pub const MAX_STORED_SH_DEGREE: usize = 8;
+
 /// `torch.nn.functional.normalize`'s epsilon.
 pub const NORMALIZE_EPS: f64 = 1e-12;
 
@@ -116,8 +122,16 @@ pub struct Gaussians<T> {
 
 impl<T: Real> Gaussians<T> {
     /// Coefficients per Gaussian for a degree.
+    ///
+    /// # Panics
+    /// If `(degree + 1)²` overflows `usize` (a degree of 2³² or more on 64-bit
+    /// targets); [`validate`](Self::validate) refuses any degree above
+    /// [`MAX_STORED_SH_DEGREE`] before computing this.
     pub fn coeffs_for_degree(degree: usize) -> usize {
-        (degree + 1) * (degree + 1)
+        match degree.checked_add(1).and_then(|d| d.checked_mul(d)) {
+            Some(k) => k,
+            None => panic!("Gaussians::coeffs_for_degree: degree {degree} is far too large"),
+        }
     }
 
     /// An empty set with room for `max_sh_degree`.
@@ -193,12 +207,20 @@ impl<T: Real> Gaussians<T> {
         s
     }
 
-    /// Check that every array has the length its shape requires.
+    /// Check that the SH degree is at most [`MAX_STORED_SH_DEGREE`] and that
+    /// every array has the length its shape requires.
     pub fn validate(&self) -> Result<()> {
+        if self.max_sh_degree > MAX_STORED_SH_DEGREE {
+            return Err(Error::invalid(
+                "Gaussians.max_sh_degree",
+                format!("{} (at most {MAX_STORED_SH_DEGREE})", self.max_sh_degree),
+            ));
+        }
         let n = self.len();
         for group in Group::ALL {
-            let (len, want) = (self.group(group).len(), self.width(group) * n);
-            if len != want {
+            let (len, want) = (self.group(group).len(), self.width(group).checked_mul(n));
+            if want != Some(len) {
+                let want = want.map_or("more than usize holds".into(), |w| w.to_string());
                 return Err(Error::invalid(
                     format!("Gaussians.{}", group.name()),
                     format!("{len} values for {n} Gaussians, expected {want}"),
@@ -313,6 +335,24 @@ mod tests {
         }
         assert_eq!(g.shape(Group::Sh), [2, 9, 3]);
         assert_eq!(g.shape(Group::Opacity), [2, 1]);
+    }
+
+    /// A huge SH degree is an error of `validate`, not an overflow.
+    #[test]
+    fn validate_refuses_a_huge_sh_degree() {
+        let mut g = Gaussians::<f64>::empty(1 << 33);
+        let e = g.validate().unwrap_err();
+        assert!(e.to_string().contains("max_sh_degree"), "{e}");
+        g.max_sh_degree = MAX_STORED_SH_DEGREE + 1;
+        assert!(g.validate().is_err());
+        g.max_sh_degree = MAX_STORED_SH_DEGREE;
+        g.validate().unwrap();
+    }
+
+    #[test]
+    #[should_panic(expected = "Gaussians::coeffs_for_degree: degree")]
+    fn coeffs_for_a_huge_degree_panics_with_a_message() {
+        Gaussians::<f64>::coeffs_for_degree(usize::MAX / 2);
     }
 
     #[test]

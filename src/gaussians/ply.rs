@@ -398,7 +398,7 @@ pub fn decode_gaussians<T: Real>(path: &Path, bytes: &[u8]) -> Result<Gaussians<
         ));
     }
     let k = n_rest / 3 + 1;
-    let degree = (0..=8usize)
+    let degree = (0..=super::MAX_STORED_SH_DEGREE)
         .find(|d| (d + 1) * (d + 1) == k)
         .ok_or_else(|| {
             Error::field(

@@ -26,7 +26,11 @@ pub(crate) fn row_abs_sums<T: Real>(x: &[T], y: &[T], w: usize) -> Vec<T> {
 
 /// Mean absolute error `mean |x - y|`; `w` is the row length used to split
 /// the work (any positive value gives a valid mean; use the image width).
+///
+/// # Panics
+/// If `x.len() != y.len()`.
 pub fn l1<T: Real>(x: &[T], y: &[T], w: usize) -> T {
+    assert_lengths("l1", x, y, None);
     let mut total = T::ZERO;
     for s in row_abs_sums(x, y, w) {
         total += s;
@@ -39,12 +43,27 @@ pub fn l1<T: Real>(x: &[T], y: &[T], w: usize) -> T {
 /// The subgradient at `x_i == y_i` is 0, as PyTorch's `abs` backward
 /// (`sgn`) defines it. `grad_out / n` is rounded once, as PyTorch's `mean`
 /// backward does, and then multiplied by the sign (exact).
+///
+/// # Panics
+/// If `x`, `y` and `grad_x` do not all have the same length.
 pub fn l1_vjp<T: Real>(x: &[T], y: &[T], grad_out: T, grad_x: &mut [T]) {
+    assert_lengths("l1_vjp", x, y, Some(grad_x.len()));
     let g = grad_out / T::from_usize(x.len());
     grad_x
         .par_chunks_mut(CHUNK)
         .zip(x.par_chunks(CHUNK).zip(y.par_chunks(CHUNK)))
         .for_each(|(gx, (x, y))| sign_times(gx, x, y, g));
+}
+
+/// Panics unless `x`, `y` (and the gradient, when given) have one length.
+fn assert_lengths<T>(f: &str, x: &[T], y: &[T], grad: Option<usize>) {
+    assert!(
+        x.len() == y.len() && grad.is_none_or(|g| g == x.len()),
+        "l1::{f}: x has {} values, y {}{}",
+        x.len(),
+        y.len(),
+        grad.map_or(String::new(), |g| format!(" and grad_x {g}"))
+    );
 }
 
 /// Elements per task of the element-wise passes.
@@ -72,8 +91,9 @@ fn sign_times_body<T: Real>(gx: &mut [T], x: &[T], y: &[T], g: T) {
 }
 
 /// [`l1_vjp`] added onto `grad_x`: `grad_x_i += grad_out / n · sign(x_i −
-/// y_i)` (adding +0 where equal).
+/// y_i)` (adding +0 where equal). Panics as [`l1_vjp`].
 pub(crate) fn l1_vjp_add<T: Real>(x: &[T], y: &[T], grad_out: T, grad_x: &mut [T]) {
+    assert_lengths("l1_vjp_add", x, y, Some(grad_x.len()));
     let g = grad_out / T::from_usize(x.len());
     grad_x
         .par_chunks_mut(CHUNK)
@@ -185,5 +205,23 @@ mod tests {
         let mut g = [9.0f32; 3];
         l1_vjp(&x, &y, 3.0, &mut g);
         assert_eq!(g, [0.0, -1.0, 1.0]);
+    }
+
+    #[test]
+    #[should_panic(expected = "l1::l1: x has 4 values, y 3")]
+    fn l1_of_mismatched_lengths_panics() {
+        l1(&[0.0f32; 4], &[0.0; 3], 2);
+    }
+
+    #[test]
+    #[should_panic(expected = "l1::l1_vjp: x has 4 values, y 4 and grad_x 2")]
+    fn l1_vjp_with_a_short_gradient_panics() {
+        l1_vjp(&[0.0f32; 4], &[0.0; 4], 1.0, &mut [0.0; 2]);
+    }
+
+    #[test]
+    #[should_panic(expected = "l1::l1_vjp: x has 4 values, y 3")]
+    fn l1_vjp_of_mismatched_lengths_panics() {
+        l1_vjp(&[0.0f32; 4], &[0.0; 3], 1.0, &mut [0.0; 4]);
     }
 }

@@ -29,7 +29,16 @@ pub fn quantize_image<T: Real>(x: &[T]) -> Vec<T> {
 
 /// PSNR `20·log10(1/sqrt(MSE))` of two already-quantised (or raw) images.
 /// Identical images give +infinity (as upstream).
+///
+/// # Panics
+/// If `a.len() != b.len()` ([`psnr`] is the checked entry point).
 pub fn psnr_raw<T: Real>(a: &[T], b: &[T]) -> T {
+    assert!(
+        a.len() == b.len(),
+        "psnr_raw: the images have {} and {} values",
+        a.len(),
+        b.len()
+    );
     let mut s = T::ZERO;
     for (&x, &y) in a.iter().zip(b) {
         let d = x - y;
@@ -96,5 +105,11 @@ mod tests {
         let render: Vec<f64> = gt.iter().map(|&v| quantize_u8(v) + 0.1 / 255.0).collect();
         let s = ssim_u8(&render, &gt, h, w).unwrap();
         assert!((s - 1.0).abs() < 1e-14, "{s}");
+    }
+
+    #[test]
+    #[should_panic(expected = "psnr_raw: the images have 3 and 2 values")]
+    fn psnr_raw_of_mismatched_lengths_panics() {
+        psnr_raw(&[0.0f32; 3], &[0.0; 2]);
     }
 }

@@ -59,8 +59,8 @@ pub fn check_image_pair(image_len: usize, gt_len: usize, h: usize, w: usize) -> 
 
 /// The training loss and `dL/dimage` (`[3, h, w]`, same layout as `image`).
 ///
-/// Errors if the images are not both `[3, h, w]` or `lambda_dssim` is not a
-/// finite number.
+/// Errors if the images are not both `[3, h, w]` or `lambda_dssim` is not in
+/// `[0, 1]`.
 pub fn loss_and_grad<T: Real>(
     image: &[T],
     gt: &[T],
@@ -69,10 +69,10 @@ pub fn loss_and_grad<T: Real>(
     lambda_dssim: f64,
 ) -> Result<(LossOutput<T>, Vec<T>)> {
     check_image_pair(image.len(), gt.len(), h, w)?;
-    if !lambda_dssim.is_finite() {
+    if !(0.0..=1.0).contains(&lambda_dssim) {
         return Err(Error::invalid(
             "lambda_dssim",
-            format!("{lambda_dssim} is not finite"),
+            format!("{lambda_dssim} (must be in [0, 1])"),
         ));
     }
     let w_l1 = T::from_f64(1.0 - lambda_dssim);
@@ -157,5 +157,11 @@ mod tests {
         assert!(loss_and_grad(&a, &a, 3, 2, 0.2).is_err());
         assert!(loss_and_grad(&a, &a, 0, 2, 0.2).is_err());
         assert!(loss_and_grad(&a, &a, 2, 2, f64::NAN).is_err());
+        for lambda in [1e300, -0.1, 1.0 + 1e-9, f64::INFINITY] {
+            let e = loss_and_grad(&a, &a, 2, 2, lambda).unwrap_err();
+            assert!(e.to_string().contains("lambda_dssim"), "{lambda}: {e}");
+        }
+        assert!(loss_and_grad(&a, &a, 2, 2, 0.0).is_ok());
+        assert!(loss_and_grad(&a, &a, 2, 2, 1.0).is_ok());
     }
 }

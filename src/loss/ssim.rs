@@ -141,10 +141,15 @@ pub fn window<T: Real>() -> [T; WINDOW_SIZE] {
 /// Both passes run across a row's pixels as vectors, each pixel adding its
 /// in-image taps in index order from +0 (the row pass's first and last
 /// `PAD` pixels, whose taps the edge cuts, one at a time).
+///
+/// # Panics
+/// If `src` is not whole `[h, w]` planes (its length a multiple of `h·w`;
+/// an empty `src`, or `h` or `w` zero, gives zeros).
 pub fn blur<T: Real>(src: &[T], h: usize, w: usize, g: &[T; WINDOW_SIZE]) -> Vec<T> {
     if src.is_empty() || h == 0 || w == 0 {
         return vec![T::ZERO; src.len()];
     }
+    assert_planes("blur", "src", src.len(), h, w);
     let tmp = super::par_rows(src.len(), w, |r, o| {
         blur_row(o, &src[r * w..(r + 1) * w], g)
     });
@@ -248,14 +253,34 @@ fn factors<T: Real>(mx: T, my: T, sxx: T, syy: T, sxy: T) -> (T, T, T, T) {
     (a1, a2, b1, b2)
 }
 
-/// SSIM of `x` against `y`, both `[C, H, W]` with `C = x.len() / (h w)`.
-/// The caller guarantees `x.len() == y.len()` and that it is a multiple of
-/// `h w` (see [`crate::loss::loss_and_grad`] for the checked entry point).
+/// Panics unless `len` values are whole `[h, w]` planes (none at all, or
+/// `h, w > 0` and `len` a multiple of `h·w`).
+fn assert_planes(f: &str, what: &str, len: usize, h: usize, w: usize) {
+    let plane = h.checked_mul(w).filter(|&p| p > 0);
+    assert!(
+        len == 0 || plane.is_some_and(|p| len.is_multiple_of(p)),
+        "ssim::{f}: {what} has {len} values, not a whole number of {h}x{w} planes"
+    );
+}
+
+/// SSIM of `x` against `y`, both `[C, H, W]` with `C = x.len() / (h w)`
+/// (see [`crate::loss::loss_and_grad`] for the checked entry point).
 ///
 /// The element-wise passes run a row at a time across the row's pixels as
 /// vectors; every value is the same sequence of roundings as the formulas
 /// above, pixel by pixel.
+///
+/// # Panics
+/// If `x.len() != y.len()`, or the length is not a whole number of
+/// `[h, w]` planes (a multiple of `h·w > 0`; empty images are allowed).
 pub fn ssim<T: Real>(x: &[T], y: &[T], h: usize, w: usize) -> SsimSaved<T> {
+    assert!(
+        x.len() == y.len(),
+        "ssim::ssim: x has {} values and y {}",
+        x.len(),
+        y.len()
+    );
+    assert_planes("ssim", "x", x.len(), h, w);
     let g = window::<T>();
     let n = x.len();
     let row = w.max(1);
@@ -368,8 +393,25 @@ fn ssim_row_body<T: Real>(
 }
 
 /// Backward of [`ssim`] with respect to `x`: `dL/dx` given `grad_out = dL/dSSIM`.
+///
+/// # Panics
+/// If `fwd` is not [`ssim`]'s result for images of the size of `x` and `y`
+/// (every length equal, a whole number of `[fwd.h, fwd.w]` planes).
 pub fn ssim_vjp<T: Real>(fwd: &SsimSaved<T>, x: &[T], y: &[T], grad_out: T) -> Vec<T> {
     let n = x.len();
+    let lens = [
+        y.len(),
+        fwd.mu_x.len(),
+        fwd.mu_y.len(),
+        fwd.sigma_xx.len(),
+        fwd.sigma_yy.len(),
+        fwd.sigma_xy.len(),
+    ];
+    assert!(
+        lens.iter().all(|&l| l == n),
+        "ssim::ssim_vjp: x has {n} values, y and the saved statistics {lens:?}"
+    );
+    assert_planes("ssim_vjp", "x", n, fwd.h, fwd.w);
     if n == 0 {
         return vec![];
     }
@@ -765,5 +807,38 @@ mod tests {
         let one = run(1);
         assert_eq!(one, run(3));
         assert_eq!(one, run(8));
+    }
+
+    #[test]
+    #[should_panic(expected = "ssim::blur: src has 10 values, not a whole number of 2x3 planes")]
+    fn blur_of_a_partial_plane_panics() {
+        blur(&[0.0f32; 10], 2, 3, &window());
+    }
+
+    #[test]
+    #[should_panic(expected = "ssim::ssim: x has 10 values, not a whole number of 2x3 planes")]
+    fn ssim_of_a_partial_plane_panics() {
+        ssim(&[0.0f32; 10], &[0.0; 10], 2, 3);
+    }
+
+    #[test]
+    #[should_panic(expected = "ssim::ssim: x has 12 values and y 6")]
+    fn ssim_of_mismatched_lengths_panics() {
+        ssim(&[0.0f32; 12], &[0.0; 6], 2, 3);
+    }
+
+    #[test]
+    #[should_panic(expected = "ssim::ssim_vjp: x has 12 values, y and the saved statistics")]
+    fn ssim_vjp_with_statistics_of_another_size_panics() {
+        let fwd = ssim(&[0.5f32; 6], &[0.25; 6], 2, 3);
+        ssim_vjp(&fwd, &[0.5; 12], &[0.25; 12], 1.0);
+    }
+
+    #[test]
+    #[should_panic(expected = "ssim::ssim_vjp: x has 6 values, not a whole number of 2x4 planes")]
+    fn ssim_vjp_with_another_image_size_panics() {
+        let mut fwd = ssim(&[0.5f32; 6], &[0.25; 6], 2, 3);
+        fwd.w = 4;
+        ssim_vjp(&fwd, &[0.5; 6], &[0.25; 6], 1.0);
     }
 }

@@ -47,6 +47,38 @@ impl Default for AdamConfig {
     }
 }
 
+impl AdamConfig {
+    /// Check every hyper-parameter's domain: `beta1`, `beta2` in `[0, 1)`,
+    /// `eps` finite and `> 0`. Errors name the field.
+    pub fn validate(&self) -> Result<()> {
+        for (name, b) in [("beta1", self.beta1), ("beta2", self.beta2)] {
+            if !(0.0..1.0).contains(&b) {
+                return Err(Error::invalid(
+                    format!("Adam {name}"),
+                    format!("{b} (must be in [0, 1))"),
+                ));
+            }
+        }
+        if !(self.eps > 0.0 && self.eps.is_finite()) {
+            return Err(Error::invalid(
+                "Adam eps",
+                format!("{:e} (must be finite and > 0)", self.eps),
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// The checked host scalars of one step ([`AdamState::plan`]).
+pub(crate) struct StepPlan<T> {
+    /// The step counter after the step.
+    step: u64,
+    /// `sqrt(1 − β2^t)` rounded to `T`.
+    bc2_sqrt: T,
+    /// `−lr/(1 − β1^t)` per learning rate, rounded to `T`.
+    neg_step: Vec<T>,
+}
+
 /// Elements per parallel work item (fixed, independent of the thread count).
 const CHUNK: usize = 1 << 14;
 
@@ -99,15 +131,32 @@ impl<T: Real> AdamState<T> {
     /// This is how one state serves several PyTorch param groups that are laid
     /// out interleaved and always step together (the SH DC and rest
     /// coefficients of `[N, K, 3]`: period `3K`, first 3 entries the DC rate).
+    ///
+    /// Errors, without changing anything, when the lengths of `params`,
+    /// `grads`, [`m`](Self::m) and [`v`](Self::v) differ, when `lrs` does not
+    /// tile them, when the [`config`](Self::config) is out of its domain
+    /// ([`AdamConfig::validate`]), or when a learning rate is negative, not
+    /// finite, or makes a step that is not finite in `T`.
     pub fn step_periodic(&mut self, params: &mut [T], grads: &[T], lrs: &[f64]) -> Result<()> {
+        let plan = self.plan(params.len(), grads.len(), lrs)?;
+        self.apply(&plan, params, grads);
+        Ok(())
+    }
+
+    /// Every check of a step and its host scalars, before anything changes.
+    pub(crate) fn plan(
+        &self,
+        params_len: usize,
+        grads_len: usize,
+        lrs: &[f64],
+    ) -> Result<StepPlan<T>> {
         let n = self.m.len();
-        if params.len() != n || grads.len() != n {
+        if params_len != n || grads_len != n || self.v.len() != n {
             return Err(Error::invalid(
                 "Adam step",
                 format!(
-                    "state has {n} elements, params {} and grads {}",
-                    params.len(),
-                    grads.len()
+                    "state has {n} elements (m) and {} (v), params {params_len} and grads {grads_len}",
+                    self.v.len(),
                 ),
             ));
         }
@@ -115,6 +164,13 @@ impl<T: Real> AdamState<T> {
             return Err(Error::invalid(
                 "Adam step",
                 format!("{} learning rates do not tile {n} elements", lrs.len()),
+            ));
+        }
+        self.config.validate()?;
+        if let Some(&lr) = lrs.iter().find(|&&lr| !(lr >= 0.0 && lr.is_finite())) {
+            return Err(Error::invalid(
+                "learning rate",
+                format!("{lr:e} (must be finite and >= 0)"),
             ));
         }
         let step = self.step.checked_add(1).ok_or_else(|| {
@@ -141,13 +197,29 @@ impl<T: Real> AdamState<T> {
                 ),
             ));
         }
+        Ok(StepPlan {
+            step,
+            bc2_sqrt,
+            neg_step,
+        })
+    }
+
+    /// The step `plan` (from [`plan`](Self::plan) on this state, unchanged
+    /// since, with these lengths).
+    pub(crate) fn apply(&mut self, plan: &StepPlan<T>, params: &mut [T], grads: &[T]) {
+        let c = self.config;
+        let StepPlan {
+            step,
+            bc2_sqrt,
+            ref neg_step,
+        } = *plan;
         self.step = step;
         let b1 = T::from_f64(c.beta1);
         let b2 = T::from_f64(c.beta2);
         let a1 = T::from_f64(1.0 - c.beta1);
         let a2 = T::from_f64(1.0 - c.beta2);
         let eps = T::from_f64(c.eps);
-        let period = lrs.len();
+        let period = neg_step.len();
         params
             .par_chunks_mut(CHUNK)
             .zip(grads.par_chunks(CHUNK))
@@ -167,20 +239,50 @@ impl<T: Real> AdamState<T> {
                     p[i] += neg_step[(base + i) % period] * (m[i] / denom);
                 }
             });
-        Ok(())
     }
 
     /// Keep only the rows (of `width` elements) listed in `rows`, in that
     /// order (pruning). The step counter is unchanged.
+    ///
+    /// # Panics
+    /// If a row is out of range (`(row + 1)·width` beyond [`m`](Self::m)'s
+    /// length) or [`v`](Self::v)'s length differs from `m`'s: the rows come
+    /// from the caller's own arrays of the same length.
     pub fn select_rows(&mut self, width: usize, rows: &[usize]) {
+        let len = self.m.len();
+        let end = rows.iter().max().map_or(Some(0), |&r| {
+            r.checked_add(1).and_then(|e| e.checked_mul(width))
+        });
+        assert!(
+            self.v.len() == len && end.is_some_and(|e| e <= len),
+            "AdamState::select_rows: row {:?} of width {width} is out of range of {len} elements (v: {})",
+            rows.iter().max(),
+            self.v.len()
+        );
         self.m = gather_rows(&self.m, width, rows);
         self.v = gather_rows(&self.v, width, rows);
     }
 
     /// Append `count` rows of zero moments (new points). The step counter is
     /// unchanged.
+    ///
+    /// # Panics
+    /// If `width·count` or the new length overflows `usize`, or the memory
+    /// for the new rows cannot be reserved (the caller grows its own arrays
+    /// by as many rows).
     pub fn extend_zero(&mut self, width: usize, count: usize) {
-        let add = width * count;
+        let add = width
+            .checked_mul(count)
+            .filter(|&a| self.m.len().max(self.v.len()).checked_add(a).is_some());
+        let Some(add) = add else {
+            panic!(
+                "AdamState::extend_zero: {count} rows of {width} elements overflow the length of {}",
+                self.m.len()
+            );
+        };
+        if let Err(e) = self.m.try_reserve(add).and(self.v.try_reserve(add)) {
+            panic!("AdamState::extend_zero: {count} rows of {width} elements: {e}");
+        }
         self.m.extend(std::iter::repeat_n(T::ZERO, add));
         self.v.extend(std::iter::repeat_n(T::ZERO, add));
     }
@@ -268,6 +370,123 @@ mod tests {
         assert!(st.step_periodic(&mut p, &[1.0; 6], &[0.1; 4]).is_err());
         assert!(st.step(&mut p, &[1.0; 5], 0.1).is_err());
         assert_eq!(st.step, 1, "a rejected step must not advance the counter");
+    }
+
+    /// Mismatched moments, a config out of its domain and a bad learning
+    /// rate are errors that change nothing.
+    #[test]
+    fn bad_state_config_or_rate_is_an_error() {
+        let fresh = || AdamState::<f64>::new(2);
+        let mut p = vec![1.0f64, 2.0];
+        let g = [0.5, -0.5];
+        let mut st = fresh();
+        st.v.pop();
+        let e = st.step(&mut p, &g, 0.1).unwrap_err();
+        assert!(e.to_string().contains("(v)"), "{e}");
+        let configs = [
+            (
+                "beta1",
+                AdamConfig {
+                    beta1: 2.0,
+                    ..Default::default()
+                },
+            ),
+            (
+                "beta1",
+                AdamConfig {
+                    beta1: -0.1,
+                    ..Default::default()
+                },
+            ),
+            (
+                "beta1",
+                AdamConfig {
+                    beta1: f64::NAN,
+                    ..Default::default()
+                },
+            ),
+            (
+                "beta2",
+                AdamConfig {
+                    beta2: 1.0,
+                    ..Default::default()
+                },
+            ),
+            (
+                "eps",
+                AdamConfig {
+                    eps: -1.0,
+                    ..Default::default()
+                },
+            ),
+            (
+                "eps",
+                AdamConfig {
+                    eps: 0.0,
+                    ..Default::default()
+                },
+            ),
+            (
+                "eps",
+                AdamConfig {
+                    eps: f64::INFINITY,
+                    ..Default::default()
+                },
+            ),
+        ];
+        for (field, config) in configs {
+            let mut st = AdamState::<f64>::with_config(2, config);
+            let e = st.step(&mut p, &g, 0.1).unwrap_err();
+            assert!(e.to_string().contains(field), "{field}: {e}");
+            assert_eq!((st.m, st.v, st.step), (vec![0.0; 2], vec![0.0; 2], 0));
+        }
+        for lr in [-1e-3, f64::NAN, f64::INFINITY] {
+            let mut st = fresh();
+            let e = st.step_periodic(&mut p, &g, &[0.1, lr]).unwrap_err();
+            assert!(e.to_string().contains("learning rate"), "{lr}: {e}");
+            assert_eq!(st, fresh());
+        }
+        assert_eq!(p, [1.0, 2.0]);
+        // The edges of the domains still step.
+        let edge = AdamConfig {
+            beta1: 0.0,
+            beta2: 0.0,
+            eps: f64::MIN_POSITIVE,
+        };
+        AdamState::with_config(2, edge)
+            .step(&mut p, &g, 0.0)
+            .unwrap();
+    }
+
+    #[test]
+    #[should_panic(expected = "AdamState::select_rows: row Some(2) of width 3")]
+    fn select_rows_out_of_range_panics_with_a_message() {
+        AdamState::<f32>::new(6).select_rows(3, &[1, 2]);
+    }
+
+    #[test]
+    #[should_panic(expected = "AdamState::extend_zero: 2 rows of")]
+    fn extend_zero_overflow_panics_with_a_message() {
+        AdamState::<f32>::new(1).extend_zero(usize::MAX, 2);
+    }
+
+    #[test]
+    #[should_panic(expected = "AdamState::extend_zero: 2147483648 rows of 2147483648 elements")]
+    fn extend_zero_beyond_memory_panics_before_allocating() {
+        // 2⁶² f64 values: more bytes than a Vec may hold.
+        AdamState::<f64>::new(1).extend_zero(1 << 31, 1 << 31);
+    }
+
+    #[test]
+    fn select_rows_and_extend_zero_in_range() {
+        let mut st = AdamState::<f32>::new(6);
+        st.m = (0..6).map(|i| i as f32).collect();
+        st.select_rows(3, &[1, 1, 0]);
+        assert_eq!(st.m, [3.0, 4.0, 5.0, 3.0, 4.0, 5.0, 0.0, 1.0, 2.0]);
+        st.select_rows(3, &[]);
+        assert!(st.is_empty());
+        st.extend_zero(3, 2);
+        assert_eq!((st.m.len(), st.v.len()), (6, 6));
     }
 
     #[test]

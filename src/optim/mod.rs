@@ -123,10 +123,21 @@ impl<T: Real> GaussianOptimizer<T> {
             ));
         }
         let k = params.coeffs();
-        for (group, p) in params.groups_mut() {
-            if groups.includes(group) {
+        // Every group's checks (lengths, hyper-parameters, rates) before any
+        // group steps, so that an error changes nothing.
+        let mut plans = Vec::with_capacity(Group::ALL.len());
+        for group in Group::ALL {
+            plans.push(if groups.includes(group) {
                 let rates = lrs.periodic(group, k);
-                self.states[group as usize].step_periodic(p, grads.group(group), &rates)?;
+                let (p, g) = (params.group(group), grads.group(group));
+                Some(self.states[group as usize].plan(p.len(), g.len(), &rates)?)
+            } else {
+                None
+            });
+        }
+        for ((group, p), plan) in params.groups_mut().into_iter().zip(&plans) {
+            if let Some(plan) = plan {
+                self.states[group as usize].apply(plan, p, grads.group(group));
             }
         }
         Ok(())
@@ -179,5 +190,25 @@ mod tests {
         let mut wrong = two_gaussians();
         wrong.opacity.push(0.0);
         assert!(opt.step(&mut p, &wrong, &lrs, StepGroups::All).is_err());
+    }
+
+    /// A huge SH degree, or a bad state in the last group, is an error
+    /// before any group steps.
+    #[test]
+    fn bad_degree_or_state_changes_nothing() {
+        let lrs = LearningRates::default().gaussian(0);
+        let mut p = Gaussians::<f64>::empty(1 << 33);
+        let g = p.clone();
+        let mut opt = GaussianOptimizer::new(&Gaussians::empty(0));
+        let e = opt.step(&mut p, &g, &lrs, StepGroups::All).unwrap_err();
+        assert!(e.to_string().contains("max_sh_degree"), "{e}");
+
+        let (mut p, g) = (two_gaussians(), two_gaussians());
+        let mut opt = GaussianOptimizer::new(&p);
+        opt.state_mut(Group::Rotation).config.beta2 = 1.0;
+        let (p0, opt0) = (p.clone(), opt.clone());
+        let e = opt.step(&mut p, &g, &lrs, StepGroups::All).unwrap_err();
+        assert!(e.to_string().contains("beta2"), "{e}");
+        assert_eq!((p, opt), (p0, opt0));
     }
 }

@@ -396,7 +396,20 @@ impl<T: Real> RasterInput<'_, T> {
                         format!("{stride} coefficients cannot hold degree {degree}"),
                     ));
                 }
-                check_len("sh coefficients", coeffs.len(), n * stride * 3, n)?;
+                // Checked: a huge stride must come back as an error, and the
+                // kernels index `(i + 2·BATCH)·3·stride` (prefetch), so that
+                // must fit too.
+                let want = stride
+                    .checked_mul(3)
+                    .filter(|&s| (n + 2 * preprocess::BATCH).checked_mul(s).is_some())
+                    .ok_or_else(|| {
+                        Error::invalid(
+                            "sh stride",
+                            format!("{stride} coefficients per Gaussian overflow the index range"),
+                        )
+                    })?
+                    * n;
+                check_len("sh coefficients", coeffs.len(), want, n)?;
             }
             Colors::Precomputed(c) => check_len("colors_precomp", c.len(), 3 * n, n)?,
         }
@@ -804,4 +817,65 @@ fn forward_stages<T: Real>(
         row_worker,
     };
     Ok((out, state))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn camera() -> RasterCamera<f32> {
+        let mut view = [0.0f32; 16];
+        for i in 0..4 {
+            view[5 * i] = 1.0;
+        }
+        RasterCamera {
+            viewmatrix: view,
+            projmatrix: view,
+            campos: [0.0; 3],
+            tanfovx: 0.5,
+            tanfovy: 0.5,
+            width: 4,
+            height: 4,
+        }
+    }
+
+    fn input<'a>(
+        cam: &'a RasterCamera<f32>,
+        means: &'a [f32],
+        coeffs: &'a [f32],
+        stride: usize,
+    ) -> RasterInput<'a, f32> {
+        RasterInput {
+            means3d: means,
+            colors: Colors::Sh {
+                coeffs,
+                stride,
+                degree: 0,
+            },
+            opacities: &means[..means.len() / 3],
+            covariances: Covariances::Precomputed(&[]),
+            camera: cam,
+            background: [0.0; 3],
+        }
+    }
+
+    /// A stride whose `N·stride·3` (or `3·stride`) overflows is an error, not
+    /// an overflow panic, in both the forward and the backward pass.
+    #[test]
+    fn huge_sh_stride_is_an_error() {
+        let cam = camera();
+        let means = [0.0f32, 0.0, 2.0];
+        for stride in [usize::MAX / 2, usize::MAX / 3 + 1, usize::MAX] {
+            let e = rasterize(&input(&cam, &means, &[0.0; 3], stride)).unwrap_err();
+            assert!(e.to_string().contains("sh stride"), "{e}");
+        }
+        // No Gaussians: `0·stride` fits, `3·stride` (the backward pass's
+        // per-Gaussian width) does not.
+        let (out, saved) = rasterize(&input(&cam, &[], &[], 1)).unwrap();
+        let grad = vec![0.0f32; out.color.len()];
+        let bad = input(&cam, &[], &[], usize::MAX / 2);
+        assert!(rasterize(&bad).is_err());
+        let e = rasterize_vjp(&bad, &saved, &grad, None, GradientMode::Inria).unwrap_err();
+        assert!(e.to_string().contains("sh stride"), "{e}");
+    }
 }
