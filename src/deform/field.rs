@@ -253,6 +253,20 @@ impl<T: Real> Field<T> {
                 ),
             ));
         }
+        // (The MLP's ReLU turned a NaN time or position into finite
+        // offsets without a word.)
+        for (name, values) in [("xyz", xyz), ("t", t)] {
+            if let Some((i, v)) = values
+                .iter()
+                .enumerate()
+                .find(|(_, v)| !v.to_f64().is_finite())
+            {
+                return Err(Error::invalid(
+                    "field input",
+                    format!("{name}[{i}] = {v} is not finite"),
+                ));
+            }
+        }
         let (d, inner) = match &self.net {
             Net::Mlp(m) => {
                 let (d, c) = m.forward(&self.params, xyz, t);
@@ -376,5 +390,27 @@ mod tests {
             let e = b.backward(&cache, &d).unwrap_err();
             assert!(e.to_string().contains("field cache"), "{e}");
         }
+    }
+
+    /// A position or time that is not finite is an error naming it: the
+    /// MLP's ReLU turned a NaN time into finite offsets.
+    #[test]
+    fn non_finite_inputs_are_refused() {
+        let config = FieldConfig::Mlp(MlpConfig {
+            depth: 4,
+            width: 8,
+            ..MlpConfig::paper()
+        });
+        let f = Field::<f32>::new(config, 1).unwrap();
+        let (xyz, t) = ([0.1f32, 0.2, 0.3, -0.1, 0.0, 0.5], [0.25f32, 0.75]);
+        assert!(f.forward(&xyz, &t).is_ok());
+        let mut bad_t = t;
+        bad_t[1] = f32::NAN;
+        let e = f.forward(&xyz, &bad_t).err().unwrap().to_string();
+        assert!(e.contains("t[1] = NaN"), "{e}");
+        let mut bad_x = xyz;
+        bad_x[4] = f32::INFINITY;
+        let e = f.forward(&bad_x, &t).err().unwrap().to_string();
+        assert!(e.contains("xyz[4] = inf"), "{e}");
     }
 }

@@ -200,6 +200,20 @@ impl<T: Real> ProjectionInput<'_, T> {
                 format!("{}x{} (each side 1 to 65536)", s.width, s.height),
             ));
         }
+        // (Infinite intrinsics gave NaN conics; a NaN view matrix culled
+        // every Gaussian without a word.)
+        for (name, values) in [("viewmats", self.viewmats), ("Ks", self.ks)] {
+            if let Some((i, v)) = values
+                .iter()
+                .enumerate()
+                .find(|(_, v)| !v.to_f64().is_finite())
+            {
+                return Err(Error::invalid(
+                    name,
+                    format!("{v} at flat index {i} is not finite"),
+                ));
+            }
+        }
         for (name, v) in [
             ("eps2d", s.eps2d),
             ("near_plane", s.near_plane),
@@ -840,6 +854,34 @@ mod tests {
                 let e = r.unwrap_err().to_string();
                 assert!(e.contains("4097 cameras x 16384 Gaussians"), "{e}");
             }
+        }
+    }
+
+    /// Intrinsics or a view matrix that are not finite are refused, naming
+    /// the tensor and the flat index (infinite Ks gave NaN conics).
+    #[test]
+    fn non_finite_cameras_are_refused() {
+        let (means, quats, scales, vm, ks) = one_gaussian();
+        let s = ProjectionSettings::new(16, 16, Version::V1_6);
+        for (name, index) in [("viewmats", 3), ("Ks", 0)] {
+            let (mut vm, mut ks) = (vm.clone(), ks.clone());
+            let v = if name == "Ks" { &mut ks } else { &mut vm };
+            v[index] = f64::INFINITY;
+            let input = ProjectionInput {
+                means: &means,
+                covars: Covars::QuatScale {
+                    quats: &quats,
+                    scales: &scales,
+                },
+                opacities: None,
+                viewmats: &vm,
+                ks: &ks,
+            };
+            let e = fully_fused_projection(&input, &s).unwrap_err().to_string();
+            assert!(
+                e.contains(name) && e.contains(&format!("flat index {index}")),
+                "{e}"
+            );
         }
     }
 

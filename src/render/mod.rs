@@ -459,6 +459,25 @@ impl<T: Real> RasterInput<'_, T> {
                 ),
             ));
         }
+        // (A NaN matrix culled every Gaussian without a word; an infinite
+        // campos or background gave NaN pixels.)
+        for (name, values) in [
+            ("viewmatrix", &cam.viewmatrix[..]),
+            ("projmatrix", &cam.projmatrix[..]),
+            ("campos", &cam.campos[..]),
+            ("background", &self.background[..]),
+        ] {
+            if let Some((i, v)) = values
+                .iter()
+                .enumerate()
+                .find(|(_, v)| !v.to_f64().is_finite())
+            {
+                return Err(Error::invalid(
+                    name,
+                    format!("{v} at flat index {i} is not finite"),
+                ));
+            }
+        }
         Ok(n)
     }
 
@@ -877,5 +896,43 @@ mod tests {
         assert!(rasterize(&bad).is_err());
         let e = rasterize_vjp(&bad, &saved, &grad, None, GradientMode::Inria).unwrap_err();
         assert!(e.to_string().contains("sh stride"), "{e}");
+    }
+
+    /// A camera matrix, centre or background that is not finite is an error
+    /// naming it (a NaN matrix culled everything; an infinite centre or
+    /// background gave NaN pixels).
+    #[test]
+    fn non_finite_camera_or_background_is_an_error() {
+        let means = [0.0f32, 0.0, 2.0];
+        let coeffs = [0.5f32; 3];
+        let cov = [0.01f32, 0.0, 0.0, 0.01, 0.0, 0.01];
+        let run = |cam: &RasterCamera<f32>, background: [f32; 3]| -> Result<()> {
+            let i = RasterInput {
+                covariances: Covariances::Precomputed(&cov),
+                background,
+                ..input(cam, &means, &coeffs, 1)
+            };
+            rasterize(&i).map(|_| ())
+        };
+        type Edit = fn(&mut RasterCamera<f32>);
+        let edits: [(&str, Edit); 3] = [
+            ("viewmatrix", |c| c.viewmatrix[5] = f32::NAN),
+            ("projmatrix", |c| c.projmatrix[0] = f32::INFINITY),
+            ("campos", |c| c.campos[2] = f32::NEG_INFINITY),
+        ];
+        for (name, edit) in edits {
+            let mut cam = camera();
+            edit(&mut cam);
+            let e = run(&cam, [0.0; 3]).unwrap_err().to_string();
+            assert!(e.contains(name) && e.contains("not finite"), "{e}");
+        }
+        let e = run(&camera(), [0.0, f32::NAN, 0.0])
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("background") && e.contains("flat index 1"),
+            "{e}"
+        );
+        run(&camera(), [0.0; 3]).unwrap();
     }
 }
