@@ -181,6 +181,18 @@ impl Outcome {
     }
 }
 
+/// An [`Error::Invalid`] for argument `name` unless every one of `values`
+/// is finite; the error names the first other one and its flat index.
+pub fn check_finite<T: crate::math::Real>(name: &str, values: &[T]) -> Result<()> {
+    match crate::math::first_non_finite(values) {
+        Some((i, v)) => Err(Error::invalid(
+            name,
+            format!("{v} at flat index {i} is not finite"),
+        )),
+        None => Ok(()),
+    }
+}
+
 /// `v` for a message: as `{}` writes it, but in exponent form when that
 /// would be long (`1e308` is 309 digits in `{}`, `1e-300` over 300).
 pub fn shown(v: f64) -> String {

@@ -256,11 +256,7 @@ impl<T: Real> Field<T> {
         // (The MLP's ReLU turned a NaN time or position into finite
         // offsets without a word.)
         for (name, values) in [("xyz", xyz), ("t", t)] {
-            if let Some((i, v)) = values
-                .iter()
-                .enumerate()
-                .find(|(_, v)| !v.to_f64().is_finite())
-            {
+            if let Some((i, v)) = crate::math::first_non_finite(values) {
                 return Err(Error::invalid(
                     "field input",
                     format!("{name}[{i}] = {v} is not finite"),

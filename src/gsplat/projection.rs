@@ -202,18 +202,8 @@ impl<T: Real> ProjectionInput<'_, T> {
         }
         // (Infinite intrinsics gave NaN conics; a NaN view matrix culled
         // every Gaussian without a word.)
-        for (name, values) in [("viewmats", self.viewmats), ("Ks", self.ks)] {
-            if let Some((i, v)) = values
-                .iter()
-                .enumerate()
-                .find(|(_, v)| !v.to_f64().is_finite())
-            {
-                return Err(Error::invalid(
-                    name,
-                    format!("{v} at flat index {i} is not finite"),
-                ));
-            }
-        }
+        crate::error::check_finite("viewmats", self.viewmats)?;
+        crate::error::check_finite("Ks", self.ks)?;
         for (name, v) in [
             ("eps2d", s.eps2d),
             ("near_plane", s.near_plane),

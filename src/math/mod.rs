@@ -23,4 +23,13 @@ pub mod sum;
 pub mod vec;
 
 pub use real::{Precision, Real, MATH_LIBRARY};
+
+/// The first value of `values` that is NaN or infinite, with its index.
+pub fn first_non_finite<T: Real>(values: &[T]) -> Option<(usize, T)> {
+    values
+        .iter()
+        .copied()
+        .enumerate()
+        .find(|(_, v)| !v.to_f64().is_finite())
+}
 pub use rng::Rng;

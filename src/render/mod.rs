@@ -467,16 +467,7 @@ impl<T: Real> RasterInput<'_, T> {
             ("campos", &cam.campos[..]),
             ("background", &self.background[..]),
         ] {
-            if let Some((i, v)) = values
-                .iter()
-                .enumerate()
-                .find(|(_, v)| !v.to_f64().is_finite())
-            {
-                return Err(Error::invalid(
-                    name,
-                    format!("{v} at flat index {i} is not finite"),
-                ));
-            }
+            crate::error::check_finite(name, values)?;
         }
         Ok(n)
     }
